@@ -1,0 +1,16 @@
+"""satloc: vehicle localization against georeferenced satellite imagery (Chu, Mei, Bansal, Walter).
+
+The method package. It defines the shared data model (poses, camera, frames, sequences, satellite maps)
+and never imports the simulator (:mod:`satloc_env`).
+"""
+from .errors import ConfigError, FormatError, SatlocError
+from .geometry import Pose2, StereoCamera, wrap_angle
+from .satmap import SatelliteMap
+from .sequence import Frame, Sequence, SequenceWriter
+
+__version__ = "0.1.0"
+
+__all__ = [
+    "ConfigError", "FormatError", "SatlocError", "Pose2", "StereoCamera", "wrap_angle", "SatelliteMap",
+    "Frame", "Sequence", "SequenceWriter", "__version__",
+]

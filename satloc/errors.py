@@ -1,0 +1,16 @@
+"""Exceptions raised by satloc.
+
+Every error caused by bad input names the file or field at fault and what was expected.
+"""
+
+
+class SatlocError(Exception):
+    """Base class of every error satloc raises on purpose."""
+
+
+class ConfigError(SatlocError, ValueError):
+    """A configuration or scene field is missing, unknown or of the wrong type/value."""
+
+
+class FormatError(SatlocError, ValueError):
+    """A saved artefact is damaged, of another format or written by an incompatible version."""

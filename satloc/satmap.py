@@ -1,0 +1,125 @@
+"""Georeferenced satellite map: an image of the map plane with its pixel <-> metre transform.
+
+Georeference: ``origin`` is the map-frame position (metres) of the *top-left corner* of pixel (0, 0);
+``meters_per_pixel`` is the ground sampling distance. Image columns grow east (+x), rows grow south (-y).
+Pixel (u, v) has its centre at map point ``(origin_x + (u + 0.5) * mpp, origin_y - (v + 0.5) * mpp)``.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from .errors import ConfigError, FormatError
+from .persist import atomic_path, read_json, header, write_json
+
+
+@dataclass
+class SatelliteMap:
+    image: np.ndarray  # (H, W, 3) uint8 RGB
+    meters_per_pixel: float
+    origin: tuple[float, float] = (0.0, 0.0)
+    labels: np.ndarray | None = field(default=None, repr=False)  # optional (H, W) uint8 semantic classes
+
+    def __post_init__(self):
+        img = np.asarray(self.image)
+        if img.ndim != 3 or img.shape[2] != 3 or img.dtype != np.uint8:
+            raise ConfigError(f"SatelliteMap.image: expected an (H, W, 3) uint8 RGB image, got {img.dtype} {img.shape}")
+        if not self.meters_per_pixel > 0:
+            raise ConfigError(f"SatelliteMap.meters_per_pixel: expected > 0, got {self.meters_per_pixel}")
+        if self.labels is not None and self.labels.shape != img.shape[:2]:
+            raise ConfigError(f"SatelliteMap.labels: expected shape {img.shape[:2]}, got {self.labels.shape}")
+        self.origin = (float(self.origin[0]), float(self.origin[1]))
+
+    @property
+    def shape(self) -> tuple[int, int]:
+        return self.image.shape[:2]
+
+    @property
+    def extent(self) -> tuple[float, float, float, float]:
+        """(x_min, x_max, y_min, y_max) in metres."""
+        h, w = self.shape
+        x0, y1 = self.origin
+        return (x0, x0 + w * self.meters_per_pixel, y1 - h * self.meters_per_pixel, y1)
+
+    def world_to_pixel(self, xy: np.ndarray) -> np.ndarray:
+        """Continuous pixel coordinates (u, v) of map points (..., 2); centres at integers."""
+        xy = np.asarray(xy, dtype=np.float64)
+        u = (xy[..., 0] - self.origin[0]) / self.meters_per_pixel - 0.5
+        v = (self.origin[1] - xy[..., 1]) / self.meters_per_pixel - 0.5
+        return np.stack([u, v], axis=-1)
+
+    def pixel_to_world(self, uv: np.ndarray) -> np.ndarray:
+        uv = np.asarray(uv, dtype=np.float64)
+        x = self.origin[0] + (uv[..., 0] + 0.5) * self.meters_per_pixel
+        y = self.origin[1] - (uv[..., 1] + 0.5) * self.meters_per_pixel
+        return np.stack([x, y], axis=-1)
+
+    def contains(self, xy: np.ndarray, margin_m: float = 0.0) -> np.ndarray:
+        xy = np.asarray(xy, dtype=np.float64)
+        x0, x1, y0, y1 = self.extent
+        return (
+            (xy[..., 0] >= x0 + margin_m) & (xy[..., 0] <= x1 - margin_m)
+            & (xy[..., 1] >= y0 + margin_m) & (xy[..., 1] <= y1 - margin_m)
+        )
+
+    def crop(self, center_xy, size_m: float, yaw: float | None = None, out_px: int | None = None) -> np.ndarray:
+        """Square patch of ``size_m`` metres around ``center_xy`` (north up, or heading up if ``yaw``)."""
+        out_px = out_px or max(1, int(round(size_m / self.meters_per_pixel)))
+        s = out_px / size_m * self.meters_per_pixel  # output px per map px
+        cu, cv_ = self.world_to_pixel(np.asarray(center_xy))
+        rot = 0.0 if yaw is None else math.degrees(yaw) - 90.0
+        m = cv2.getRotationMatrix2D((float(cu), float(cv_)), -rot, s)
+        m[0, 2] += out_px / 2 - 0.5 - cu
+        m[1, 2] += out_px / 2 - 0.5 - cv_
+        return cv2.warpAffine(self.image, m, (out_px, out_px), flags=cv2.INTER_AREA if s < 1 else cv2.INTER_LINEAR,
+                              borderMode=cv2.BORDER_CONSTANT, borderValue=(0, 0, 0))
+
+    # --- persistence ------------------------------------------------------------------------------
+    def save(self, directory: str | Path) -> None:
+        """Write ``map.png`` (+ ``labels.png``) and ``map.json`` into ``directory``."""
+        d = Path(directory)
+        d.mkdir(parents=True, exist_ok=True)
+        with atomic_path(d / "map.png", suffix=".png") as tmp:
+            if not cv2.imwrite(str(tmp), cv2.cvtColor(self.image, cv2.COLOR_RGB2BGR)):
+                raise OSError(f"{d / 'map.png'}: could not write image")
+        if self.labels is not None:
+            with atomic_path(d / "labels.png", suffix=".png") as tmp:
+                cv2.imwrite(str(tmp), self.labels)
+        meta = header("satellite_map")
+        meta.update(meters_per_pixel=self.meters_per_pixel, origin=list(self.origin),
+                    image="map.png", labels="labels.png" if self.labels is not None else None,
+                    width=int(self.shape[1]), height=int(self.shape[0]))
+        write_json(d / "map.json", meta)
+
+    @staticmethod
+    def load(directory: str | Path) -> "SatelliteMap":
+        d = Path(directory)
+        meta = read_json(d / "map.json", "satellite_map")
+        for k in ("meters_per_pixel", "origin", "image"):
+            if k not in meta:
+                raise FormatError(f"{d / 'map.json'}: missing field '{k}'")
+        img = read_image(d / meta["image"])
+        if (img.shape[1], img.shape[0]) != (meta.get("width", img.shape[1]), meta.get("height", img.shape[0])):
+            raise FormatError(f"{d / meta['image']}: size {img.shape[1]}x{img.shape[0]} differs from map.json")
+        labels = None
+        if meta.get("labels"):
+            labels = read_image(d / meta["labels"], grayscale=True)
+        return SatelliteMap(img, float(meta["meters_per_pixel"]), tuple(meta["origin"]), labels)
+
+
+def read_image(path: str | Path, grayscale: bool = False) -> np.ndarray:
+    """Read an image file as RGB uint8 (or single-channel); clear error if missing or unreadable."""
+    path = Path(path)
+    if not path.is_file():
+        raise FormatError(f"{path}: image file not found")
+    flag = cv2.IMREAD_UNCHANGED if grayscale else cv2.IMREAD_COLOR
+    img = cv2.imread(str(path), flag)
+    if img is None:
+        raise FormatError(f"{path}: not a readable image")
+    if grayscale:
+        return img if img.ndim == 2 else img[..., 0]
+    return cv2.cvtColor(img, cv2.COLOR_BGR2RGB)

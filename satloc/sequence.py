@@ -1,0 +1,241 @@
+"""Frames and sequences: what the simulator and the dataset readers produce and the method consumes.
+
+On-disk layout of a sequence directory (format ``sequence``, version 1)::
+
+    sequence.json          header, name, camera (StereoCamera fields), frame count, which channels exist,
+                           free-form ``meta`` (source, scene, pass settings)
+    frames.npz             poses (N, 3) float64 [x, y, yaw] in the map frame, timestamps (N,) float64 seconds,
+                           has_pose (N,) bool
+    left/000000.png        left colour image, RGB stored as an 8-bit PNG
+    right/000000.png       right colour image
+    depth/000000.png       optional: left-camera metric z-depth as 16-bit PNG, metres * 256, 0 = invalid
+    labels/000000.png      optional: left-camera semantic class ids (satloc.labels.CLASSES), 8-bit PNG
+
+Sequences are written to a temporary directory and renamed into place only when complete.
+"""
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Iterator, Sequence as Seq
+
+import cv2
+import numpy as np
+
+from .errors import FormatError
+from .geometry import Pose2, StereoCamera
+from .persist import atomic_dir, load_npz, read_json, save_npz, write_json, header
+from .satmap import read_image
+
+DEPTH_SCALE = 256.0  # depth PNG units per metre
+
+
+@dataclass
+class Frame:
+    """One stereo capture. Images are RGB uint8 (H, W, 3); depth float32 metres (0 = invalid)."""
+
+    left: np.ndarray
+    right: np.ndarray
+    pose: Pose2 | None = None
+    timestamp: float = 0.0
+    depth: np.ndarray | None = None
+    labels: np.ndarray | None = None
+
+    def check(self, camera: StereoCamera, where: str = "frame") -> None:
+        want = (camera.height, camera.width)
+        for name in ("left", "right"):
+            img = getattr(self, name)
+            if img.shape[:2] != want or img.ndim != 3 or img.dtype != np.uint8:
+                raise FormatError(
+                    f"{where}.{name}: expected a {camera.width}x{camera.height} RGB uint8 image "
+                    f"(the camera's size), got {img.dtype} {img.shape}")
+        for name in ("depth", "labels"):
+            arr = getattr(self, name)
+            if arr is not None and arr.shape[:2] != want:
+                raise FormatError(f"{where}.{name}: expected shape {want}, got {arr.shape}")
+
+
+def _imwrite(path: Path, img: np.ndarray) -> None:
+    if img.ndim == 3:
+        img = cv2.cvtColor(img, cv2.COLOR_RGB2BGR)
+    if not cv2.imwrite(str(path), img):
+        raise OSError(f"{path}: could not write image")
+
+
+def encode_depth(depth: np.ndarray) -> np.ndarray:
+    d = np.nan_to_num(np.asarray(depth, dtype=np.float64), nan=0.0, posinf=0.0)
+    return np.clip(np.round(d * DEPTH_SCALE), 0, 65535).astype(np.uint16)
+
+
+def decode_depth(png: np.ndarray) -> np.ndarray:
+    return png.astype(np.float32) / DEPTH_SCALE
+
+
+class SequenceWriter:
+    """Streams frames into a sequence directory; the directory appears only when :meth:`close` succeeds.
+
+    Use as a context manager: on an exception nothing is left behind.
+    """
+
+    def __init__(self, path: str | Path, camera: StereoCamera, name: str = "", meta: dict | None = None):
+        self.path = Path(path)
+        self.camera = camera
+        self.name = name or self.path.name
+        self.meta = dict(meta or {})
+        self._ctx = atomic_dir(self.path)
+        self._tmp = self._ctx.__enter__()
+        self._poses: list[np.ndarray] = []
+        self._has_pose: list[bool] = []
+        self._stamps: list[float] = []
+        self._channels: set[str] | None = None
+        for sub in ("left", "right"):
+            (self._tmp / sub).mkdir()
+
+    def add(self, frame: Frame) -> None:
+        i = len(self._stamps)
+        frame.check(self.camera, where=f"{self.path} frame {i}")
+        channels = {c for c in ("depth", "labels") if getattr(frame, c) is not None}
+        if self._channels is None:
+            self._channels = channels
+            for c in channels:
+                (self._tmp / c).mkdir()
+        elif channels != self._channels:
+            raise FormatError(f"{self.path} frame {i}: has channels {sorted(channels)}, earlier frames "
+                              f"{sorted(self._channels)}; every frame needs the same ones")
+        name = f"{i:06d}.png"
+        _imwrite(self._tmp / "left" / name, frame.left)
+        _imwrite(self._tmp / "right" / name, frame.right)
+        if frame.depth is not None:
+            _imwrite(self._tmp / "depth" / name, encode_depth(frame.depth))
+        if frame.labels is not None:
+            _imwrite(self._tmp / "labels" / name, frame.labels.astype(np.uint8))
+        self._poses.append(frame.pose.as_array() if frame.pose is not None else np.full(3, np.nan))
+        self._has_pose.append(frame.pose is not None)
+        self._stamps.append(float(frame.timestamp))
+
+    def close(self) -> "Sequence":
+        n = len(self._stamps)
+        save_npz(self._tmp / "frames.npz", "sequence_frames", {
+            "poses": np.array(self._poses, dtype=np.float64).reshape(n, 3),
+            "timestamps": np.array(self._stamps, dtype=np.float64),
+            "has_pose": np.array(self._has_pose, dtype=bool),
+        })
+        info = header("sequence")
+        info.update(name=self.name, camera=self.camera.to_dict(), num_frames=n,
+                    channels=sorted(self._channels or []), meta=self.meta)
+        write_json(self._tmp / "sequence.json", info)
+        self._ctx.__exit__(None, None, None)
+        return Sequence.load(self.path)
+
+    def abort(self) -> None:
+        try:
+            raise RuntimeError("aborted")
+        except RuntimeError as e:
+            try:
+                self._ctx.__exit__(type(e), e, e.__traceback__)
+            except RuntimeError:
+                pass
+
+    def __enter__(self) -> "SequenceWriter":
+        return self
+
+    def __exit__(self, et, ev, tb) -> None:
+        if et is not None:
+            self.abort()
+
+
+class Sequence:
+    """Frames plus the camera that took them. In memory, or backed by a directory (loaded lazily)."""
+
+    def __init__(self, camera: StereoCamera, frames: Seq[Frame] | None = None, name: str = "",
+                 meta: dict | None = None):
+        self.camera = camera
+        self.name = name
+        self.meta = dict(meta or {})
+        self._frames = list(frames) if frames is not None else []
+        self._dir: Path | None = None
+        self._channels: list[str] = []
+        for i, f in enumerate(self._frames):
+            f.check(camera, where=f"sequence {name!r} frame {i}")
+        self._poses = np.array([f.pose.as_array() if f.pose is not None else np.full(3, np.nan)
+                                for f in self._frames]).reshape(-1, 3)
+        self._stamps = np.array([f.timestamp for f in self._frames], dtype=np.float64)
+
+    # --- access -----------------------------------------------------------------------------------
+    def __len__(self) -> int:
+        return len(self._stamps)
+
+    def __getitem__(self, i: int) -> Frame:
+        n = len(self)
+        if not -n <= i < n:
+            raise IndexError(f"frame {i} out of range for a sequence of {n}")
+        i %= n
+        if self._dir is None:
+            return self._frames[i]
+        return self._read_frame(i)
+
+    def __iter__(self) -> Iterator[Frame]:
+        for i in range(len(self)):
+            yield self[i]
+
+    @property
+    def poses(self) -> np.ndarray:
+        """(N, 3) [x, y, yaw]; rows of NaN where a frame has no pose."""
+        return self._poses.copy()
+
+    @property
+    def timestamps(self) -> np.ndarray:
+        return self._stamps.copy()
+
+    def path_length(self) -> float:
+        p = self._poses[:, :2]
+        p = p[np.all(np.isfinite(p), axis=1)]
+        return float(np.linalg.norm(np.diff(p, axis=0), axis=1).sum()) if len(p) > 1 else 0.0
+
+    # --- persistence ------------------------------------------------------------------------------
+    def save(self, path: str | Path) -> "Sequence":
+        with SequenceWriter(path, self.camera, self.name, self.meta) as w:
+            for f in self:
+                w.add(f)
+            return w.close()
+
+    @staticmethod
+    def load(path: str | Path) -> "Sequence":
+        d = Path(path)
+        if not d.is_dir():
+            raise FormatError(f"{d}: sequence directory not found")
+        info = read_json(d / "sequence.json", "sequence")
+        try:
+            camera = StereoCamera(**info["camera"])
+            n = int(info["num_frames"])
+        except (KeyError, TypeError) as e:
+            raise FormatError(f"{d / 'sequence.json'}: bad or missing field ({e})") from e
+        arrays, _ = load_npz(d / "frames.npz", "sequence_frames")
+        for k in ("poses", "timestamps", "has_pose"):
+            if k not in arrays:
+                raise FormatError(f"{d / 'frames.npz'}: missing array '{k}'")
+        if arrays["poses"].shape != (n, 3) or arrays["timestamps"].shape != (n,):
+            raise FormatError(f"{d / 'frames.npz'}: arrays do not match num_frames={n}")
+        seq = Sequence(camera, None, info.get("name", d.name), info.get("meta", {}))
+        seq._dir = d
+        seq._poses = np.where(arrays["has_pose"][:, None], arrays["poses"], np.nan)
+        seq._stamps = arrays["timestamps"]
+        seq._channels = list(info.get("channels", []))
+        for i in (0, n - 1) if n else ():
+            if not (d / "left" / f"{i:06d}.png").is_file():
+                raise FormatError(f"{d / 'left' / f'{i:06d}.png'}: missing frame image")
+        return seq
+
+    def _read_frame(self, i: int) -> Frame:
+        d, name = self._dir, f"{i:06d}.png"
+        depth = labels = None
+        if "depth" in self._channels:
+            depth = decode_depth(read_image(d / "depth" / name, grayscale=True))
+        if "labels" in self._channels:
+            labels = read_image(d / "labels" / name, grayscale=True)
+        pose = Pose2.from_array(self._poses[i]) if np.all(np.isfinite(self._poses[i])) else None
+        f = Frame(read_image(d / "left" / name), read_image(d / "right" / name), pose, float(self._stamps[i]),
+                  depth, labels)
+        f.check(self.camera, where=f"{d} frame {i}")
+        return f

@@ -1,0 +1,166 @@
+"""The ``satloc`` command line. It composes the method (:mod:`satloc`) and the simulator (:mod:`satloc_env`)."""
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from satloc.errors import SatlocError
+
+
+def _save_rgb(path: Path, img: np.ndarray) -> None:
+    from satloc.persist import atomic_path
+
+    with atomic_path(path, suffix=path.suffix) as tmp:
+        if not cv2.imwrite(str(tmp), cv2.cvtColor(img, cv2.COLOR_RGB2BGR)):
+            raise OSError(f"{path}: could not write image")
+
+
+def route_overview(scene, poses: np.ndarray, max_px: int = 1400) -> np.ndarray:
+    """The whole satellite tile with the route and the given poses drawn on it."""
+    sm = scene.satmap
+    img = sm.image.copy()
+    route = scene.routes[scene.spec.database_route]
+    uv = sm.world_to_pixel(route.points)
+    cv2.polylines(img, [np.round(uv * 16).astype(np.int32).reshape(-1, 1, 2)], False, (80, 200, 255), 3,
+                  cv2.LINE_AA, shift=4)
+    for x, y, yaw in poses:
+        a = sm.world_to_pixel(np.array([x, y]))
+        b = sm.world_to_pixel(np.array([x + 6 * np.cos(yaw), y + 6 * np.sin(yaw)]))
+        cv2.arrowedLine(img, tuple(np.round(a).astype(int)), tuple(np.round(b).astype(int)), (255, 40, 40), 2,
+                        cv2.LINE_AA, tipLength=0.4)
+    s = min(1.0, max_px / max(img.shape[:2]))
+    return cv2.resize(img, None, fx=s, fy=s, interpolation=cv2.INTER_AREA) if s < 1 else img
+
+
+def cmd_demo(args) -> int:
+    """Drive the default route, write a strip of stereo frames and a bird's-eye picture."""
+    from satloc_env.env import SatLocEnv, compose_view
+
+    out = Path(args.out)
+    env = SatLocEnv(scene=args.scene, resolution=args.resolution, render_mode="rgb_array", depth=True)
+    obs, info = env.reset(seed=args.seed)
+    rows, poses = [], []
+    every = max(1, args.every)
+    for i in range(args.frames * every):
+        if i % every == 0:
+            d = obs["depth"]
+            depth_vis = cv2.applyColorMap(np.clip(255 - d * 255 / 60.0, 0, 255).astype(np.uint8),
+                                          cv2.COLORMAP_TURBO)[..., ::-1]
+            depth_vis[d <= 0] = 0
+            rows.append(np.hstack([obs["left"], obs["right"], depth_vis]))
+            poses.append(info["pose"])
+            if len(rows) == 1:
+                _save_rgb(out / "view.png", env.render())
+        obs, _, term, trunc, info = env.step(env.autopilot_action())
+        if term or trunc:
+            break
+    strip = np.vstack(rows[:: max(1, len(rows) // 6)][:6])
+    _save_rgb(out / "stereo_strip.png", strip)
+    _save_rgb(out / "birdseye.png", route_overview(env.scene, np.array(poses)))
+    env.close()
+    print(json.dumps({"scene": args.scene, "frames": len(rows), "driven_m": round(float(info["route_s"]), 1),
+                      "out": str(out), "files": ["view.png", "stereo_strip.png", "birdseye.png"]}))
+    return 0
+
+
+def cmd_record(args) -> int:
+    from satloc_env.record import PassConfig, RecordConfig, record_passes
+
+    cfg = RecordConfig(
+        scene=args.scene, resolution=args.resolution, aliasing=args.aliasing,
+        database=PassConfig(lane_offset_m=args.db_lane, spacing_m=args.db_spacing, max_frames=args.max_frames,
+                            seed=args.seed),
+        query=PassConfig(lane_offset_m=args.query_lane, spacing_m=args.query_spacing, max_frames=args.max_frames,
+                         occlusion=args.occlusion, appearance=args.appearance, seed=args.seed + 1),
+    )
+    db, q = record_passes(cfg, args.out, progress=not args.quiet)
+    print(json.dumps({"out": args.out, "database_frames": len(db), "database_m": round(db.path_length(), 1),
+                      "query_frames": len(q), "query_m": round(q.path_length(), 1)}))
+    return 0
+
+
+def cmd_bench(args) -> int:
+    if args.what == "env":
+        from satloc_env.bench import bench_env
+
+        print(json.dumps(bench_env(args.resolution, args.steps, args.scene)))
+    return 0
+
+
+def cmd_scene(args) -> int:
+    from satloc_env.scene import load_scene
+
+    scene = load_scene(args.scene, args.aliasing)
+    if args.save:
+        scene.save(args.save)
+    if args.picture:
+        _save_rgb(Path(args.picture), route_overview(scene, np.zeros((0, 3))))
+    w, h = scene.layout.width_m, scene.layout.height_m
+    print(json.dumps({"scene": scene.name, "size_m": [w, h], "tile_px": list(scene.satmap.image.shape[1::-1]),
+                      "routes_m": {k: round(r.length, 1) for k, r in scene.routes.items()},
+                      "buildings": len(scene.layout.buildings), "trees": len(scene.layout.trees),
+                      "cars": len(scene.layout.cars)}))
+    return 0
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="satloc", description=__doc__)
+    sub = p.add_subparsers(dest="command", required=True)
+
+    d = sub.add_parser("demo", help="drive the default scene and write stereo frames and a bird's-eye picture")
+    d.add_argument("--scene", default="city")
+    d.add_argument("--out", default="satloc_demo")
+    d.add_argument("--resolution", choices=["half", "full"], default="half")
+    d.add_argument("--frames", type=int, default=24)
+    d.add_argument("--every", type=int, default=10, help="keep one frame every N steps")
+    d.add_argument("--seed", type=int, default=0)
+    d.set_defaults(func=cmd_demo)
+
+    r = sub.add_parser("record", help="record database and query passes of a scene")
+    r.add_argument("--scene", default="city")
+    r.add_argument("--out", required=True)
+    r.add_argument("--resolution", choices=["half", "full"], default="half")
+    r.add_argument("--aliasing", type=float, default=None)
+    r.add_argument("--db-lane", type=float, default=-1.75)
+    r.add_argument("--query-lane", type=float, default=-0.75)
+    r.add_argument("--db-spacing", type=float, default=1.0)
+    r.add_argument("--query-spacing", type=float, default=10.0)
+    r.add_argument("--occlusion", type=float, default=0.3)
+    r.add_argument("--appearance", type=float, default=0.5)
+    r.add_argument("--max-frames", type=int, default=None)
+    r.add_argument("--seed", type=int, default=0)
+    r.add_argument("--quiet", action="store_true")
+    r.set_defaults(func=cmd_record)
+
+    b = sub.add_parser("bench", help="print benchmark figures as JSON lines")
+    b.add_argument("what", choices=["env"])
+    b.add_argument("--resolution", choices=["half", "full"], default="half")
+    b.add_argument("--steps", type=int, default=2000)
+    b.add_argument("--scene", default="city")
+    b.set_defaults(func=cmd_bench)
+
+    s = sub.add_parser("scene", help="generate a scene; print its summary, save it or draw it")
+    s.add_argument("scene")
+    s.add_argument("--aliasing", type=float, default=None)
+    s.add_argument("--save", help="directory to save the generated scene to")
+    s.add_argument("--picture", help="PNG of the tile with the route")
+    s.set_defaults(func=cmd_scene)
+    return p
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    try:
+        return args.func(args)
+    except SatlocError as e:
+        print(f"satloc: error: {e}", file=sys.stderr)
+        return 2
+
+
+if __name__ == "__main__":
+    sys.exit(main())

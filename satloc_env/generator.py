@@ -1,0 +1,338 @@
+"""Procedural scene generators: a grid of city or residential blocks, painted as a satellite tile and
+built as a 3-D world from one layout.
+
+A grid scene has ``nx x ny`` cells of ``pitch`` metres, road centre lines on the cell borders, and a
+``margin`` of open land (with the roads continuing to the edge) around them. Each cell is painted in its own
+coordinates from a cell seed, so an *aliased* cell (one that reuses another cell's seed) is an exact copy of
+it: the same layout, objects and texture.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Literal
+
+import cv2
+import numpy as np
+
+from satloc.labels import CLASS_ID as C
+
+from .layout import Building, Car, Layout, Tree
+from .paint import fill_poly, noise, rect_poly, tint, to_px
+
+LANE_W = 3.5            # metres, one driving lane
+MARK_W = 0.15           # lane marking width
+
+
+@dataclass(frozen=True)
+class GridParams:
+    style: Literal["city", "residential"] = "city"
+    blocks: tuple[int, int] = (4, 4)
+    pitch_m: float = 80.0
+    road_width_m: float = 12.0
+    sidewalk_m: float = 3.0
+    margin_m: float = 20.0
+
+    def size_m(self) -> tuple[float, float]:
+        return (self.blocks[0] * self.pitch_m + 2 * self.margin_m, self.blocks[1] * self.pitch_m + 2 * self.margin_m)
+
+    def road_lines(self) -> tuple[np.ndarray, np.ndarray]:
+        """x of the north-south roads and y of the east-west roads (centre lines, metres)."""
+        xs = self.margin_m + self.pitch_m * np.arange(self.blocks[0] + 1)
+        ys = self.margin_m + self.pitch_m * np.arange(self.blocks[1] + 1)
+        return xs, ys
+
+
+def alias_sources(n_cells: int, aliasing: float, rng: np.random.Generator) -> np.ndarray:
+    """For each cell the index of the cell whose seed it uses; ``round(aliasing * n)`` cells are copies."""
+    src = np.arange(n_cells)
+    n_copy = min(int(round(aliasing * n_cells)), n_cells - 1)
+    if n_copy <= 0:
+        return src
+    order = rng.permutation(n_cells)
+    copies, originals = order[:n_copy], order[n_copy:]
+    src[copies] = rng.choice(originals, size=n_copy)
+    return src
+
+
+def _paint_base(labels: np.ndarray, rgb: np.ndarray, rng: np.random.Generator, mpp: float) -> None:
+    """Colour every pixel from its class with natural, class-specific texture."""
+    h, w = labels.shape
+    px = lambda m: max(1.0, m / mpp)  # metres to pixels
+    fine = noise((h, w), rng, (px(0.4), 1), [1.0, 0.6])
+    coarse = noise((h, w), rng, (px(12.0), px(3.0)), [1.0, 0.5])
+    for cls, col, amp_f, amp_c in (
+        ("road", (88, 88, 92), 10, 10), ("parking", (100, 100, 102), 10, 8), ("sidewalk", (168, 163, 155), 8, 10),
+        ("grass", (78, 118, 48), 16, 22), ("soil", (132, 108, 78), 14, 16), ("building", (120, 118, 112), 6, 6),
+        ("lane_marking", (232, 232, 226), 6, 4), ("void", (60, 60, 60), 6, 6),
+    ):
+        m = labels == C[cls]
+        if m.any():
+            tint(m, rgb, col, amp_f * fine + amp_c * coarse, 1.0)
+    g = labels == C["grass"]
+    if g.any():  # dry patches: shift some grass towards yellow-brown
+        dry = np.clip(coarse[g] * 1.5, 0, 1)[:, None]
+        rgb[g] = np.clip(rgb[g] * (1 - 0.35 * dry) + np.array([150, 135, 80]) * 0.35 * dry, 0, 255).astype(np.uint8)
+    sw = labels == C["sidewalk"]
+    if sw.any():  # paving slab joints every 1.5 m
+        step = max(2, int(round(1.5 / mpp)))
+        joints = np.zeros((h, w), bool)
+        joints[::step, :] = True
+        joints[:, ::step] = True
+        j = sw & joints
+        rgb[j] = (rgb[j] * 0.82).astype(np.uint8)
+
+
+class CellPainter:
+    """Paints one cell (road centre to road centre) and lists its objects, in cell coordinates:
+    metres with the origin at the cell's south-west corner, x east, y north."""
+
+    def __init__(self, p: GridParams, mpp: float, seed: int):
+        self.p, self.mpp = p, mpp
+        self.rng = np.random.default_rng(seed)
+        self.n = int(round(p.pitch_m / mpp))
+        self.labels = np.full((self.n, self.n), C["sidewalk"], np.uint8)
+        self.buildings: list[Building] = []
+        self.trees: list[Tree] = []
+        self.cars: list[Car] = []
+
+    # geometry helpers -----------------------------------------------------------------------------
+    def poly(self, pts_m, cls: int) -> None:
+        fill_poly(self.labels, to_px(np.asarray(pts_m), self.p.pitch_m, self.mpp), int(cls))
+
+    def rect(self, x0, y0, x1, y1, cls: int) -> None:
+        self.poly([[x0, y0], [x1, y0], [x1, y1], [x0, y1]], cls)
+
+    def paint(self) -> np.ndarray:
+        p, P = self.p, self.p.pitch_m
+        hr = p.road_width_m / 2
+        inner0, inner1 = hr + p.sidewalk_m, P - hr - p.sidewalk_m
+        # half roads on the four sides (the cell border is a road centre line)
+        for x0, y0, x1, y1 in ((0, 0, P, hr), (0, P - hr, P, P), (0, 0, hr, P), (P - hr, 0, P, P)):
+            self.rect(x0, y0, x1, y1, C["road"])
+        if p.style == "city":
+            self._city_block(inner0, inner1)
+        else:
+            self._residential_block(inner0, inner1)
+        self._street_trees(hr, inner0, inner1)
+        self._curb_cars(hr)
+        self._markings(hr)
+        rgb = np.zeros((self.n, self.n, 3), np.uint8)
+        _paint_base(self.labels, rgb, self.rng, self.mpp)
+        self._parking_stripes(rgb)
+        return rgb
+
+    # block contents -------------------------------------------------------------------------------
+    def _lots(self, a: float, b: float, lo: float, hi: float) -> list[float]:
+        cuts, x = [a], a
+        while b - x > hi:
+            x += self.rng.uniform(lo, hi)
+            cuts.append(x)
+        cuts[-1] = b
+        return cuts
+
+    def _city_block(self, i0: float, i1: float) -> None:
+        r = self.rng
+        xs, ys = self._lots(i0, i1, 18, 32), self._lots(i0, i1, 18, 32)
+        self._parking_lots: list[tuple[float, float, float, float]] = []
+        for xa, xb in zip(xs[:-1], xs[1:]):
+            for ya, yb in zip(ys[:-1], ys[1:]):
+                kind = r.choice(["building", "parking", "park"], p=[0.72, 0.16, 0.12])
+                if kind == "building":
+                    inset = r.uniform(0.0, 1.5)
+                    fp = np.array([[xa + inset, ya + inset], [xb - inset, ya + inset], [xb - inset, yb - inset],
+                                   [xa + inset, yb - inset]])
+                    self.buildings.append(Building(fp, float(r.uniform(8, 30)), int(r.integers(0, 8)),
+                                                   _roof_rgb(r, 95, 175)))
+                    self.rect(xa + inset, ya + inset, xb - inset, yb - inset, C["building"])
+                elif kind == "parking":
+                    self.rect(xa + 1, ya + 1, xb - 1, yb - 1, C["parking"])
+                    self._parking_lots.append((xa + 1, ya + 1, xb - 1, yb - 1))
+                    self._fill_parking(xa + 1, ya + 1, xb - 1, yb - 1)
+                else:
+                    self.rect(xa + 0.5, ya + 0.5, xb - 0.5, yb - 0.5, C["grass"])
+                    for _ in range(int(r.integers(2, 6))):
+                        self._tree(r.uniform(xa + 3, xb - 3), r.uniform(ya + 3, yb - 3))
+
+    def _residential_block(self, i0: float, i1: float) -> None:
+        r = self.rng
+        self._parking_lots = []
+        self.rect(i0, i0, i1, i1, C["grass"])
+        depth = min(24.0, (i1 - i0) / 2)
+        # lots along the south and north edges, facing the street
+        for side in (0, 1):
+            xs = self._lots(i0, i1, 14, 20)
+            for xa, xb in zip(xs[:-1], xs[1:]):
+                w = xb - xa
+                hw, hd = min(w - 4, r.uniform(8, 12)), r.uniform(8, 11)
+                cx = r.uniform(xa + 2 + hw / 2, xb - 2 - hw / 2) if w - 4 > hw else (xa + xb) / 2
+                setback = r.uniform(5, 8)
+                y_front = i0 + setback if side == 0 else i1 - setback
+                y0, y1 = (y_front, y_front + hd) if side == 0 else (y_front - hd, y_front)
+                fp = np.array([[cx - hw / 2, y0], [cx + hw / 2, y0], [cx + hw / 2, y1], [cx - hw / 2, y1]])
+                self.buildings.append(Building(fp, float(r.uniform(5.5, 9)), int(r.integers(0, 8)),
+                                               _roof_rgb(r, 70, 150)))
+                self.rect(fp[0, 0], y0, fp[1, 0], y1, C["building"])
+                # driveway from the sidewalk to the house, beside it
+                dx = cx + hw / 2 + 0.5 if cx + hw / 2 + 3.5 < xb else cx - hw / 2 - 3.5
+                ys = (i0, y0 + 2) if side == 0 else (y1 - 2, i1)
+                self.rect(dx, ys[0], dx + 3.0, ys[1], C["soil"] if r.random() < 0.4 else C["sidewalk"])
+                if r.random() < 0.5:
+                    self.cars.append(self._car(dx + 1.5, ys[0] + 3.5 if side == 0 else ys[1] - 3.5, math.pi / 2))
+                for _ in range(int(r.integers(0, 3))):  # yard trees behind the houses
+                    ty = r.uniform(y1 + 2, i0 + depth - 1) if side == 0 else r.uniform(i1 - depth + 1, y0 - 2)
+                    self._tree(r.uniform(xa + 2, xb - 2), ty)
+        # garden soil patches in the block centre
+        if i1 - i0 > 2 * depth + 2:
+            self.rect(i0 + 3, i0 + depth + 1, i1 - 3, i1 - depth - 1, C["soil"] if r.random() < 0.5 else C["grass"])
+
+    def _fill_parking(self, x0, y0, x1, y1) -> None:
+        r = self.rng
+        stall = 2.6
+        rows = [y0 + 2.8, y1 - 2.8]
+        for ry in rows:
+            x = x0 + stall / 2
+            while x < x1 - stall / 2:
+                if r.random() < 0.6:
+                    self.cars.append(self._car(x, ry, math.pi / 2 + (math.pi if ry > (y0 + y1) / 2 else 0)))
+                x += stall
+
+    def _parking_stripes(self, rgb: np.ndarray) -> None:
+        for x0, y0, x1, y1 in getattr(self, "_parking_lots", []):
+            x = x0
+            while x <= x1 + 1e-6:
+                for ya, yb in ((y0, y0 + 5.2), (y1 - 5.2, y1)):
+                    q = to_px(np.array([[x - MARK_W / 2, ya], [x + MARK_W / 2, ya], [x + MARK_W / 2, yb],
+                                        [x - MARK_W / 2, yb]]), self.p.pitch_m, self.mpp)
+                    fill_poly(rgb, q, (225, 225, 220))
+                    fill_poly(self.labels, q, C["lane_marking"])
+                x += 2.6
+
+    def _car(self, x, y, yaw) -> Car:
+        r = self.rng
+        palette = [(200, 200, 205), (30, 30, 35), (150, 25, 30), (40, 60, 120), (120, 120, 125), (230, 230, 230),
+                   (60, 90, 60), (170, 140, 90)]
+        return Car((float(x), float(y)), float(yaw), float(r.uniform(3.9, 4.8)), float(r.uniform(1.7, 1.9)),
+                   float(r.uniform(1.4, 1.6)), palette[int(r.integers(len(palette)))])
+
+    def _tree(self, x, y) -> None:
+        r = self.rng
+        rad = float(r.uniform(1.8, 3.8))
+        bottom = float(r.uniform(2.0, 3.5))
+        self.trees.append(Tree((float(x), float(y)), rad, bottom, bottom + float(r.uniform(2.5, 6.0)),
+                               int(r.integers(0, 4))))
+
+    def _street_trees(self, hr, i0, i1) -> None:
+        r = self.rng
+        p_tree = 0.35 if self.p.style == "city" else 0.6
+        off = hr + self.p.sidewalk_m * 0.55
+        P = self.p.pitch_m
+        t = i0 + 4
+        while t < i1 - 4:
+            for x, y in ((t, off), (t, P - off), (off, t), (P - off, t)):
+                if r.random() < p_tree / 2:
+                    self._tree(x, y)
+            t += r.uniform(7, 12)
+
+    def _curb_cars(self, hr) -> None:
+        r = self.rng
+        P = self.p.pitch_m
+        off = hr - 1.2  # parking strip beside the curb
+        p_car = 0.35 if self.p.style == "city" else 0.25
+        t = hr + 6
+        while t < P - hr - 6:
+            if r.random() < p_car:
+                side = int(r.integers(4))
+                x, y, yaw = ((t, off, 0.0), (t, P - off, math.pi), (off, t, -math.pi / 2), (P - off, t, math.pi / 2))[side]
+                self.cars.append(self._car(x, y, yaw))
+            t += r.uniform(5.5, 7.5)
+
+    def _markings(self, hr) -> None:
+        """Dashed centre lines on the cell border, solid lane edges, zebra crossings at the corners."""
+        P, w = self.p.pitch_m, MARK_W
+        m = C["lane_marking"]
+        a, b = hr + 4.5, P - hr - 4.5
+        dash, period = 3.0, 6.0
+        edge = LANE_W
+        s = math.ceil(a / period) * period
+        while s + dash <= b:  # cells sharing a border share its axis origin, so dashes line up
+            for x0, y0, x1, y1 in ((s, 0, s + dash, w / 2), (s, P - w / 2, s + dash, P), (0, s, w / 2, s + dash),
+                                   (P - w / 2, s, P, s + dash)):
+                self.rect(x0, y0, x1, y1, m)
+            s += period
+        for x0, y0, x1, y1 in ((a, edge - w / 2, b, edge + w / 2), (a, P - edge - w / 2, b, P - edge + w / 2),
+                               (edge - w / 2, a, edge + w / 2, b), (P - edge - w / 2, a, P - edge + w / 2, b)):
+            self.rect(x0, y0, x1, y1, m)
+        # zebra crossings just outside each intersection, stripes across the half road
+        for cx, cy in ((0, 0), (P, 0), (0, P), (P, P)):
+            sx = 1 if cx == 0 else -1
+            sy = 1 if cy == 0 else -1
+            for k in range(int(hr / 1.0)):
+                u = k * 1.0 + 0.25
+                # crossing the east-west road (stripes along x) and the north-south road
+                self.rect(*_ordered(cx + sx * (hr + 0.8), cy + sy * u, cx + sx * (hr + 3.8), cy + sy * (u + 0.5)), m)
+                self.rect(*_ordered(cx + sx * u, cy + sy * (hr + 0.8), cx + sx * (u + 0.5), cy + sy * (hr + 3.8)), m)
+
+
+def _roof_rgb(r: np.random.Generator, lo: int, hi: int) -> tuple[int, int, int]:
+    """A greyish roof colour with a slight warm or cool tint."""
+    g = r.uniform(lo, hi)
+    tint_ = r.normal(0, 10, 3) + (np.array([14, 4, -10]) if r.random() < 0.5 else np.array([-6, 0, 8]))
+    return tuple(int(v) for v in np.clip(g + tint_, 0, 255))
+
+
+def _ordered(x0, y0, x1, y1):
+    return min(x0, x1), min(y0, y1), max(x0, x1), max(y0, y1)
+
+
+def _shift(obj, dx: float, dy: float):
+    if isinstance(obj, Building):
+        return Building(obj.footprint + np.array([dx, dy]), obj.height, obj.facade, obj.roof_rgb)
+    if isinstance(obj, Tree):
+        return Tree((obj.center[0] + dx, obj.center[1] + dy), obj.canopy_radius, obj.canopy_bottom, obj.canopy_top,
+                    obj.shade)
+    return Car((obj.center[0] + dx, obj.center[1] + dy), obj.yaw, obj.length, obj.width, obj.height, obj.rgb)
+
+
+def generate_grid(p: GridParams, seed: int, aliasing: float, mpp: float) -> tuple[Layout, np.ndarray]:
+    """Paint and populate a grid scene. Returns the layout and the per-cell alias source indices."""
+    for name, v in (("pitch_m", p.pitch_m), ("margin_m", p.margin_m)):
+        if abs(v / mpp - round(v / mpp)) > 1e-6:
+            raise ValueError(f"generator.{name}={v} must be a multiple of ground_mpp={mpp}")
+    W, H = p.size_m()
+    nx, ny = p.blocks
+    rng = np.random.default_rng(seed)
+    cell_seeds = rng.integers(0, 2**31 - 1, size=nx * ny)
+    src = alias_sources(nx * ny, aliasing, np.random.default_rng([seed, 1]))
+    Wp, Hp, n, mp = int(round(W / mpp)), int(round(H / mpp)), int(round(p.pitch_m / mpp)), int(round(p.margin_m / mpp))
+    labels = np.full((Hp, Wp), C["grass"], np.uint8)
+    # margins: open land, with the roads running on to the edge of the map
+    land = noise((Hp, Wp), np.random.default_rng([seed, 2]), (max(2, 25 / mpp),))
+    labels[land > 0.35] = C["soil"]
+    hr = p.road_width_m / 2
+    xs, ys = p.road_lines()
+    for x in xs:
+        labels[:, int(round((x - hr) / mpp)):int(round((x + hr) / mpp))] = C["road"]
+    for y in ys:
+        labels[int(round((H - y - hr) / mpp)):int(round((H - y + hr) / mpp)), :] = C["road"]
+    rgb = np.zeros((Hp, Wp, 3), np.uint8)
+    _paint_base(labels, rgb, np.random.default_rng([seed, 3]), mpp)
+    cache: dict[int, CellPainter] = {}
+    buildings, trees, cars = [], [], []
+    for j in range(ny):
+        for i in range(nx):
+            k = src[j * nx + i]
+            if k not in cache:
+                cp = CellPainter(p, mpp, int(cell_seeds[k]))
+                cp.rgb = cp.paint()
+                cache[k] = cp
+            cp = cache[k]
+            r0 = Hp - mp - (j + 1) * n
+            c0 = mp + i * n
+            labels[r0:r0 + n, c0:c0 + n] = cp.labels
+            rgb[r0:r0 + n, c0:c0 + n] = cp.rgb
+            dx, dy = p.margin_m + i * p.pitch_m, p.margin_m + j * p.pitch_m
+            buildings += [_shift(b, dx, dy) for b in cp.buildings]
+            trees += [_shift(t, dx, dy) for t in cp.trees]
+            cars += [_shift(c, dx, dy) for c in cp.cars]
+    return Layout(W, H, mpp, rgb, labels, buildings, trees, cars), src

@@ -1,0 +1,77 @@
+"""The generated world of a scene, as vector objects plus rasters; both the satellite tile and the 3-D
+world the ground camera sees are made from this one description.
+
+Map frame: x east, y north, metres; the scene covers ``[0, width_m] x [0, height_m]``. Rasters are stored
+north-up: row 0 is the northern edge (y = height_m), column 0 the western edge (x = 0). A raster of
+resolution ``mpp`` metres per pixel has pixel (u, v) centred at ``((u + 0.5) * mpp, height_m - (v + 0.5) * mpp)``.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+
+@dataclass
+class Building:
+    footprint: np.ndarray      # (N, 2) polygon, metres, counter-clockwise
+    height: float              # metres
+    facade: int = 0            # facade style index (texture variant)
+    roof_rgb: tuple[int, int, int] = (120, 110, 100)
+
+
+@dataclass
+class Tree:
+    center: tuple[float, float]
+    canopy_radius: float       # metres
+    canopy_bottom: float       # trunk height, metres
+    canopy_top: float          # metres
+    shade: int = 0             # foliage colour variant
+
+
+@dataclass
+class Car:
+    center: tuple[float, float]
+    yaw: float                 # radians, counter-clockwise from east
+    length: float = 4.3
+    width: float = 1.8
+    height: float = 1.5
+    rgb: tuple[int, int, int] = (150, 30, 30)
+
+
+@dataclass
+class Person:
+    center: tuple[float, float]
+    radius: float = 0.3
+    height: float = 1.75
+    rgb: tuple[int, int, int] = (60, 60, 120)
+
+
+@dataclass
+class Obstacle:
+    """A box obstacle (construction barrier, container, kiosk)."""
+    center: tuple[float, float]
+    yaw: float
+    length: float
+    width: float
+    height: float
+    rgb: tuple[int, int, int] = (230, 120, 20)
+
+
+@dataclass
+class Layout:
+    width_m: float
+    height_m: float
+    ground_mpp: float                          # resolution of ``ground_rgb`` / ``ground_labels``
+    ground_rgb: np.ndarray                     # (H, W, 3) uint8: what lies on the ground plane (no roofs/canopies)
+    ground_labels: np.ndarray                  # (H, W) uint8 class ids (satloc.labels) of the ground plane
+    buildings: list[Building] = field(default_factory=list)
+    trees: list[Tree] = field(default_factory=list)
+    cars: list[Car] = field(default_factory=list)   # parked cars: in the world and on the tile
+    sun_azimuth: float = 2.4                   # radians, direction the light comes from (ccw from east)
+    sun_elevation: float = 0.9                 # radians
+
+    def world_to_raster(self, xy: np.ndarray, mpp: float | None = None) -> np.ndarray:
+        mpp = mpp or self.ground_mpp
+        xy = np.asarray(xy, dtype=np.float64)
+        return np.stack([xy[..., 0] / mpp - 0.5, (self.height_m - xy[..., 1]) / mpp - 0.5], axis=-1)

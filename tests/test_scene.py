@@ -1,0 +1,135 @@
+import numpy as np
+import pytest
+import yaml
+
+from satloc import ConfigError
+from satloc.labels import CLASS_ID
+from satloc_env.generator import GridParams, alias_sources, generate_grid
+from satloc_env.route import Route
+from satloc_env.scene import Scene, available_scenes, build_scene, load_scene, load_spec
+
+SMALL = {
+    "name": "small", "seed": 3,
+    "generator": {"type": "grid", "style": "city", "blocks": [2, 2], "pitch_m": 60, "margin_m": 10},
+    "meters_per_pixel": 0.2, "ground_mpp": 0.2,
+    "routes": {"main": {"waypoints": [[10, 10], [130, 10], [130, 130], [10, 130]], "closed": True}},
+}
+
+
+def write(tmp_path, data, name="s.yaml"):
+    p = tmp_path / name
+    p.write_text(yaml.safe_dump(data))
+    return p
+
+
+def test_shipped_scenes_are_valid():
+    assert {"city", "residential", "loop"} <= set(available_scenes())
+    for name in available_scenes():
+        spec, _ = load_spec(name)
+        assert spec.name == name
+
+
+def test_loop_scene_has_3km_driven_twice_and_a_branch():
+    spec, _ = load_spec("loop")
+    main = Route(spec.routes["main"].waypoints, spec.routes["main"].closed, 1)
+    assert main.length >= 3000 and spec.routes["main"].laps == 2
+    db = {tuple(p) for p in spec.routes["main"].waypoints}
+    assert any(tuple(p) not in db for p in spec.routes[spec.query_route].waypoints)
+
+
+def test_generation_is_deterministic_and_consistent(tmp_path):
+    a = load_scene(write(tmp_path, SMALL))
+    spec, base = load_spec(tmp_path / "s.yaml")
+    b = build_scene(spec, base)
+    assert np.array_equal(a.satmap.image, b.satmap.image)
+    assert np.array_equal(a.layout.ground_rgb, b.layout.ground_rgb)
+    assert len(a.layout.buildings) == len(b.layout.buildings) > 0
+    # the tile shows roofs where the buildings are and road along the route
+    bld = a.layout.buildings[0].footprint.mean(0)
+    assert a.satmap.labels[tuple(np.round(a.satmap.world_to_pixel(bld)).astype(int)[::-1])] == CLASS_ID["building"]
+    assert a.is_drivable(70, 10 - 1.75) and not a.is_drivable(*bld)
+
+
+def test_scene_save_load_round_trip(tmp_path):
+    s = load_scene(write(tmp_path, SMALL))
+    s.save(tmp_path / "saved")
+    r = Scene.load(tmp_path / "saved")
+    assert np.array_equal(r.satmap.image, s.satmap.image)
+    assert np.array_equal(r.layout.ground_labels, s.layout.ground_labels)
+    assert [b.height for b in r.layout.buildings] == [b.height for b in s.layout.buildings]
+    assert [t.center for t in r.layout.trees] == [t.center for t in s.layout.trees]
+    assert [c.rgb for c in r.layout.cars] == [c.rgb for c in s.layout.cars]
+    assert r.routes["main"].length == s.routes["main"].length
+    assert load_scene(tmp_path / "saved").name == "small"
+
+
+def test_aliasing_copies_blocks_exactly():
+    p = GridParams(blocks=(3, 3), pitch_m=40, margin_m=10)
+    lay, src = generate_grid(p, 5, 0.5, 0.2)
+    copies = [(i, s) for i, s in enumerate(src) if s != i]
+    assert len(copies) == round(0.5 * 9)
+    n, m = int(40 / 0.2), int(10 / 0.2)
+    H = lay.ground_rgb.shape[0]
+
+    def cell(k):
+        i, j = k % 3, k // 3
+        return lay.ground_rgb[H - m - (j + 1) * n: H - m - j * n, m + i * n: m + (i + 1) * n]
+
+    for i, s in copies:
+        assert np.array_equal(cell(i), cell(s))
+    orig = [i for i, s in enumerate(src) if s == i]
+    assert not np.array_equal(cell(orig[0]), cell(orig[1]))
+    assert np.array_equal(alias_sources(9, 0.0, np.random.default_rng(0)), np.arange(9))
+    assert len(set(alias_sources(9, 1.0, np.random.default_rng(0)))) == 1  # all copies of one original
+
+
+@pytest.mark.parametrize("mutate, message", [
+    (lambda d: d.pop("routes"), "missing required key 'routes'"),
+    (lambda d: d.update(colour="red"), r"unknown key\(s\) \['colour'\]"),
+    (lambda d: d.update(seed="seven"), r"s\.yaml: seed: expected an integer"),
+    (lambda d: d["generator"].update(blocks="many"), r"generator\.blocks: expected a list"),
+    (lambda d: d["generator"].update(type="fractal"), r"generator\.type: expected 'grid' or 'image'"),
+    (lambda d: d["routes"]["main"]["waypoints"].append([500, 10]),
+     r"routes\.main\.waypoints\[4\] = \[500(\.0)?, 10(\.0)?\] lies outside the tile"),
+    (lambda d: d.update(query_route="nope"), r"query_route: route 'nope' is not in routes"),
+    (lambda d: d.update(knobs={"aliasing": 2.0}), r"knobs\.aliasing: expected a value in \[0, 1\]"),
+    (lambda d: d.update(generator={"type": "image", "image": "missing.png"}), r"generator\.image: image file .*missing\.png not found"),
+])
+def test_bad_scene_files_name_the_field(tmp_path, mutate, message):
+    import copy
+    d = copy.deepcopy(SMALL)
+    mutate(d)
+    p = write(tmp_path, d)
+    with pytest.raises(ConfigError, match=message) as e:
+        load_scene(p)
+    assert str(p) in str(e.value) or "scene" in str(e.value)
+
+
+def test_unknown_scene_name():
+    with pytest.raises(ConfigError, match="not a shipped scene"):
+        load_scene("atlantis")
+
+
+def test_image_scene(tmp_path):
+    import cv2
+    img = np.full((200, 300, 3), 90, np.uint8)
+    cv2.imwrite(str(tmp_path / "tile.png"), img)
+    d = {"name": "img", "generator": {"type": "image", "image": "tile.png"}, "meters_per_pixel": 0.2,
+         "ground_mpp": 0.2, "routes": {"main": {"waypoints": [[5, 20], [55, 20]]}}}
+    s = load_scene(write(tmp_path, d))
+    assert s.layout.width_m == pytest.approx(60) and s.layout.height_m == pytest.approx(40)
+    assert s.satmap.image.shape == (200, 300, 3)
+
+
+def test_route_sampling_and_projection():
+    r = Route([[0, 0], [10, 0], [10, 10]], name="r")
+    assert r.length == 20
+    x, y, yaw = r.sample(np.array([15.0]), offset=1.0)[0]
+    assert (x, y, yaw) == pytest.approx((9.0, 5.0, np.pi / 2))
+    s, off = r.project((9.0, 5.0))
+    assert s == pytest.approx(15.0) and off == pytest.approx(1.0)
+    loop = Route([[0, 0], [10, 0], [10, 10], [0, 10]], closed=True, laps=2)
+    assert loop.length == 80
+    assert loop.project((5.0, 0.0), s_hint=42.0)[0] == pytest.approx(45.0)
+    with pytest.raises(ValueError, match="laps > 1 needs a closed route"):
+        Route([[0, 0], [1, 0]], laps=2)
