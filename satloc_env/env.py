@@ -43,7 +43,7 @@ class EnvConfig:
     aliasing: float | None = None           # scene knobs (None: the scene file's value)
     occlusion: float | None = None
     appearance: float | None = None
-    anisotropy: int = 4
+    anisotropy: int = 1                     # >1: anisotropic texture filtering (sharper far ground, ~4x slower on llvmpipe)
     zfar_m: float = 150.0
 
 
@@ -181,7 +181,7 @@ class SatLocEnv(gym.Env):
 
     def _observe(self, odometry: np.ndarray) -> dict:
         cfg = self.config
-        out = self._renderer.render(self.pose, depth=cfg.depth, labels=cfg.labels)
+        out = self._renderer.render(self.pose, depth="left" if cfg.depth else False, labels=cfg.labels)
         obs = {"left": self.appearance(out["left"]), "right": self.appearance(out["right"]), "odometry": odometry}
         if cfg.depth:
             obs["depth"] = out["depth_left"]

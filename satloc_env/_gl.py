@@ -1,0 +1,289 @@
+"""The one entry point to pyrender / OpenGL for the simulator.
+
+Import pyrender only through this module (``from satloc_env._gl import pyrender``), and only lazily, inside the
+function or class that needs it: importing this module selects the OpenGL platform and patches pyrender, and
+``import satloc_env`` must stay cheap and create no GL context (a process that has created one cannot safely
+``fork``).
+
+What importing it does:
+
+* **Platform.** Sets ``PYOPENGL_PLATFORM=egl`` unless the user set it. PyOpenGL reads the variable once, at
+  its own first import, so this must happen before anything imports ``OpenGL`` or ``pyrender``. EGL on Mesa's
+  llvmpipe renders headless without a display server.
+* **numpy 2 fix.** pyrender 0.1.45's ``Mesh.bounds`` builds its start value from ``np.infty``, an alias that
+  numpy 2 removed, so reading ``Mesh.bounds`` (and everything built on it: ``Mesh.centroid``,
+  ``Mesh.extents``, ``Scene.bounds``, ``Scene.centroid``, some camera helpers and the viewer) raised
+  ``AttributeError``. The property is replaced by :func:`_mesh_bounds`, which computes the same
+  ``(2, 3)`` axis-aligned bounds (the union of the primitives' bounds) without the alias. numpy itself is not
+  touched.
+
+It also provides :class:`MultiViewOffscreenRenderer`, a ``pyrender.OffscreenRenderer`` that draws several
+cameras of a scene in one go, without multisampling, and sets texture filtering (anisotropy, LOD bias) on
+uploaded textures.
+"""
+from __future__ import annotations
+
+import os
+from collections.abc import Iterable, Sequence
+
+os.environ.setdefault("PYOPENGL_PLATFORM", "egl")
+
+import cv2  # noqa: E402
+import numpy as np  # noqa: E402
+import pyrender  # noqa: E402
+from OpenGL import GL  # noqa: E402
+from pyrender.constants import ProgramFlags  # noqa: E402
+
+__all__ = ["pyrender", "MultiViewOffscreenRenderer", "configure_filtering", "max_anisotropy"]
+
+#: GL_TEXTURE_MAX_ANISOTROPY and GL_MAX_TEXTURE_MAX_ANISOTROPY (EXT/ARB_texture_filter_anisotropic, core in 4.6).
+_GL_TEXTURE_MAX_ANISOTROPY = 0x84FE
+_GL_MAX_TEXTURE_MAX_ANISOTROPY = 0x84FF
+_ANISOTROPY_EXTENSIONS = ("GL_EXT_texture_filter_anisotropic", "GL_ARB_texture_filter_anisotropic")
+_MIPMAP_FILTERS = (None, GL.GL_LINEAR_MIPMAP_LINEAR, GL.GL_LINEAR_MIPMAP_NEAREST,
+                   GL.GL_NEAREST_MIPMAP_LINEAR, GL.GL_NEAREST_MIPMAP_NEAREST)
+
+
+def _mesh_bounds(self: "pyrender.Mesh") -> np.ndarray:
+    """(2, 3) float: the axis-aligned bounds of the mesh (min row, max row), the union of its primitives'."""
+    if self._bounds is None:
+        if self.primitives:
+            lows = np.array([p.bounds[0] for p in self.primitives], dtype=np.float64)
+            highs = np.array([p.bounds[1] for p in self.primitives], dtype=np.float64)
+            self._bounds = np.stack([lows.min(axis=0), highs.max(axis=0)])
+        else:
+            self._bounds = np.array([[np.inf] * 3, [-np.inf] * 3])
+    return self._bounds
+
+
+pyrender.mesh.Mesh.bounds = property(_mesh_bounds, doc=_mesh_bounds.__doc__)
+
+
+def max_anisotropy() -> float:
+    """Largest anisotropy the current GL context supports; 1.0 when anisotropic filtering is unavailable."""
+    n = int(GL.glGetIntegerv(GL.GL_NUM_EXTENSIONS))
+    names = {GL.glGetStringi(GL.GL_EXTENSIONS, i).decode() for i in range(n)}
+    version = (int(GL.glGetIntegerv(GL.GL_MAJOR_VERSION)), int(GL.glGetIntegerv(GL.GL_MINOR_VERSION)))
+    if not names.intersection(_ANISOTROPY_EXTENSIONS) and version < (4, 6):
+        return 1.0
+    return float(GL.glGetFloatv(_GL_MAX_TEXTURE_MAX_ANISOTROPY))
+
+
+def configure_filtering(textures: "Iterable[pyrender.Texture]", anisotropy: float, lod_bias: float) -> None:
+    """Set the level-of-detail bias and ``GL_TEXTURE_MAX_ANISOTROPY`` (clamped to what the context supports;
+    skipped where anisotropic filtering is unavailable) of the uploaded, mipmapped 2-D ``textures``. Needs the
+    context current."""
+    textures = [t for t in textures if t._in_context() and t.tex_type == GL.GL_TEXTURE_2D
+                and t.sampler.minFilter in _MIPMAP_FILTERS]
+    level = min(float(anisotropy), max_anisotropy()) if anisotropy > 1 and textures else 1.0
+    for tex in textures:
+        tex._bind()
+        GL.glTexParameterf(GL.GL_TEXTURE_2D, GL.GL_TEXTURE_LOD_BIAS, float(lod_bias))
+        if level > 1.0:
+            GL.glTexParameterf(GL.GL_TEXTURE_2D, _GL_TEXTURE_MAX_ANISOTROPY, level)
+        tex._unbind()
+
+
+class _MultiViewRenderer(pyrender.Renderer):
+    """pyrender's renderer with a lean flat-shaded pass that draws several views into one framebuffer.
+
+    pyrender 0.1.45 always draws offscreen into a 4x multisampled framebuffer and resolves it; the resolved
+    depth is one sample's, not the depth at the pixel centre. :meth:`render_views` instead draws into a
+    single-sample framebuffer (RGBA8 colour, 32-bit float depth) ``n`` views tall, view ``k`` in the ``k``-th
+    band from the top, and reads each buffer back once. It draws the visible mesh primitives of the scene with
+    pyrender's flat (unlit) shader: base colour factor x base colour texture x vertex colour; it supports what
+    the simulator uses, i.e. opaque, indexed, textured primitives (no blending, back faces culled). Per
+    primitive it issues only the GL calls the flat shader needs, which matters on a software rasterizer where
+    pyrender's per-draw bookkeeping costs as much as the drawing.
+    """
+
+    def __init__(self, viewport_width: int, viewport_height: int, anisotropy: float = 1.0, lod_bias: float = 0.0):
+        super().__init__(viewport_width, viewport_height)
+        self.anisotropy = float(anisotropy)
+        self.lod_bias = float(lod_bias)
+        self._filtered: set = set()
+        self._programs: dict = {}
+        self._views_fb: tuple[int, int, int] | None = None   # (framebuffer, colour rb, depth rb)
+        self._views_dims: tuple[int, int] = (0, 0)
+
+    def _update_context(self, scene, flags):
+        super()._update_context(scene, flags)
+        new = self._mesh_textures - self._filtered
+        if new:
+            configure_filtering(new, self.anisotropy, self.lod_bias)
+        self._filtered = set(self._mesh_textures)
+        self._programs = {p: prog for p, prog in self._programs.items() if p._in_context()}
+
+    def delete(self):
+        super().delete()
+        self._filtered = set()
+        self._programs = {}
+        self._delete_views_framebuffer()
+
+    def _delete_views_framebuffer(self) -> None:
+        if self._views_fb is not None:
+            fb, cb, db = self._views_fb
+            GL.glDeleteFramebuffers(1, [fb])
+            GL.glDeleteRenderbuffers(2, [cb, db])
+            self._views_fb = None
+
+    def _bind_views_framebuffer(self, width: int, height: int) -> None:
+        """Bind the single-sample framebuffer, (re)allocating it at ``width`` x ``height``."""
+        if self._views_dims != (width, height):
+            self._delete_views_framebuffer()
+        if self._views_fb is None:
+            cb, db = GL.glGenRenderbuffers(2)
+            GL.glBindRenderbuffer(GL.GL_RENDERBUFFER, cb)
+            GL.glRenderbufferStorage(GL.GL_RENDERBUFFER, GL.GL_RGBA8, width, height)
+            GL.glBindRenderbuffer(GL.GL_RENDERBUFFER, db)
+            GL.glRenderbufferStorage(GL.GL_RENDERBUFFER, GL.GL_DEPTH_COMPONENT32F, width, height)
+            fb = GL.glGenFramebuffers(1)
+            GL.glBindFramebuffer(GL.GL_FRAMEBUFFER, fb)
+            GL.glFramebufferRenderbuffer(GL.GL_FRAMEBUFFER, GL.GL_COLOR_ATTACHMENT0, GL.GL_RENDERBUFFER, cb)
+            GL.glFramebufferRenderbuffer(GL.GL_FRAMEBUFFER, GL.GL_DEPTH_ATTACHMENT, GL.GL_RENDERBUFFER, db)
+            self._views_fb, self._views_dims = (fb, cb, db), (width, height)
+        GL.glBindFramebuffer(GL.GL_FRAMEBUFFER, self._views_fb[0])
+
+    def render_views(self, scene: "pyrender.Scene", cameras: Sequence["pyrender.Node"], color: str | None,
+                     depth: bool | int) -> list[dict[str, np.ndarray]]:
+        """Draw ``scene`` from each camera node (cameras with a finite ``zfar``); per view return ``"color"``
+        (``"rgb"``: H x W x 3 uint8, ``"red"``: H x W uint8 red channel; ``None``: not read) and, if ``depth``,
+        ``"depth"`` (H x W float32 metric z-depth, 0 where nothing was drawn). ``depth`` may also be an int k:
+        depth is then read for the first k views only. Arrays are C-contiguous."""
+        flags = pyrender.RenderFlags.FLAT
+        self._update_context(scene, flags)
+        w, h, n = self.viewport_width, self.viewport_height, len(cameras)
+        self._bind_views_framebuffer(w, n * h)
+        GL.glViewport(0, 0, w, n * h)
+        GL.glClearColor(*scene.bg_color)
+        GL.glClear(GL.GL_COLOR_BUFFER_BIT | GL.GL_DEPTH_BUFFER_BIT)
+        GL.glEnable(GL.GL_DEPTH_TEST)
+        GL.glDepthMask(GL.GL_TRUE)
+        GL.glDepthFunc(GL.GL_LESS)
+        GL.glDisable(GL.GL_BLEND)
+        GL.glEnable(GL.GL_CULL_FACE)
+        GL.glCullFace(GL.GL_BACK)
+        GL.glPolygonMode(GL.GL_FRONT_AND_BACK, GL.GL_FILL)
+        GL.glActiveTexture(GL.GL_TEXTURE0)
+
+        # Front to back (nearest bounding box first, from the first camera) so that the depth test rejects
+        # hidden fragments before they are shaded.
+        eye = scene.get_pose(cameras[0])[:3, 3]
+        draws = []
+        for node in scene.mesh_nodes:
+            if node.mesh.is_visible:
+                pose = scene.get_pose(node)
+                lo, hi = node.mesh.bounds
+                centre = pose[:3, :3] @ ((lo + hi) / 2) + pose[:3, 3]
+                half = np.abs(pose[:3, :3]) @ ((hi - lo) / 2)
+                gap = float(np.linalg.norm(np.clip(eye, centre - half, centre + half) - eye))
+                for prim in node.mesh.primitives:
+                    draws.append((gap, self._program(prim), prim, pose))
+        draws.sort(key=lambda d: d[0])
+        for k, cam in enumerate(cameras):
+            GL.glViewport(0, (n - 1 - k) * h, w, h)
+            view = np.linalg.inv(scene.get_pose(cam))
+            proj = cam.camera.get_projection_matrix(width=w, height=h)
+            bound, model, factor = None, None, None
+            for _, program, prim, pose in draws:
+                if program is not bound:
+                    program._bind()
+                    program.set_uniform("V", view)
+                    program.set_uniform("P", proj)
+                    program.set_uniform("material.base_color_texture", 0)
+                    bound, model, factor = program, None, None
+                if model is None or not np.array_equal(model, pose):
+                    program.set_uniform("M", pose)
+                    model = pose
+                if factor is None or not np.array_equal(factor, prim.material.baseColorFactor):
+                    factor = prim.material.baseColorFactor
+                    program.set_uniform("material.base_color_factor", factor)
+                prim.material.baseColorTexture._bind()
+                prim._bind()
+                GL.glDrawElementsInstanced(prim.mode, prim.indices.size, GL.GL_UNSIGNED_INT, None, 1)
+        GL.glBindVertexArray(0)
+        GL.glUseProgram(0)
+        return self._read_views(cameras, color, depth)
+
+    def _program(self, prim: "pyrender.Primitive") -> "pyrender.shader_program.ShaderProgram":
+        """pyrender's flat shader program for ``prim`` (memoised: pyrender rebuilds its cache key per call)."""
+        program = self._programs.get(prim)
+        if program is None:
+            program = self._get_primitive_program(prim, pyrender.RenderFlags.FLAT, ProgramFlags.USE_MATERIAL)
+            self._programs[prim] = program
+        return program
+
+    def _read_views(self, cameras: Sequence["pyrender.Node"], color: str | None,
+                    depth: bool | int) -> list[dict[str, np.ndarray]]:
+        w, h, n = self.viewport_width, self.viewport_height, len(cameras)
+        views: list[dict[str, np.ndarray]] = [{} for _ in cameras]
+        if color is not None:
+            # RGBA is the framebuffer's own layout (the fastest read); GL's rows run bottom-up.
+            buf = GL.glReadPixels(0, 0, w, n * h, GL.GL_RGBA, GL.GL_UNSIGNED_BYTE)
+            rgba = cv2.flip(np.frombuffer(buf, dtype=np.uint8).reshape(n * h, w, 4), 0)
+            img = cv2.cvtColor(rgba, cv2.COLOR_RGBA2RGB) if color == "rgb" else cv2.extractChannel(rgba, 0)
+            for k, v in enumerate(views):
+                v["color"] = img[k * h:(k + 1) * h]
+        nd = n if depth is True else int(depth)
+        if nd > 0:
+            # the first nd views are the top nd bands of the framebuffer (GL rows run bottom-up)
+            buf = GL.glReadPixels(0, (n - nd) * h, w, nd * h, GL.GL_DEPTH_COMPONENT, GL.GL_FLOAT)
+            d = np.frombuffer(buf, dtype=np.float32).reshape(nd * h, w)[::-1]
+            z = np.empty((nd * h, w), dtype=np.float32)
+            for k, (v, cam) in enumerate(zip(views[:nd], cameras[:nd])):
+                near, far = np.float32(cam.camera.znear), np.float32(cam.camera.zfar)
+                dk, zk = d[k * h:(k + 1) * h], z[k * h:(k + 1) * h]
+                # Window depth dk in [0, 1] to eye z: near * far / ((1 - dk) (far - near) + near). 1 - dk is
+                # exact in float32 for dk >= 0.5, which keeps full precision towards the far plane.
+                np.subtract(np.float32(1.0), dk, out=zk)
+                zk *= far - near
+                zk += near
+                np.divide(near * far, zk, out=zk)
+                zk[dk >= np.float32(1.0)] = 0.0             # the cleared background
+                v["depth"] = zk
+        return views
+
+
+class MultiViewOffscreenRenderer(pyrender.OffscreenRenderer):
+    """A ``pyrender.OffscreenRenderer`` (GL context of its own) whose :meth:`render_views` draws several
+    cameras at once without multisampling (see :class:`_MultiViewRenderer`); newly uploaded mipmapped
+    textures get ``anisotropy`` and ``lod_bias`` (see :func:`configure_filtering`)."""
+
+    def __init__(self, viewport_width: int, viewport_height: int, anisotropy: float = 1.0, lod_bias: float = 0.0):
+        self._filtering = (float(anisotropy), float(lod_bias))
+        super().__init__(viewport_width, viewport_height)
+
+    def _create(self):
+        super()._create()
+        # The stock renderer has allocated no GL objects yet, so swapping it out leaks nothing.
+        self._renderer = _MultiViewRenderer(self.viewport_width, self.viewport_height, *self._filtering)
+
+    def delete(self):
+        """Free the GL objects and the context. Unlike pyrender's (and its platform's ``__del__``), this does
+        not ``eglTerminate`` the EGL display: the display is shared by every context of the process, so
+        terminating it breaks the other renderers still alive. (pyrender's ``delete`` also runs a full
+        ``gc.collect``, which this skips.)"""
+        if self._renderer is None:
+            return
+        self._platform.make_current()
+        self._renderer.delete()
+        platform = self._platform
+        if hasattr(platform, "_egl_display"):                  # pyrender's EGLPlatform
+            from OpenGL import EGL
+
+            EGL.eglMakeCurrent(platform._egl_display, EGL.EGL_NO_SURFACE, EGL.EGL_NO_SURFACE, EGL.EGL_NO_CONTEXT)
+            EGL.eglDestroyContext(platform._egl_display, platform._egl_context)
+            platform._egl_context = platform._egl_display = None   # its __del__ would terminate the display
+        else:
+            platform.delete_context()
+        self._renderer = None
+        self._platform = None
+
+    def render_views(self, scene: "pyrender.Scene", cameras: Sequence["pyrender.Node"], color: str | None = "rgb",
+                     depth: bool | int = True) -> list[dict[str, np.ndarray]]:
+        """See :meth:`_MultiViewRenderer.render_views`."""
+        self._platform.make_current()
+        try:
+            return self._renderer.render_views(scene, cameras, color, depth)
+        finally:
+            self._platform.make_uncurrent()

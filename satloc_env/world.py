@@ -1,0 +1,686 @@
+"""Renderable 3-D geometry of a scene :class:`~satloc_env.layout.Layout` (pure numpy: no GL, picklable).
+
+The ground plane (z = 0) is cut into square chunks of about ``chunk_m`` metres. Each chunk is one
+:class:`TexturedMesh` (one draw call): its ground quad plus every building, tree and parked car whose centre
+lies in the chunk. The mesh has one colour texture laid out as
+
+* the chunk's region of ``layout.ground_rgb`` at the top, with ``PAD`` texels of the neighbouring ground
+  around it (so bilinear and mipmap filtering read real ground across chunk seams), and
+* below it an atlas strip of the objects' procedurally generated textures (facades with windows and doors,
+  roofs, bark, foliage, car paint), each surrounded by ``PAD`` texels of its own replicated edge to limit
+  mipmap bleeding between neighbours,
+
+and one label texture with the same layout holding a class id (:mod:`satloc.labels`) per texel:
+``layout.ground_labels`` in the ground region, the object's class in its atlas regions.
+
+Textures are made deterministically: the random generator of an object is seeded by its kind and its index
+in the layout (and a facade's look is chosen by its ``facade`` style index). Object faces carry a baked
+shading factor (per face, from its normal and the sun direction) so that unlit rendering still reads as 3-D;
+the ground's factor is 1.
+
+UVs follow OpenGL's convention as pyrender uploads textures: ``u`` grows with the image column, ``v = 1`` is
+the image's first row. Texture widths are multiples of 4 (GL's default row alignment).
+"""
+from __future__ import annotations
+
+import math
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+from satloc.errors import ConfigError
+from satloc.labels import CLASS_ID
+
+from .layout import Building, Car, Layout, Obstacle, Person, Tree
+
+__all__ = ["TexturedMesh", "World", "build_world", "build_occluders", "sun_direction", "SKY_RGB", "PAD"]
+
+#: Texels of padding around every texture region (real neighbouring ground, or the region's replicated edge).
+PAD = 8
+#: Background colour of rendered images (a light, hazy blue).
+SKY_RGB = (168, 196, 226)
+#: Texel size (metres) of the procedural textures.
+_FACADE_M, _FOLIAGE_M, _BARK_M, _CAR_M, _PERSON_M, _OBSTACLE_M = 0.1, 0.08, 0.05, 0.04, 0.03, 0.04
+#: Width (texels) of the atlas of an occluder mesh, which has no ground region.
+_OCCLUDER_ATLAS_W = 512
+#: Baked shading: factor = _AMBIENT + (1 - _AMBIENT) * max(0, normal . sun).
+_AMBIENT = 0.55
+
+
+@dataclass
+class TexturedMesh:
+    """A triangle mesh with one colour texture and a label texture of the same size and UV layout."""
+
+    positions: np.ndarray  #: (N, 3) float32 vertices, map frame, metres
+    uvs: np.ndarray        #: (N, 2) float32 texture coordinates (OpenGL convention, see module docstring)
+    shade: np.ndarray      #: (N,) float32 baked shading factor in (0, 1]
+    faces: np.ndarray      #: (M, 3) uint32 vertex indices, counter-clockwise seen from outside
+    texture: np.ndarray    #: (H, W, 3) uint8 RGB, W % 4 == 0
+    labels: np.ndarray     #: (H, W) uint8 class ids
+
+    @property
+    def bounds(self) -> np.ndarray:
+        """(2, 3) axis-aligned bounds of the vertices: the min row and the max row."""
+        return np.stack([self.positions.min(axis=0), self.positions.max(axis=0)])
+
+
+@dataclass
+class World:
+    """Renderable geometry of a layout: one :class:`TexturedMesh` per ground chunk."""
+
+    width_m: float
+    height_m: float
+    chunk_m: float              #: side of a chunk, metres (a whole number of ground texels)
+    chunks: list[TexturedMesh]
+    sun_direction: np.ndarray   #: (3,) unit vector pointing towards the sun (map frame)
+    sky_rgb: tuple[int, int, int] = SKY_RGB
+
+
+def sun_direction(azimuth: float, elevation: float) -> np.ndarray:
+    """Unit vector towards the sun for an azimuth (counter-clockwise from east) and elevation, radians."""
+    ce = math.cos(elevation)
+    return np.array([ce * math.cos(azimuth), ce * math.sin(azimuth), math.sin(elevation)])
+
+
+# --- public builders --------------------------------------------------------------------------------------
+def build_world(layout: Layout, chunk_m: float = 204.8) -> World:
+    """Turn ``layout`` into chunked, textured geometry (see the module docstring)."""
+    mpp = float(layout.ground_mpp)
+    rows, cols = layout.ground_labels.shape
+    if layout.ground_rgb.shape != (rows, cols, 3):
+        raise ConfigError(f"layout: ground_rgb must be (H, W, 3) like ground_labels {(rows, cols)}, "
+                          f"got {layout.ground_rgb.shape}")
+    if chunk_m <= 0 or mpp <= 0:
+        raise ConfigError(f"build_world: chunk_m and ground_mpp must be positive, got {chunk_m}, {mpp}")
+    cpx = max(1, round(chunk_m / mpp))            # chunk side in ground texels
+    nx, ny = math.ceil(cols / cpx), math.ceil(rows / cpx)
+    sun = sun_direction(layout.sun_azimuth, layout.sun_elevation)
+
+    # Assign every object to the chunk holding its centre.
+    def chunk_of(x: float, y: float) -> int:
+        i = min(max(int(x / mpp // cpx), 0), nx - 1)
+        j = min(max(int(y / mpp // cpx), 0), ny - 1)
+        return j * nx + i
+
+    members: list[list[Callable[[_MeshBuilder], None]]] = [[] for _ in range(nx * ny)]
+    for k, b in enumerate(layout.buildings):
+        c = np.asarray(b.footprint, dtype=np.float64).mean(axis=0)
+        members[chunk_of(*c)].append(lambda mb, b=b, k=k: _add_building(mb, b, k))
+    for k, t in enumerate(layout.trees):
+        members[chunk_of(*t.center)].append(lambda mb, t=t, k=k: _add_tree(mb, t, k))
+    for k, c in enumerate(layout.cars):
+        members[chunk_of(*c.center)].append(lambda mb, c=c, k=k: _add_car(mb, c, ("parked", k)))
+
+    chunks = []
+    for j in range(ny):
+        for i in range(nx):
+            ground = _ground_region(layout, i * cpx, j * cpx, cpx)
+            mb = _MeshBuilder(sun, atlas_width=ground.texture.shape[1])
+            for add in members[j * nx + i]:
+                add(mb)
+            chunks.append(mb.build(ground))
+    return World(float(layout.width_m), float(layout.height_m), cpx * mpp, chunks, sun)
+
+
+def build_occluders(cars: Sequence[Car], persons: Sequence[Person], obstacles: Sequence[Obstacle],
+                    sun: np.ndarray) -> TexturedMesh | None:
+    """One textured mesh of an episode's extra objects (``sun``: see :func:`sun_direction`); None if there
+    are none."""
+    if not (cars or persons or obstacles):
+        return None
+    mb = _MeshBuilder(np.asarray(sun, dtype=np.float64), atlas_width=_OCCLUDER_ATLAS_W)
+    for k, c in enumerate(cars):
+        _add_car(mb, c, ("occluder", k))
+    for k, p in enumerate(persons):
+        _add_person(mb, p, k)
+    for k, o in enumerate(obstacles):
+        _add_obstacle(mb, o, k)
+    return mb.build(None)
+
+
+# --- mesh assembly ----------------------------------------------------------------------------------------
+@dataclass
+class _Ground:
+    """A chunk's padded ground region and its quad."""
+
+    texture: np.ndarray   # (H, W, 3), W % 4 == 0
+    labels: np.ndarray    # (H, W)
+    corners: np.ndarray   # (4, 3) quad corners, counter-clockwise from above
+    texel_rc: np.ndarray  # (4, 2) (column, row) of the corners in the region, texel-edge units
+
+
+def _ground_region(layout: Layout, c0: int, rb0: int, cpx: int) -> _Ground:
+    """Ground of the chunk whose lower-left texel is column ``c0``, row ``rb0`` counted from the south edge."""
+    mpp = float(layout.ground_mpp)
+    rows, cols = layout.ground_labels.shape
+    c1, rb1 = min(c0 + cpx, cols), min(rb0 + cpx, rows)
+    r0, r1 = rows - rb1, rows - rb0                        # numpy rows (north-up)
+    width = _round_up(c1 - c0 + 2 * PAD, 4)
+    rr = np.clip(np.arange(r0 - PAD, r1 + PAD), 0, rows - 1)
+    cc = np.clip(np.arange(c0 - PAD, c0 - PAD + width), 0, cols - 1)
+    x0, x1 = c0 * mpp, c1 * mpp
+    y0, y1 = layout.height_m - r1 * mpp, layout.height_m - r0 * mpp
+    corners = np.array([[x0, y0, 0.0], [x1, y0, 0.0], [x1, y1, 0.0], [x0, y1, 0.0]])
+    u0, u1, t0, t1 = PAD, PAD + c1 - c0, PAD, PAD + r1 - r0
+    texel_rc = np.array([[u0, t1], [u1, t1], [u1, t0], [u0, t0]], dtype=np.float64)
+    return _Ground(np.ascontiguousarray(layout.ground_rgb[rr][:, cc]),
+                   np.ascontiguousarray(layout.ground_labels[rr][:, cc]).astype(np.uint8), corners, texel_rc)
+
+
+class _MeshBuilder:
+    """Collects triangles whose UVs are fractions of a texture *patch*, then packs the patches into an atlas
+    (shelf packing, ``PAD`` texels of replicated edge around each) and emits one :class:`TexturedMesh`."""
+
+    def __init__(self, sun: np.ndarray, atlas_width: int):
+        self.sun = sun
+        self.atlas_width = atlas_width
+        self.max_patch_width = atlas_width - 2 * PAD
+        self._patches: list[tuple[np.ndarray, np.ndarray]] = []
+        self._pos: list[np.ndarray] = []
+        self._st: list[np.ndarray] = []
+        self._patch_of: list[np.ndarray] = []
+        self._shade: list[np.ndarray] = []
+        self._faces: list[np.ndarray] = []
+        self._n = 0
+
+    def add_patch(self, rgb: np.ndarray, label: int) -> int:
+        """Register a texture patch (H, W, 3) whose texels all have class ``label``; returns its id."""
+        h, w = rgb.shape[:2]
+        if w > self.max_patch_width:
+            raise ValueError(f"patch of width {w} does not fit an atlas of width {self.atlas_width}")
+        self._patches.append((np.ascontiguousarray(rgb, dtype=np.uint8), np.full((h, w), label, np.uint8)))
+        return len(self._patches) - 1
+
+    def add_polygon_faces(self, pos: np.ndarray, st: np.ndarray, faces: np.ndarray, patch: int) -> None:
+        """Add triangles (``faces`` into ``pos``) sharing one flat normal; ``st`` are (column, row) fractions
+        of ``patch``. The shading factor comes from the first triangle's normal."""
+        p = np.asarray(pos, dtype=np.float64)
+        a, b, c = p[faces[0]]
+        n = np.cross(b - a, c - a)
+        norm = np.linalg.norm(n)
+        shade = _AMBIENT + (1 - _AMBIENT) * max(0.0, float(n @ self.sun) / norm) if norm > 0 else _AMBIENT
+        self._append(p, st, faces, patch, np.full(len(p), shade))
+
+    def add_quads(self, quads: np.ndarray, st: np.ndarray, patch: int) -> None:
+        """Add quads (K, 4, 3), corners counter-clockwise seen from outside, with patch fractions (K, 4, 2);
+        each quad gets its own flat shading factor."""
+        q = np.asarray(quads, dtype=np.float64)
+        n = np.cross(q[:, 2] - q[:, 0], q[:, 3] - q[:, 1])   # diagonals: robust to one degenerate edge
+        norm = np.linalg.norm(n, axis=1)
+        cos = np.where(norm > 0, (n @ self.sun) / np.maximum(norm, 1e-12), 0.0)
+        shade = _AMBIENT + (1 - _AMBIENT) * np.maximum(cos, 0.0)
+        k = len(q)
+        faces = (np.arange(k)[:, None, None] * 4 + np.array([[0, 1, 2], [0, 2, 3]])).reshape(-1, 3)
+        self._append(q.reshape(-1, 3), np.asarray(st).reshape(-1, 2), faces, patch, np.repeat(shade, 4))
+
+    def _append(self, pos, st, faces, patch, shade) -> None:
+        self._pos.append(pos)
+        self._st.append(np.asarray(st, dtype=np.float64))
+        self._patch_of.append(np.full(len(pos), patch))
+        self._shade.append(shade)
+        self._faces.append(np.asarray(faces) + self._n)
+        self._n += len(pos)
+
+    def build(self, ground: _Ground | None) -> TexturedMesh:
+        """Pack the atlas below ``ground``'s region (if any) and emit the mesh; the ground quad's triangles
+        come last so that, drawn in order, objects in front of the ground get depth-tested first."""
+        top = 0 if ground is None else ground.texture.shape[0]
+        offsets, strip_h = _pack_shelves([t.shape[:2] for t, _ in self._patches], self.atlas_width)
+        height = top + strip_h
+        tex = np.zeros((height, self.atlas_width, 3), np.uint8)
+        lab = np.zeros((height, self.atlas_width), np.uint8)
+        if ground is not None:
+            tex[:top] = ground.texture
+            lab[:top] = ground.labels
+        for (rgb, labels), (r, c) in zip(self._patches, offsets):
+            h, w = labels.shape
+            r0, c0 = top + r, c
+            tex[r0:r0 + h + 2 * PAD, c0:c0 + w + 2 * PAD] = cv2.copyMakeBorder(
+                rgb, PAD, PAD, PAD, PAD, cv2.BORDER_REPLICATE)
+            lab[r0:r0 + h + 2 * PAD, c0:c0 + w + 2 * PAD] = np.pad(labels, PAD, mode="edge")
+
+        pos = self._pos + ([ground.corners] if ground is not None else [])
+        faces = self._faces + ([np.array([[0, 1, 2], [0, 2, 3]]) + self._n] if ground is not None else [])
+        shade = self._shade + ([np.ones(4)] if ground is not None else [])
+        if self._patches:
+            sizes = np.array([lb.shape for _, lb in self._patches], dtype=np.float64)       # (P, 2): h, w
+            origin = np.array(offsets, dtype=np.float64) + PAD + np.array([top, 0.0])      # (P, 2): row, col
+            pid = np.concatenate(self._patch_of)
+            st = np.concatenate(self._st)
+            col = origin[pid, 1] + st[:, 0] * sizes[pid, 1]
+            row = origin[pid, 0] + st[:, 1] * sizes[pid, 0]
+            cr = [np.stack([col, row], axis=1)]
+        else:
+            cr = []
+        if ground is not None:
+            cr.append(ground.texel_rc)
+        cr = np.concatenate(cr)
+        uvs = np.stack([cr[:, 0] / self.atlas_width, 1.0 - cr[:, 1] / height], axis=1)
+        return TexturedMesh(
+            positions=np.concatenate(pos).astype(np.float32),
+            uvs=uvs.astype(np.float32),
+            shade=np.concatenate(shade).astype(np.float32),
+            faces=np.concatenate(faces).astype(np.uint32),
+            texture=tex,
+            labels=lab,
+        )
+
+
+def _pack_shelves(sizes: list[tuple[int, int]], width: int) -> tuple[list[tuple[int, int]], int]:
+    """Shelf-pack rectangles (h, w), each grown by ``PAD`` on all sides, into a strip ``width`` wide.
+    Returns the (row, col) of each padded rectangle and the strip height (a multiple of 4)."""
+    order = sorted(range(len(sizes)), key=lambda i: -sizes[i][0])
+    offsets: list[tuple[int, int]] = [(0, 0)] * len(sizes)
+    shelf_top, shelf_h, x = 0, 0, 0
+    for i in order:
+        h, w = sizes[i][0] + 2 * PAD, sizes[i][1] + 2 * PAD
+        if x + w > width:
+            shelf_top, shelf_h, x = shelf_top + shelf_h, 0, 0
+        offsets[i] = (shelf_top, x)
+        x += w
+        shelf_h = max(shelf_h, h)
+    return offsets, _round_up(shelf_top + shelf_h, 4)
+
+
+def _round_up(n: int, k: int) -> int:
+    return -(-n // k) * k
+
+
+# --- geometry primitives ----------------------------------------------------------------------------------
+def _ccw(poly: np.ndarray) -> np.ndarray:
+    """The polygon (N, 2) in counter-clockwise order."""
+    x, y = poly[:, 0], poly[:, 1]
+    area2 = float(np.sum(x * np.roll(y, -1) - np.roll(x, -1) * y))
+    return poly if area2 >= 0 else poly[::-1]
+
+
+def _triangulate(poly: np.ndarray) -> np.ndarray:
+    """Ear-clipping triangulation (M, 3) of a simple counter-clockwise polygon (N, 2)."""
+    idx = list(range(len(poly)))
+    tris = []
+
+    def cross(o, a, b) -> float:
+        return (a[0] - o[0]) * (b[1] - o[1]) - (a[1] - o[1]) * (b[0] - o[0])
+
+    while len(idx) > 3:
+        for k in range(len(idx)):
+            i0, i1, i2 = idx[k - 1], idx[k], idx[(k + 1) % len(idx)]
+            a, b, c = poly[i0], poly[i1], poly[i2]
+            if cross(a, b, c) <= 1e-12:
+                continue
+            if any(cross(a, b, poly[j]) >= 0 and cross(b, c, poly[j]) >= 0 and cross(c, a, poly[j]) >= 0
+                   for j in idx if j not in (i0, i1, i2)):
+                continue
+            tris.append((i0, i1, i2))
+            del idx[k]
+            break
+        else:  # no ear: a degenerate (collinear or self-touching) remainder, closed with a fan
+            tris.extend((idx[0], idx[m], idx[m + 1]) for m in range(1, len(idx) - 1))
+            return np.array(tris, dtype=np.int64)
+    tris.append(tuple(idx))
+    return np.array(tris, dtype=np.int64)
+
+
+def _bbox_st(poly: np.ndarray) -> np.ndarray:
+    """Patch fractions (column, row) of polygon points mapped onto their bounding box, north up."""
+    lo, hi = poly.min(axis=0), poly.max(axis=0)
+    span = np.maximum(hi - lo, 1e-9)
+    return np.stack([(poly[:, 0] - lo[0]) / span[0], (hi[1] - poly[:, 1]) / span[1]], axis=1)
+
+
+def _add_prism(mb: _MeshBuilder, footprint: np.ndarray, z0: float, z1: float, texel: float, label: int,
+               wall_texture: Callable[[list[tuple[int, float]], int], np.ndarray],
+               top_texture: Callable[[int, int], np.ndarray] | None) -> None:
+    """Vertical walls of ``footprint`` (made counter-clockwise) from ``z0`` to ``z1`` plus an optional flat top.
+
+    The walls are unrolled into strips of texture ``texel`` metres per texel: walls longer than an atlas row
+    are split, consecutive walls are grouped into strips that fit a row, and ``wall_texture(walls, height_px)``
+    paints each strip, ``walls`` being its segments as (footprint edge index, length in metres), left to right;
+    the strip is ``ceil(total length / texel)`` texels wide. ``top_texture(h_px, w_px)`` paints the top.
+    """
+    fp = _ccw(np.asarray(footprint, dtype=np.float64))
+    max_len = (mb.max_patch_width - 1) * texel
+    pts, edge_of = [], []
+    for e, (a, b) in enumerate(zip(fp, np.roll(fp, -1, axis=0))):
+        n = max(1, math.ceil(np.linalg.norm(b - a) / max_len))
+        pts.extend(a + (b - a) * (k / n) for k in range(n))
+        edge_of.extend([e] * n)
+    pts = np.array(pts)
+    ends = np.roll(pts, -1, axis=0)
+    lengths = np.linalg.norm(ends - pts, axis=1)
+    h_px = _round_px(z1 - z0, texel)
+    start = 0
+    while start < len(pts):
+        stop, total = start, 0.0
+        while stop < len(pts) and (stop == start or total + lengths[stop] <= max_len):
+            total += lengths[stop]
+            stop += 1
+        segs = lengths[start:stop]
+        if total <= 0:
+            start = stop
+            continue
+        rgb = wall_texture([(edge_of[i], float(lengths[i])) for i in range(start, stop)], h_px)
+        patch = mb.add_patch(rgb, label)
+        s = np.concatenate([[0.0], np.cumsum(segs)]) / total
+        a, b = pts[start:stop], ends[start:stop]
+        quads = np.stack([np.c_[a, np.full(len(a), z0)], np.c_[b, np.full(len(a), z0)],
+                          np.c_[b, np.full(len(a), z1)], np.c_[a, np.full(len(a), z1)]], axis=1)
+        st = np.stack([np.c_[s[:-1], np.ones(len(a))], np.c_[s[1:], np.ones(len(a))],
+                       np.c_[s[1:], np.zeros(len(a))], np.c_[s[:-1], np.zeros(len(a))]], axis=1)
+        mb.add_quads(quads, st, patch)
+        start = stop
+    if top_texture is not None:
+        span = fp.max(axis=0) - fp.min(axis=0)
+        h, w = (max(2, min(math.ceil(v / texel), mb.max_patch_width)) for v in (span[1], span[0]))
+        patch = mb.add_patch(top_texture(h, w), label)
+        mb.add_polygon_faces(np.c_[fp, np.full(len(fp), z1)], _bbox_st(fp), _triangulate(fp), patch)
+
+
+def _add_loft(mb: _MeshBuilder, rings: list[np.ndarray], patch: int, top_patch: int | None = None) -> None:
+    """Surface through ``rings`` (each (n, 3), CCW from above, bottom to top); a ring may collapse to a point.
+    The patch is unrolled around the rings (column) and from the top ring (row 0) down to the bottom one;
+    ``top_patch`` closes the top ring with a flat cap."""
+    r = np.asarray(rings, dtype=np.float64)                     # (R, n, 3)
+    nr, n = r.shape[:2]
+    ref = r[np.argmax(np.ptp(r[:, :, 0], axis=1))]             # the widest ring sets the column fractions
+    seg = np.linalg.norm(np.roll(ref, -1, axis=0) - ref, axis=1)
+    s = np.concatenate([[0.0], np.cumsum(seg)]) / seg.sum()
+    slant = np.linalg.norm(np.diff(r.mean(axis=1), axis=0), axis=1) + np.abs(
+        np.diff(np.linalg.norm(r - r.mean(axis=1, keepdims=True), axis=2).mean(axis=1)))
+    t = 1.0 - np.concatenate([[0.0], np.cumsum(slant)]) / slant.sum()
+    j0, j1 = np.arange(n), (np.arange(n) + 1) % n
+    quads, st = [], []
+    for i in range(nr - 1):
+        lo, hi = r[i], r[i + 1]
+        quads.append(np.stack([lo[j0], lo[j1], hi[j1], hi[j0]], axis=1))
+        st.append(np.stack([np.c_[s[:-1], np.full(n, t[i])], np.c_[s[1:], np.full(n, t[i])],
+                            np.c_[s[1:], np.full(n, t[i + 1])], np.c_[s[:-1], np.full(n, t[i + 1])]], axis=1))
+    mb.add_quads(np.concatenate(quads), np.concatenate(st), patch)
+    if top_patch is not None:
+        cap = r[-1]
+        mb.add_polygon_faces(cap, _bbox_st(cap[:, :2]), _triangulate(cap[:, :2]), top_patch)
+
+
+def _rect(center: Sequence[float], yaw: float, length: float, width: float, dx: float = 0.0) -> np.ndarray:
+    """Corners (4, 2) of a ``length`` x ``width`` rectangle centred ``dx`` ahead of ``center`` along ``yaw``,
+    CCW starting at the rear right corner (so the edges are: right side, front, left side, rear)."""
+    c, s = math.cos(yaw), math.sin(yaw)
+    local = np.array([[-length / 2, -width / 2], [length / 2, -width / 2],
+                      [length / 2, width / 2], [-length / 2, width / 2]]) + [dx, 0.0]
+    return local @ np.array([[c, s], [-s, c]]) + np.asarray(center, dtype=np.float64)
+
+
+def _ring(center: Sequence[float], z: float, radius: np.ndarray | float, n: int, phase: float = 0.0) -> np.ndarray:
+    """``n`` points (n, 3) on a horizontal circle (radii may vary per point), CCW from above."""
+    a = phase + 2 * math.pi * np.arange(n) / n
+    rad = np.broadcast_to(np.asarray(radius, dtype=np.float64), (n,))
+    return np.stack([center[0] + rad * np.cos(a), center[1] + rad * np.sin(a), np.full(n, z)], axis=1)
+
+
+# --- objects ----------------------------------------------------------------------------------------------
+def _rng(*key) -> np.random.Generator:
+    """Deterministic generator for an object identified by ``key`` (strings and ints)."""
+    return np.random.default_rng([sum(map(ord, k)) if isinstance(k, str) else int(k) for k in key])
+
+
+def _add_building(mb: _MeshBuilder, b: Building, index: int) -> None:
+    rng = _rng("building", index, b.facade)
+    style = _FACADE_STYLES[b.facade % len(_FACADE_STYLES)]
+    roof = np.asarray(b.roof_rgb, dtype=np.float32)
+    _add_prism(mb, np.asarray(b.footprint), 0.0, float(b.height), _FACADE_M, CLASS_ID["building"],
+               lambda walls, h: _facade_texture(rng, style, [length for _, length in walls], h, _FACADE_M),
+               lambda h, w: _paint(rng, roof, h, w))
+
+
+def _add_tree(mb: _MeshBuilder, t: Tree, index: int) -> None:
+    rng = _rng("tree", index)
+    r, zb, zt = float(t.canopy_radius), float(t.canopy_bottom), float(t.canopy_top)
+    hc = max(zt - zb, 0.1)
+    trunk_r = 0.08 + 0.05 * r
+    trunk = np.array(_ring(t.center, 0.0, trunk_r, 6)[:, :2])
+    _add_prism(mb, trunk, 0.0, zb + 0.3 * hc, _BARK_M, CLASS_ID["tree"],
+               lambda walls, h: _bark_texture(rng, h, _round_px(sum(ln for _, ln in walls), _BARK_M)), None)
+    n = 10
+    profile = [(0.0, 0.0), (0.12, 0.75), (0.4, 1.0), (0.72, 0.85), (0.92, 0.45), (1.0, 0.0)]
+    phase = rng.uniform(0, 2 * math.pi)
+    rings = [_ring(t.center, zb + f * hc, r * k * rng.uniform(0.85, 1.1, n), n, phase) for f, k in profile]
+    rows, cols = _round_px(hc * 1.6, _FOLIAGE_M), _patch_cols(mb, 2 * math.pi * r, _FOLIAGE_M)
+    _add_loft(mb, rings, mb.add_patch(_foliage_texture(rng, rows, cols, t.shade), CLASS_ID["tree"]))
+
+
+def _add_car(mb: _MeshBuilder, c: Car, key: tuple) -> None:
+    rng = _rng("car", *key)
+    length, width, height = float(c.length), float(c.width), float(c.height)
+    paint = np.asarray(c.rgb, dtype=np.float32)
+    z_body = 0.55 * height
+    body = _rect(c.center, c.yaw, length, width)
+    _add_prism(mb, body, 0.12, z_body, _CAR_M, CLASS_ID["car"],
+               lambda walls, h: _car_body_texture(rng, paint, walls, h, z_body - 0.12),
+               lambda h, w: _paint(rng, paint, h, w))
+    cab_len, cab_w = 0.52 * length, 0.88 * width
+    lower = _rect(c.center, c.yaw, cab_len, cab_w, dx=-0.06 * length)
+    upper = _rect(c.center, c.yaw, cab_len * 0.7, cab_w * 0.92, dx=-0.09 * length)
+    rings = [np.c_[lower, np.full(4, z_body)], np.c_[upper, np.full(4, height)]]
+    side = _car_cabin_texture(rng, paint, _round_px(height - z_body, _CAR_M),
+                              _patch_cols(mb, 2 * (cab_len + cab_w), _CAR_M), [cab_len, cab_w, cab_len, cab_w])
+    top = _paint(rng, paint, _round_px(cab_w, _CAR_M), _patch_cols(mb, cab_len, _CAR_M))
+    _add_loft(mb, rings, mb.add_patch(side, CLASS_ID["car"]), mb.add_patch(top, CLASS_ID["car"]))
+
+
+def _add_person(mb: _MeshBuilder, p: Person, index: int) -> None:
+    rng = _rng("person", index)
+    r, h = float(p.radius), float(p.height)
+    profile = [(0.0, 0.55), (0.45, 0.6), (0.55, 0.85), (0.8, 0.9), (0.84, 0.4), (0.87, 0.45), (0.97, 0.4),
+               (1.0, 0.0)]
+    rings = [_ring(p.center, f * h, r * k, 8) for f, k in profile]
+    rows, cols = _round_px(h, _PERSON_M), _patch_cols(mb, 2 * math.pi * r, _PERSON_M)
+    tex = _person_texture(rng, np.asarray(p.rgb, dtype=np.float32), rows, cols)
+    _add_loft(mb, rings, mb.add_patch(tex, CLASS_ID["person"]))
+
+
+def _add_obstacle(mb: _MeshBuilder, o: Obstacle, index: int) -> None:
+    rng = _rng("obstacle", index)
+    rgb = np.asarray(o.rgb, dtype=np.float32)
+    _add_prism(mb, _rect(o.center, o.yaw, float(o.length), float(o.width)), 0.0, float(o.height), _OBSTACLE_M,
+               CLASS_ID["obstacle"],
+               lambda walls, h: _stripes(rng, rgb, h, _round_px(sum(ln for _, ln in walls), _OBSTACLE_M)),
+               lambda h, w: _paint(rng, rgb, h, w))
+
+
+# --- procedural textures ----------------------------------------------------------------------------------
+@dataclass(frozen=True)
+class _FacadeStyle:
+    wall: tuple[int, int, int]
+    brick: bool
+    floor_h: float
+    win_w: float
+    win_h: float
+    spacing: float
+    glass: tuple[int, int, int]
+    frame: tuple[int, int, int]
+    door: tuple[int, int, int]
+    shopfront: bool
+
+
+_FACADE_STYLES = (
+    _FacadeStyle((196, 186, 170), False, 3.2, 1.3, 1.6, 3.0, (70, 90, 110), (235, 235, 230), (90, 60, 40), False),
+    _FacadeStyle((150, 80, 60), True, 3.0, 1.1, 1.5, 2.6, (60, 75, 90), (220, 215, 200), (60, 45, 35), False),
+    _FacadeStyle((215, 205, 180), False, 3.4, 1.6, 1.8, 3.4, (85, 105, 125), (90, 90, 95), (70, 70, 75), True),
+    _FacadeStyle((120, 125, 130), False, 3.6, 2.4, 2.2, 3.0, (50, 70, 95), (60, 62, 66), (40, 40, 45), True),
+    _FacadeStyle((175, 120, 85), True, 3.0, 1.2, 1.5, 2.8, (65, 80, 95), (240, 240, 235), (110, 40, 35), False),
+    _FacadeStyle((228, 222, 200), False, 3.1, 1.0, 1.4, 2.4, (75, 85, 100), (120, 80, 50), (80, 50, 30), False),
+)
+
+
+def _noise(rng: np.random.Generator, h: int, w: int, cell: int) -> np.ndarray:
+    """Smooth value noise in [-1, 1], (h, w) float32, with features about ``cell`` texels wide."""
+    gh, gw = h // cell + 2, w // cell + 2
+    grid = rng.uniform(-1.0, 1.0, (gh, gw)).astype(np.float32)
+    if cell == 1:
+        return grid[:h, :w]
+    return cv2.resize(grid, (gw * cell, gh * cell), interpolation=cv2.INTER_LINEAR)[:h, :w]
+
+
+def _fbm(rng: np.random.Generator, h: int, w: int, cells: Sequence[int], amps: Sequence[float]) -> np.ndarray:
+    """Sum of value noises of several feature sizes (``cells``) and amplitudes."""
+    return sum(a * _noise(rng, h, w, c) for c, a in zip(cells, amps))
+
+
+def _to_u8(img: np.ndarray) -> np.ndarray:
+    return np.clip(img + 0.5, 0, 255).astype(np.uint8)
+
+
+def _round_px(length_m: float, texel: float) -> int:
+    """Texels (at least 2) covering ``length_m`` metres at ``texel`` metres per texel."""
+    return max(2, math.ceil(length_m / texel))
+
+
+def _patch_cols(mb: _MeshBuilder, length_m: float, texel: float) -> int:
+    """Width in texels of a patch unrolled along ``length_m`` metres, capped to fit ``mb``'s atlas rows."""
+    return min(_round_px(length_m, texel), mb.max_patch_width)
+
+
+def _paint(rng: np.random.Generator, rgb: np.ndarray, h: int, w: int) -> np.ndarray:
+    """A surface of colour ``rgb`` with mild mottling."""
+    return _to_u8(rgb * (1 + 0.08 * _fbm(rng, h, w, (6, 1), (0.6, 0.4)))[..., None])
+
+
+def _facade_texture(rng: np.random.Generator, style: _FacadeStyle, segs: list[float], h: int,
+                    texel: float) -> np.ndarray:
+    """A building facade strip: plaster or brick noise, rows of framed windows per floor on every wall
+    segment, a door (or shop windows) on the ground floor of long walls and a darker parapet band."""
+    cuts = np.round(np.concatenate([[0.0], np.cumsum(segs)]) / texel).astype(int)
+    w = max(2, int(cuts[-1]))
+    wall = np.asarray(style.wall, dtype=np.float32)
+    shade = 0.14 * _fbm(rng, h, w, (24, 6, 1), (0.45, 0.3, 0.25))
+    if style.brick:
+        shade += 0.10 * rng.uniform(-1, 1, (h, w)).astype(np.float32)
+        shade += 0.06 * np.repeat(rng.uniform(-1, 1, (h // 2 + 1, 1)), 2, axis=0)[:h].astype(np.float32)
+    img = wall * (1 + shade)[..., None]
+    wall_h = h * texel
+
+    def px_rows(z_lo: float, z_hi: float) -> tuple[int, int]:
+        return max(0, int(round((wall_h - z_hi) / texel))), min(h, int(round((wall_h - z_lo) / texel)))
+
+    def fill(r: tuple[int, int], c0: int, c1: int, rgb, frame=None, gain: float = 1.0) -> None:
+        r0, r1 = r
+        if r1 - r0 < 2 or c1 - c0 < 2:
+            return
+        g = np.linspace(1.15, 0.8, r1 - r0, dtype=np.float32)[:, None, None] * gain
+        img[r0:r1, c0:c1] = np.asarray(rgb, np.float32) * g * (1 + 0.05 * rng.uniform(-1, 1, (r1 - r0, c1 - c0, 1)))
+        if frame is not None:
+            f = np.asarray(frame, np.float32)
+            img[r0, c0:c1] = img[r1 - 1, c0:c1] = f
+            img[r0:r1, c0] = img[r0:r1, c1 - 1] = f
+            if c1 - c0 >= 8:                                   # mullion
+                img[r0:r1, (c0 + c1) // 2] = f
+
+    n_floors = max(1, int((wall_h - 0.5) // style.floor_h))
+    for k, seg in enumerate(segs):
+        a, b = cuts[k], cuts[k + 1]
+        n_win = int(seg // style.spacing)
+        centres = a + (np.arange(n_win) + 0.5) * (b - a) / max(n_win, 1)
+        half = style.win_w / texel / 2
+        for f in range(n_floors):
+            z = f * style.floor_h + 0.9
+            if z + style.win_h > wall_h - 0.4:
+                break
+            if f == 0 and style.shopfront and seg > 4.0:
+                fill(px_rows(0.3, min(2.8, wall_h - 0.5)), a + 3, b - 3, style.glass, style.frame, 0.8)
+                continue
+            for cx in centres:
+                fill(px_rows(z, z + style.win_h), int(cx - half), int(cx + half), style.glass, style.frame,
+                     rng.uniform(0.75, 1.2))
+        if seg > 6.0 and not style.shopfront:
+            cx = (a + b) // 2 + int(rng.integers(-2, 3)) * int(style.spacing / texel / 2)
+            dw = int(0.6 / texel)
+            fill(px_rows(0.0, 2.2), cx - dw, cx + dw, style.door, style.frame)
+    band = px_rows(wall_h - 0.35, wall_h)
+    img[band[0]:band[1]] *= 0.75
+    return _to_u8(img)
+
+
+def _bark_texture(rng: np.random.Generator, h: int, w: int) -> np.ndarray:
+    """Brown bark with vertical streaks."""
+    streaks = cv2.resize(rng.uniform(-1, 1, (max(2, h // 10), w)).astype(np.float32), (w, h),
+                         interpolation=cv2.INTER_LINEAR)
+    v = 1 + 0.25 * streaks + 0.1 * rng.uniform(-1, 1, (h, w)).astype(np.float32)
+    return _to_u8(np.array([92, 70, 52], np.float32) * v[..., None])
+
+
+_FOLIAGE = ((62, 104, 44), (48, 92, 50), (84, 118, 52), (56, 96, 66))
+
+
+def _foliage_texture(rng: np.random.Generator, h: int, w: int, shade: int) -> np.ndarray:
+    """Leafy canopy: strong multi-scale mottling with dark gaps and sunlit clumps."""
+    base = np.asarray(_FOLIAGE[shade % len(_FOLIAGE)], np.float32)
+    v = _fbm(rng, h, w, (12, 4, 1), (0.5, 0.3, 0.2))
+    img = base * (1 + 0.45 * v)[..., None]
+    img[v > 0.35] += np.array([25, 30, 5], np.float32)            # sunlit clumps, yellower
+    return _to_u8(img)
+
+
+def _car_body_texture(rng: np.random.Generator, paint: np.ndarray, walls: list[tuple[int, float]], h: int,
+                      body_h: float) -> np.ndarray:
+    """Car body walls (edges of :func:`_rect`: 0 right side, 1 front, 2 left side, 3 rear): paint, a dark
+    rocker band, wheels on the sides, head and tail lights."""
+    texel = body_h / h
+    cuts = np.round(np.concatenate([[0.0], np.cumsum([ln for _, ln in walls])]) / texel).astype(int)
+    w = max(2, int(cuts[-1]))
+    img = paint * (1 + 0.07 * _fbm(rng, h, w, (8, 1), (0.6, 0.4)))[..., None]
+    img[int(0.78 * h):] *= 0.45                                   # rocker / bumper band
+    rr, cc = np.mgrid[0:h, 0:w]
+    wheel_r = 0.32 / texel
+    wheel_row = h + (0.12 - 0.32) / texel                          # axle at 0.32 m, body bottom at 0.12 m
+    lamp_rows = slice(int(0.15 * h), int(0.35 * h))
+    for (edge, _), a, b in zip(walls, cuts[:-1], cuts[1:]):
+        if edge in (0, 2):                                         # sides
+            for f in (0.2, 0.8):
+                d2 = (cc - (a + f * (b - a))) ** 2 + (rr - wheel_row) ** 2
+                img[d2 < wheel_r ** 2] = (28, 28, 30)
+                img[d2 < (0.55 * wheel_r) ** 2] = (120, 120, 125)
+        else:                                                      # front: head lights, rear: tail lights
+            rgb = (245, 240, 210) if edge == 1 else (200, 30, 30)
+            lw = max(1, int(0.18 * (b - a)))
+            img[lamp_rows, a + 1:a + 1 + lw] = rgb
+            img[lamp_rows, b - 1 - lw:b - 1] = rgb
+    return _to_u8(img)
+
+
+def _car_cabin_texture(rng: np.random.Generator, paint: np.ndarray, h: int, w: int,
+                       segs: list[float]) -> np.ndarray:
+    """Cabin: dark windows with reflections between paint pillars and a paint band at the roof line."""
+    img = np.empty((h, w, 3), np.float32)
+    glass = np.array([40, 48, 58], np.float32) * (1 + 0.35 * _fbm(rng, h, w, (10, 2), (0.7, 0.3)))[..., None]
+    img[:] = glass
+    img[: max(1, h // 8)] = paint
+    img[h - max(1, h // 10):] = paint
+    cuts = np.round(np.concatenate([[0.0], np.cumsum(segs)]) / sum(segs) * w).astype(int)
+    pillar = max(1, w // 40)
+    for c in cuts[:-1]:
+        img[:, max(0, c - pillar):c + pillar] = paint
+    for k in (0, 2):                                               # B pillars
+        m = (cuts[k] + cuts[k + 1]) // 2
+        img[:, m - pillar:m + pillar] = paint
+    return _to_u8(img)
+
+
+def _person_texture(rng: np.random.Generator, shirt: np.ndarray, h: int, w: int) -> np.ndarray:
+    """Head (skin, dark hair on top), shirt and trousers, top to bottom."""
+    img = np.empty((h, w, 3), np.float32)
+    head, waist = int(0.16 * h), int(0.55 * h)
+    img[:head] = (200, 160, 130)
+    img[: max(1, head // 3)] = (45, 35, 30)
+    img[head:waist] = shirt
+    img[waist:] = (52, 54, 66)
+    return _to_u8(img * (1 + 0.12 * _fbm(rng, h, w, (4, 1), (0.5, 0.5)))[..., None])
+
+
+def _stripes(rng: np.random.Generator, rgb: np.ndarray, h: int, w: int) -> np.ndarray:
+    """Diagonal warning stripes of ``rgb`` and white, 0.2 m wide."""
+    rr, cc = np.mgrid[0:h, 0:w]
+    white = ((rr + cc) * _OBSTACLE_M / 0.2).astype(int) % 2 == 0
+    img = np.where(white[..., None], np.float32(235), rgb)
+    return _to_u8(img * (1 + 0.08 * _fbm(rng, h, w, (6, 1), (0.5, 0.5)))[..., None])

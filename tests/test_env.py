@@ -1,0 +1,153 @@
+import gymnasium as gym
+import numpy as np
+import pytest
+from gymnasium.utils.env_checker import check_env
+
+import satloc_env  # noqa: F401  (registers the ids)
+from satloc import ConfigError
+
+IDS = [k for k in gym.registry if k.startswith("satloc/")]
+
+
+def test_ids_registered():
+    assert "satloc/SatLoc-v0" in IDS
+
+
+@pytest.mark.parametrize("env_id", IDS)
+def test_check_env(env_id):
+    env = gym.make(env_id, scene="city", depth=True, labels=True)
+    check_env(env.unwrapped, skip_render_check=True)
+    env.close()
+
+
+def run(env, seed, n, options=None):
+    obs, info = env.reset(seed=seed, options=options)
+    out = [(obs, info)]
+    for _ in range(n):
+        obs, r, term, trunc, info = env.step(env.unwrapped.autopilot_action())
+        out.append((obs, info))
+    return out
+
+
+def test_determinism_same_seed_same_actions():
+    kw = dict(scene="city", depth=True, occlusion=0.8, appearance=0.7, random_start=True)
+    a, b = gym.make("satloc/SatLoc-v0", **kw), gym.make("satloc/SatLoc-v0", **kw)
+    ra, rb = run(a, 5, 6), run(b, 5, 6)
+    for (oa, ia), (ob, ib) in zip(ra, rb):
+        for k in oa:
+            assert np.array_equal(oa[k], ob[k]), k
+        for k in ia:
+            assert np.array_equal(ia[k], ib[k]), k
+    rc = run(a, 6, 0)
+    assert not np.array_equal(rc[0][1]["pose"], ra[0][1]["pose"])
+    a.close(), b.close()
+
+
+def test_autopilot_drives_along_route_and_odometry_is_consistent():
+    env = gym.make("satloc/SatLoc-v0", scene="city", odometry_noise=(0.0, 0.0))
+    steps = run(env, 0, 60)
+    info = steps[-1][1]
+    assert 40 < float(info["route_s"]) < 60  # ~8 m/s for 6 s, slower at the corner
+    assert not bool(info["off_road"])
+    # integrating the (noise-free) odometry reproduces the true pose
+    from satloc import Pose2
+    p = Pose2.from_array(steps[0][1]["pose"])
+    for obs, _ in steps[1:]:
+        p = p @ Pose2.from_array(obs["odometry"].astype(np.float64))
+    assert p.distance(Pose2.from_array(info["pose"])) < 1e-3
+    env.close()
+
+
+def test_leaving_the_road_terminates():
+    env = gym.make("satloc/SatLoc-v0", scene="city")
+    env.reset(seed=0)
+    term = False
+    for _ in range(40):
+        _, _, term, _, info = env.step(np.array([10.0, 1.0], np.float32))  # circle off the road
+        if term:
+            break
+    assert term and bool(info["off_road"])
+    env.close()
+
+
+def test_time_limit_truncates():
+    env = gym.make("satloc/SatLoc-v0", scene="city", max_steps=3)
+    env.reset(seed=0)
+    truncs = [env.step(env.unwrapped.autopilot_action())[3] for _ in range(3)]
+    assert truncs == [False, False, True]
+    env.close()
+
+
+def test_config_errors_and_reset_options():
+    with pytest.raises(ConfigError, match=r"unknown key\(s\) \['fov'\]"):
+        gym.make("satloc/SatLoc-v0", fov=90)
+    env = gym.make("satloc/SatLoc-v0", scene="city")
+    with pytest.raises(ConfigError, match="cannot change per episode"):
+        env.reset(options={"resolution": "full"})
+    with pytest.raises(ConfigError, match=r"occlusion: expected a value in \[0, 1\]"):
+        env.reset(options={"occlusion": 3.0})
+    obs, info = env.reset(seed=1, options={"lane_offset_m": 1.75, "occlusion": 1.0})
+    assert env.unwrapped.pilot.offset == 1.75
+    assert env.unwrapped.config.lane_offset_m == -1.75  # the options last one episode
+    assert default_keys() == set(env.unwrapped.default_config())
+    env.close()
+
+
+def default_keys():
+    return set(satloc_env.SatLocEnv.default_config())
+
+
+def test_occluders_appear_in_labels():
+    env = gym.make("satloc/SatLoc-v0", scene="city", labels=True)
+    obs, _ = env.reset(seed=2, options={"occlusion": 0.0})
+    from satloc.labels import CLASS_ID
+    person_or_obstacle = lambda o: np.isin(o["labels"], [CLASS_ID["person"], CLASS_ID["obstacle"]]).sum()
+    assert person_or_obstacle(obs) == 0
+    seen = 0
+    obs, _ = env.reset(seed=2, options={"occlusion": 1.0})
+    for _ in range(30):
+        obs, *_ = env.step(env.unwrapped.autopilot_action())
+        seen += person_or_obstacle(obs)
+    assert seen > 0
+    env.close()
+
+
+def test_appearance_changes_colours_not_geometry():
+    env = gym.make("satloc/SatLoc-v0", scene="city", depth=True)
+    a, _ = env.reset(seed=3, options={"appearance": 0.0})
+    b, _ = env.reset(seed=3, options={"appearance": 1.0})
+    assert np.array_equal(a["depth"], b["depth"])
+    assert np.abs(a["left"].astype(int) - b["left"].astype(int)).mean() > 3
+    env.close()
+
+
+def test_render_rgb_array_and_record_video(tmp_path):
+    from gymnasium.wrappers import RecordVideo
+    pytest.importorskip("moviepy")
+    env = RecordVideo(gym.make("satloc/SatLoc-v0", scene="city", render_mode="rgb_array"), str(tmp_path))
+    env.reset(seed=0)
+    for _ in range(5):
+        env.step(env.unwrapped.autopilot_action())
+    env.close()
+    assert list(tmp_path.glob("*.mp4"))
+
+
+def test_render_frame_shape():
+    env = gym.make("satloc/SatLoc-v0", scene="city", render_mode="rgb_array")
+    env.reset(seed=0)
+    frame = env.render()
+    assert frame.dtype == np.uint8 and frame.shape[0] == 360 and frame.shape[2] == 3
+    env.step(env.unwrapped.autopilot_action())
+    assert env.render().shape == frame.shape
+    env.close()
+
+
+def test_async_vector_env_steps():
+    envs = gym.make_vec("satloc/SatLoc-v0", 2, vectorization_mode="async", scene="city",
+                        vector_kwargs={"context": "spawn"})
+    obs, info = envs.reset(seed=[0, 1])
+    assert obs["left"].shape == (2, 188, 620, 3)
+    for _ in range(3):
+        obs, r, term, trunc, info = envs.step(np.array([[8.0, 0.0], [8.0, 0.0]], np.float32))
+    assert info["pose"].shape == (2, 3)
+    envs.close()

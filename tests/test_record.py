@@ -1,0 +1,76 @@
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from satloc import Sequence, SatelliteMap
+from satloc_env.cli import main
+from satloc_env.record import PassConfig, RecordConfig, record_passes
+
+ROOT = Path(__file__).resolve().parent.parent
+
+
+def test_record_database_and_query_passes(tmp_path):
+    cfg = RecordConfig(scene="city",
+                       database=PassConfig(spacing_m=2.0, max_frames=4),
+                       query=PassConfig(lane_offset_m=-0.75, spacing_m=5.0, max_frames=3, occlusion=0.5,
+                                        appearance=0.5, seed=1))
+    db, q = record_passes(cfg, tmp_path / "rec", progress=False)
+    assert len(db) == 4 and len(q) == 3
+    db2 = Sequence.load(tmp_path / "rec" / "database")
+    assert np.allclose(db2.poses, db.poses)
+    steps = np.linalg.norm(np.diff(db2.poses[:, :2], axis=0), axis=1)
+    assert np.all((steps > 1.9) & (steps < 2.9))  # one frame every ~2 m at 0.8 m per step
+    f = db2[0]
+    assert f.depth is not None and f.depth.shape == (188, 620) and (f.depth > 0).mean() > 0.3
+    # the query drives 1 m further left than the database
+    d0, q0 = db2.poses[0], Sequence.load(tmp_path / "rec" / "query").poses[0]
+    assert np.hypot(*(q0[:2] - d0[:2])) == pytest.approx(1.0, abs=1e-6)
+    sm = SatelliteMap.load(tmp_path / "rec" / "map")
+    assert sm.contains(db2.poses[:, :2]).all()
+    assert db2.meta["scene"] == "city" and q.meta["pass_config"]["occlusion"] == 0.5
+
+
+def test_cli_record_and_scene(tmp_path, capsys):
+    assert main(["record", "--scene", "city", "--out", str(tmp_path / "r"), "--max-frames", "2", "--quiet"]) == 0
+    out = json.loads(capsys.readouterr().out)
+    assert out["database_frames"] == 2 and out["query_frames"] == 2
+    assert main(["scene", "residential", "--save", str(tmp_path / "s"), "--picture", str(tmp_path / "s.png")]) == 0
+    info = json.loads(capsys.readouterr().out)
+    assert info["buildings"] > 20 and (tmp_path / "s" / "scene.json").is_file() and (tmp_path / "s.png").is_file()
+
+
+def test_cli_reports_bad_scene(tmp_path, capsys):
+    bad = tmp_path / "bad.yaml"
+    bad.write_text("name: x\nroutes: {}\ncolour: red\n")
+    assert main(["scene", str(bad)]) == 2
+    assert "unknown key(s) ['colour']" in capsys.readouterr().err
+
+
+def test_cli_demo(tmp_path, capsys):
+    assert main(["demo", "--out", str(tmp_path / "d"), "--frames", "3", "--every", "2"]) == 0
+    out = json.loads(capsys.readouterr().out)
+    for name in out["files"]:
+        assert (tmp_path / "d" / name).stat().st_size > 1000
+
+
+def test_example_drive_runs(tmp_path):
+    r = subprocess.run([sys.executable, str(ROOT / "examples" / "drive.py"), "--steps", "60", "--out", str(tmp_path)],
+                       capture_output=True, text=True, timeout=300)
+    assert r.returncode == 0, r.stderr
+    assert "dead-reckoning drift" in r.stdout and list(tmp_path.glob("view_*.png"))
+
+
+def test_make_vec_async_default_context():
+    """The plain call from the issue, in a fresh process (no GL context exists before the workers fork)."""
+    code = ("import gymnasium as gym, numpy as np, satloc_env\n"
+            "envs = gym.make_vec('satloc/SatLoc-v0', 2, vectorization_mode='async')\n"
+            "obs, info = envs.reset(seed=0)\n"
+            "for _ in range(3): obs, r, te, tr, info = envs.step(np.array([[8.0, 0.0]] * 2, np.float32))\n"
+            "print(obs['left'].shape, info['pose'].shape)\nenvs.close()\n")
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)
+    assert r.returncode == 0, r.stderr
+    assert "(2, 188, 620, 3) (2, 3)" in r.stdout

@@ -1,0 +1,269 @@
+"""Tests of the world builder (satloc_env.world) and the offscreen stereo renderer (satloc_env.render).
+
+One tiny synthetic layout (60 m x 60 m at 0.1 m per texel): grass, a north-south road with a dashed centre
+line, two painted patches of known colour and class, one building, one tree and one parked car. The vehicle
+stands on the road looking north.
+"""
+from __future__ import annotations
+
+import pickle
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from satloc.geometry import Pose2, StereoCamera
+from satloc.labels import CLASS_ID
+from satloc_env.layout import Building, Car, Layout, Obstacle, Person, Tree
+from satloc_env.world import PAD, build_world
+
+pytest.importorskip("pyrender")
+
+from satloc_env.render import StereoRenderer  # noqa: E402
+
+SIZE, MPP = 60.0, 0.1
+RED = (200, 40, 40)        # 'parking' patch [27, 29] x [18, 24]
+BLUE = (40, 60, 190)       # 'soil' patch centred at (32.5, 12.5)
+GROUND_CLASSES = [CLASS_ID[c] for c in ("road", "lane_marking", "sidewalk", "grass", "soil", "parking")]
+POSE = Pose2(27.0, 5.0, np.pi / 2)          # on the road, looking north
+BUILDING_CENTRE = (45.0, 35.0)
+
+
+def _fill(rgb: np.ndarray, lab: np.ndarray, x0: float, y0: float, x1: float, y1: float, colour, cls: str) -> None:
+    """Paint the map rectangle [x0, x1] x [y0, y1] (metres) into the north-up rasters."""
+    r0, r1 = int(round((SIZE - y1) / MPP)), int(round((SIZE - y0) / MPP))
+    c0, c1 = int(round(x0 / MPP)), int(round(x1 / MPP))
+    rgb[r0:r1, c0:c1] = colour
+    lab[r0:r1, c0:c1] = CLASS_ID[cls]
+
+
+def make_layout() -> Layout:
+    n = int(SIZE / MPP)
+    rng = np.random.default_rng(7)
+    rgb = np.zeros((n, n, 3), np.uint8)
+    lab = np.zeros((n, n), np.uint8)
+    _fill(rgb, lab, 0, 0, SIZE, SIZE, (90, 140, 60), "grass")
+    _fill(rgb, lab, 24, 0, 36, SIZE, (95, 95, 100), "road")
+    rgb[:] = np.clip(rgb + rng.normal(0, 12, rgb.shape), 0, 255).astype(np.uint8)   # texture for stereo
+    for y in np.arange(0.0, SIZE, 6.0):
+        _fill(rgb, lab, 29.9, y, 30.1, y + 3.0, (240, 240, 235), "lane_marking")
+    _fill(rgb, lab, 27, 18, 29, 24, RED, "parking")
+    _fill(rgb, lab, 31.5, 11.5, 33.5, 13.5, BLUE, "soil")
+    bx, by = BUILDING_CENTRE
+    building = Building(np.array([[bx - 5, by - 5], [bx + 5, by - 5], [bx + 5, by + 5], [bx - 5, by + 5]]),
+                        height=10.0, facade=1)
+    return Layout(SIZE, SIZE, MPP, rgb, lab, buildings=[building],
+                  trees=[Tree((20.0, 45.0), 2.5, 2.5, 7.0)], cars=[Car((33.0, 35.0), np.pi / 2)])
+
+
+@pytest.fixture(scope="module")
+def layout() -> Layout:
+    return make_layout()
+
+
+@pytest.fixture(scope="module")
+def world(layout):
+    return build_world(layout)
+
+
+@pytest.fixture(scope="module")
+def camera() -> StereoCamera:
+    return StereoCamera.kitti_half()
+
+
+@pytest.fixture(scope="module")
+def renderer(world, camera):
+    r = StereoRenderer(world, camera)
+    yield r
+    r.close()
+
+
+@pytest.fixture(scope="module")
+def frame(renderer):
+    renderer.set_occluders([], [], [])
+    return renderer.render(POSE, depth=True, labels=True)
+
+
+def _pixel(camera: StereoCamera, point, side: str = "left") -> tuple[int, int]:
+    uv, z = camera.map_to_pixels(POSE, np.asarray(point, dtype=np.float64), side)
+    assert z > 0
+    u, v = np.round(uv).astype(int)
+    assert 0 <= u < camera.width and 0 <= v < camera.height, (u, v)
+    return int(u), int(v)
+
+
+# --- world ------------------------------------------------------------------------------------------------
+def test_world_is_one_chunk_with_aligned_textures(world, layout):
+    assert len(world.chunks) == 1
+    chunk = world.chunks[0]
+    h, w = chunk.labels.shape
+    assert chunk.texture.shape == (h, w, 3) and w % 4 == 0
+    assert chunk.faces.max() < len(chunk.positions) and len(chunk.uvs) == len(chunk.positions)
+    assert np.all((chunk.uvs >= 0) & (chunk.uvs <= 1))
+    # The ground region (below PAD texels of border) is the layout's raster.
+    n = layout.ground_labels.shape[0]
+    assert np.array_equal(chunk.texture[PAD:PAD + n, PAD:PAD + n], layout.ground_rgb)
+    assert np.array_equal(chunk.labels[PAD:PAD + n, PAD:PAD + n], layout.ground_labels)
+    # The atlas strip holds the objects' classes.
+    strip = set(np.unique(chunk.labels[n + 2 * PAD:]).tolist())
+    assert {CLASS_ID["building"], CLASS_ID["tree"], CLASS_ID["car"]} <= strip
+
+
+def test_world_is_deterministic_and_picklable(world, layout):
+    again = pickle.loads(pickle.dumps(build_world(layout)))
+    for a, b in zip(world.chunks, again.chunks):
+        for field in ("positions", "uvs", "shade", "faces", "texture", "labels"):
+            assert np.array_equal(getattr(a, field), getattr(b, field)), field
+
+
+def test_facades_are_textured(world, layout):
+    chunk = world.chunks[0]
+    n = layout.ground_labels.shape[0]
+    strip, labels = chunk.texture[n + 2 * PAD:].astype(np.float32), chunk.labels[n + 2 * PAD:]
+    facade = strip[labels == CLASS_ID["building"]]
+    assert facade.std(axis=0).mean() > 15       # windows, doors and plaster noise, not a flat colour
+
+
+def test_chunking_splits_ground_and_assigns_objects(layout):
+    w = build_world(layout, chunk_m=20.0)
+    assert len(w.chunks) == 9 and w.chunk_m == pytest.approx(20.0)
+    owners = [i for i, c in enumerate(w.chunks) if (c.labels == CLASS_ID["building"]).any()]
+    assert owners == [1 * 3 + 2]               # centre (45, 35): chunk column 2, row 1
+
+
+# --- renderer ---------------------------------------------------------------------------------------------
+def test_import_creates_no_gl_context():
+    code = ("import sys, satloc_env.render, satloc_env.world; "
+            "assert 'pyrender' not in sys.modules and 'OpenGL' not in sys.modules")
+    subprocess.run([sys.executable, "-c", code], check=True)
+
+
+def test_output_format(frame, camera):
+    h, w = camera.height, camera.width
+    for side in ("left", "right"):
+        assert frame[side].shape == (h, w, 3) and frame[side].dtype == np.uint8
+        assert frame[f"depth_{side}"].shape == (h, w) and frame[f"depth_{side}"].dtype == np.float32
+        assert frame[f"labels_{side}"].shape == (h, w) and frame[f"labels_{side}"].dtype == np.uint8
+        assert all(a.flags.c_contiguous for a in (frame[side], frame[f"depth_{side}"], frame[f"labels_{side}"]))
+    # Sky: top row above the road, nothing hit.
+    top = slice(w // 2 - 20, w // 2 + 20)
+    assert np.all(frame["depth_left"][0, top] == 0) and np.all(frame["labels_left"][0, top] == 0)
+    sky = frame["left"][0, top].astype(int)
+    assert sky.mean() > 100 and np.all(sky[:, 2] > sky[:, 0])            # bright and bluish, not black
+
+
+def test_ground_depth_matches_analytic(frame, camera):
+    depth, labels = frame["depth_left"], frame["labels_left"]
+    v = np.arange(camera.height, dtype=np.float64)[:, None] * np.ones((1, camera.width))
+    ground = np.isin(labels, GROUND_CLASSES) & (depth > 0) & (v > camera.cy + 1)
+    assert ground.sum() > 0.2 * depth.size
+    expected = camera.fy * camera.mount_height / (v[ground] - camera.cy)
+    rel = np.abs(depth[ground] - expected) / expected
+    assert rel.max() < 1e-3, rel.max()
+
+
+def test_ground_point_lands_on_its_texel(frame, camera):
+    for centre, colour, cls in (((28.0, 21.0), RED, "parking"), ((32.5, 12.5), BLUE, "soil")):
+        u, v = _pixel(camera, (*centre, 0.0))
+        assert frame["labels_left"][v, u] == CLASS_ID[cls]
+        assert np.abs(frame["left"][v, u].astype(int) - colour).max() <= 3, frame["left"][v, u]
+        ur, vr = _pixel(camera, (*centre, 0.0), "right")
+        assert frame["labels_right"][vr, ur] == CLASS_ID[cls]
+
+
+def test_stereo_disparity_of_ground_patch(frame, camera):
+    """Centre of the red patch's label run, row by row, in the left and the right image."""
+    patch = CLASS_ID["parking"]
+    disparities, expected = [], []
+    for v in range(camera.height):
+        cols_l = np.flatnonzero(frame["labels_left"][v] == patch)
+        cols_r = np.flatnonzero(frame["labels_right"][v] == patch)
+        if len(cols_l) > 5 and len(cols_r) > 5:
+            disparities.append((cols_l[0] + cols_l[-1]) / 2 - (cols_r[0] + cols_r[-1]) / 2)
+            expected.append(camera.fx * camera.baseline / frame["depth_left"][v, cols_l].mean())
+    assert len(disparities) >= 5
+    err = np.array(disparities) - np.array(expected)
+    assert abs(err.mean()) < 0.5 and np.abs(err).max() < 1.0, err
+
+
+def test_labels_see_objects(frame, camera):
+    for point, cls in (((*BUILDING_CENTRE, 5.0), "building"), ((20.0, 45.0, 5.0), "tree"),
+                       ((33.0, 35.0, 0.6), "car")):
+        u, v = _pixel(camera, point)
+        assert frame["labels_left"][v, u] == CLASS_ID[cls], cls
+        assert frame["depth_left"][v, u] > 0
+    # The facade is textured in the image too (windows, noise), not a flat colour.
+    facade = frame["left"][frame["labels_left"] == CLASS_ID["building"]].astype(np.float32)
+    assert len(facade) > 500 and facade.std(axis=0).mean() > 10
+
+
+def test_rendering_is_repeatable(renderer, frame):
+    again = renderer.render(POSE, depth=True, labels=True)
+    assert again.keys() == frame.keys()
+    for key in frame:
+        assert np.array_equal(again[key], frame[key]), key
+
+
+def test_optional_outputs(renderer, frame):
+    colour_only = renderer.render(POSE, depth=False)
+    assert set(colour_only) == {"left", "right"}
+    assert np.array_equal(colour_only["left"], frame["left"])
+
+
+def test_close_then_render_again(renderer, frame):
+    renderer.close()
+    renderer.close()
+    again = renderer.render(POSE, depth=True, labels=True)
+    for key in frame:
+        assert np.array_equal(again[key], frame[key]), key
+
+
+def test_occluders_replace_each_other(renderer, camera):
+    renderer.set_occluders([Car((25.5, 30.0), np.pi / 2, rgb=(20, 60, 160))], [Person((27.5, 15.0))],
+                           [Obstacle((25.0, 12.0), 0.0, 1.5, 0.5, 1.0)])
+    out = renderer.render(POSE, depth=True, labels=True)
+    for point, cls in (((27.5, 15.0, 1.0), "person"), ((25.0, 12.0, 0.5), "obstacle"),
+                       ((25.5, 30.0, 0.6), "car")):
+        u, v = _pixel(camera, point)
+        assert out["labels_left"][v, u] == CLASS_ID[cls], cls
+    u, v = _pixel(camera, (27.5, 15.0, 1.0))
+    assert abs(out["depth_left"][v, u] - 10.0) < 0.35          # the person's near side, 10 m ahead
+    renderer.set_occluders([], [], [])
+    out = renderer.render(POSE, labels=True)
+    assert not (out["labels_left"] == CLASS_ID["person"]).any()
+
+
+def test_chunks_match_single_chunk_and_cull(layout, frame, camera):
+    chunked = build_world(layout, chunk_m=20.0)
+    with StereoRenderer(chunked, camera, zfar=150.0) as r:
+        out = r.render(POSE, depth=True, labels=True)
+        assert r.visible_chunks == list(range(9))
+        # Seams between chunks are invisible: same depth and labels, the same ground colours up to filtering
+        # noise (within 20 m, which includes the seams at x = 20, x = 40 and y = 20; farther out, coarse
+        # mipmap levels of differently sized textures differ a little).
+        assert np.array_equal(out["labels_left"], frame["labels_left"])
+        np.testing.assert_allclose(out["depth_left"], frame["depth_left"], rtol=1e-4)
+        near = np.isin(frame["labels_left"], GROUND_CLASSES) & (frame["depth_left"] < 20.0)
+        assert np.abs(out["left"].astype(int) - frame["left"])[near].max() <= 2
+    with StereoRenderer(chunked, camera, zfar=10.0) as r:
+        r.render(Pose2(15.0, 15.0, 0.0), depth=False)
+        # Reach is zfar * |ray through the image corner| + baseline, about 14.1 m here.
+        assert r.visible_chunks == [0, 1, 3, 4]
+
+
+def test_pyrender_mesh_bounds_work_on_numpy2():
+    from satloc_env._gl import pyrender
+
+    box = pyrender.Mesh([pyrender.Primitive(positions=np.array([[0, 0, 0], [1, 2, 3], [-1, 0, 5]], np.float32))])
+    np.testing.assert_array_equal(box.bounds, [[-1, 0, 0], [1, 2, 5]])
+    scene = pyrender.Scene()
+    scene.add(box)
+    np.testing.assert_array_equal(scene.bounds, [[-1, 0, 0], [1, 2, 5]])
+
+
+def test_closing_one_renderer_keeps_others_working(renderer, world, camera, frame):
+    other = StereoRenderer(world, camera)
+    other.render(POSE, depth=False)
+    other.close()
+    assert np.array_equal(renderer.render(POSE, depth=False)["left"], frame["left"])
