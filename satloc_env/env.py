@@ -115,12 +115,11 @@ class SatLocEnv(gym.Env):
             return
         scene = load_scene(cfg.scene, cfg.aliasing)
         from .render import StereoRenderer
-        from .world import build_world
 
         if self._renderer is not None:
             self._renderer.close()
         self._scene, self._scene_key = scene, key
-        self._renderer = StereoRenderer(build_world(scene.layout), self.camera, anisotropy=cfg.anisotropy,
+        self._renderer = StereoRenderer(scene.world, self.camera, anisotropy=cfg.anisotropy,
                                         zfar=cfg.zfar_m)
 
     # --- gym API ----------------------------------------------------------------------------------

@@ -202,6 +202,13 @@ class Scene:
     def name(self) -> str:
         return self.spec.name
 
+    @functools.cached_property
+    def world(self):
+        """Renderable geometry of the scene (:class:`satloc_env.world.World`), built once per scene."""
+        from .world import build_world
+
+        return build_world(self.layout)
+
     def _check_routes(self) -> None:
         W, H = self.layout.width_m, self.layout.height_m
         for k, r in self.spec.routes.items():
