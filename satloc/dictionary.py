@@ -1,0 +1,189 @@
+"""The ground-satellite feature dictionary.
+
+For each database frame, ground features are sampled on a fixed 2-D pixel grid, lifted to 3-D with stereo
+depth and projected onto the satellite map at the frame's pose; samples with no valid depth, out of the depth
+range or falling outside the map are rejected. Each kept sample i gives a pair (g_i, s_i): the ground
+feature at its pixel and the dense satellite feature at its map point L(i).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+from tqdm import tqdm
+
+from .config import from_dict, to_dict
+from .errors import ConfigError, FormatError
+from .features import FeatureExtractor
+from .geometry import StereoCamera
+from .persist import load_npz, save_npz
+from .satmap import SatelliteMap
+from .sequence import Frame, Sequence
+from .stereo import StereoConfig, StereoDepth
+
+
+@dataclass(frozen=True)
+class GridConfig:
+    """The fixed grid of ground-image samples (pixel coordinates at the image's own resolution)."""
+
+    step_px: int = 12               # grid spacing
+    row_start_frac: float = 0.3     # first grid row, as a fraction of the image height (skips most sky)
+    min_depth_m: float = 3.0        # samples nearer or farther than this are rejected
+    max_depth_m: float = 30.0
+
+    def __post_init__(self):
+        if self.step_px < 1:
+            raise ConfigError(f"step_px: expected >= 1, got {self.step_px}")
+        if not 0 < self.min_depth_m < self.max_depth_m:
+            raise ConfigError(f"min_depth_m/max_depth_m: need 0 < min < max, got {self.min_depth_m}, {self.max_depth_m}")
+
+
+def grid_pixels(camera: StereoCamera, grid: GridConfig) -> np.ndarray:
+    """(n, 2) integer pixel coordinates (u, v) of the fixed sampling grid."""
+    s = grid.step_px
+    v0 = int(round(grid.row_start_frac * camera.height))
+    vs = np.arange(v0 + s // 2, camera.height, s)
+    us = np.arange(s // 2, camera.width, s)
+    uu, vv = np.meshgrid(us, vs)
+    return np.stack([uu.ravel(), vv.ravel()], axis=1)
+
+
+def ground_samples(camera: StereoCamera, depth: np.ndarray, grid: GridConfig) -> tuple[np.ndarray, np.ndarray]:
+    """Grid pixels with valid depth and their 3-D points in the vehicle frame: (m, 2) int, (m, 3) float."""
+    if depth.shape != (camera.height, camera.width):
+        raise ConfigError(f"depth map is {depth.shape[1]}x{depth.shape[0]}, the camera is {camera.width}x{camera.height}")
+    uv = grid_pixels(camera, grid)
+    d = depth[uv[:, 1], uv[:, 0]].astype(np.float64)
+    ok = np.isfinite(d) & (d >= grid.min_depth_m) & (d <= grid.max_depth_m)
+    uv, d = uv[ok], d[ok]
+    pc = camera.backproject(uv.astype(np.float64), d)
+    t = camera.vehicle_from_camera("left")
+    return uv, pc @ t[:3, :3].T + t[:3, 3]
+
+
+@dataclass
+class SatelliteFeatures:
+    """Dense features of a whole satellite map, computed once (stored as float16)."""
+
+    features: np.ndarray            # (H, W, D) float16
+    meters_per_pixel: float
+    origin: tuple[float, float]
+    name: str = ""
+
+    @staticmethod
+    def compute(satmap: SatelliteMap, extractor: FeatureExtractor) -> "SatelliteFeatures":
+        f = extractor(satmap.image, "satellite")
+        return SatelliteFeatures(f.astype(np.float16), satmap.meters_per_pixel, satmap.origin, extractor.name)
+
+    @property
+    def dim(self) -> int:
+        return self.features.shape[2]
+
+    def pixel_index(self, xy: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Nearest pixel (row, col) of map points (..., 2) and whether it lies inside the map."""
+        xy = np.asarray(xy, dtype=np.float64)
+        col = np.floor((xy[..., 0] - self.origin[0]) / self.meters_per_pixel).astype(np.int64)
+        row = np.floor((self.origin[1] - xy[..., 1]) / self.meters_per_pixel).astype(np.int64)
+        h, w = self.features.shape[:2]
+        inside = (row >= 0) & (row < h) & (col >= 0) & (col < w)
+        return np.where(inside, row * w + col, -1), inside
+
+    def sample(self, xy: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Features (n, D) float32 at map points (n, 2) (nearest pixel) and the inside-the-map mask."""
+        flat, inside = self.pixel_index(xy)
+        out = np.zeros((len(flat), self.dim), np.float32)
+        out[inside] = self.features.reshape(-1, self.dim)[flat[inside]]
+        return out, inside
+
+    def save(self, path: str | Path) -> None:
+        save_npz(path, "satellite_features", {"features": self.features},
+                 {"meters_per_pixel": self.meters_per_pixel, "origin": list(self.origin), "name": self.name})
+
+    @staticmethod
+    def load(path: str | Path) -> "SatelliteFeatures":
+        a, m = load_npz(path, "satellite_features")
+        if "features" not in a or a["features"].ndim != 3:
+            raise FormatError(f"{path}: missing or malformed 'features' array")
+        return SatelliteFeatures(a["features"], float(m["meters_per_pixel"]), tuple(m["origin"]), m.get("name", ""))
+
+
+@dataclass
+class Dictionary:
+    """Ground-satellite feature pairs with their map locations."""
+
+    g: np.ndarray                   # (N, Dg) float32 ground features
+    s: np.ndarray                   # (N, Ds) float32 satellite features at L(i)
+    loc: np.ndarray                 # (N, 2) float64 map location L(i) (metres)
+    frame: np.ndarray               # (N,) int32 database frame index
+    poses: np.ndarray               # (F, 3) database frame poses (x, y, yaw)
+    grid: GridConfig
+    feature_name: str = ""
+
+    def __post_init__(self):
+        n = len(self.g)
+        if not (len(self.s) == len(self.loc) == len(self.frame) == n):
+            raise FormatError("dictionary arrays g, s, loc, frame must have the same length")
+
+    def __len__(self) -> int:
+        return len(self.g)
+
+    def save(self, path: str | Path) -> None:
+        save_npz(path, "dictionary", {"g": self.g, "s": self.s, "loc": self.loc, "frame": self.frame,
+                                      "poses": self.poses},
+                 {"grid": to_dict(self.grid), "feature_name": self.feature_name})
+
+    @staticmethod
+    def load(path: str | Path) -> "Dictionary":
+        a, m = load_npz(path, "dictionary")
+        missing = [k for k in ("g", "s", "loc", "frame", "poses") if k not in a]
+        if missing:
+            raise FormatError(f"{path}: missing arrays {missing}")
+        return Dictionary(a["g"], a["s"], a["loc"], a["frame"], a["poses"],
+                          from_dict(GridConfig, m.get("grid", {}), f"{path}: grid"), m.get("feature_name", ""))
+
+
+class FrameDepth:
+    """Depth for a frame: stereo (the method) or the frame's stored depth (``source='frame'``, for ablations)."""
+
+    def __init__(self, camera: StereoCamera, source: str = "stereo", stereo: StereoConfig = StereoConfig()):
+        if source not in ("stereo", "frame"):
+            raise ConfigError(f"depth source: expected 'stereo' or 'frame', got {source!r}")
+        self.source = source
+        self.stereo = StereoDepth(camera, stereo) if source == "stereo" else None
+
+    def __call__(self, frame: Frame, where: str = "frame") -> np.ndarray:
+        if self.source == "frame":
+            if frame.depth is None:
+                raise ConfigError(f"{where}: depth source 'frame' but the frame has no stored depth")
+            return frame.depth
+        return self.stereo(frame.left, frame.right)
+
+
+def build_dictionary(database: Sequence, satfeat: SatelliteFeatures, extractor: FeatureExtractor,
+                     grid: GridConfig = GridConfig(), depth_source: str = "stereo", progress: bool = True) -> Dictionary:
+    """Pair ground features of every database frame with the satellite features where they project."""
+    if len(database) == 0:
+        raise ConfigError(f"database sequence {database.name!r} is empty")
+    cam = database.camera
+    depth_of = FrameDepth(cam, depth_source)
+    gs, ss, locs, frames = [], [], [], []
+    for k in tqdm(range(len(database)), desc="dictionary", unit="frame", disable=not progress, leave=False):
+        f = database[k]
+        if f.pose is None:
+            raise ConfigError(f"database frame {k}: has no pose; a database needs poses")
+        uv, pv = ground_samples(cam, depth_of(f, f"database frame {k}"), grid)
+        xy = f.pose.transform(pv[:, :2])
+        s, inside = satfeat.sample(xy)
+        if not inside.any():
+            continue
+        gf = extractor(f.left, "ground")
+        gs.append(gf[uv[inside, 1], uv[inside, 0]])
+        ss.append(s[inside])
+        locs.append(xy[inside])
+        frames.append(np.full(int(inside.sum()), k, np.int32))
+    if not gs:
+        raise ConfigError(f"database {database.name!r}: no ground sample projects inside the satellite map "
+                          f"(check the poses and the map's georeference)")
+    return Dictionary(np.concatenate(gs).astype(np.float32), np.concatenate(ss).astype(np.float32),
+                      np.concatenate(locs), np.concatenate(frames), database.poses, grid, extractor.name)

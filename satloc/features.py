@@ -1,0 +1,70 @@
+"""Pixel-wise feature extractors for ground and satellite images.
+
+Every extractor has one interface: ``extractor(image, view) -> (H, W, dim) float32`` where ``image`` is an
+RGB uint8 (H, W, 3) array and ``view`` is ``"ground"`` or ``"satellite"`` (an extractor may treat the views
+differently, e.g. with a network trained per view). ``FeatureStack`` concatenates extractors' channels.
+"""
+from __future__ import annotations
+
+from typing import Literal, Protocol, Sequence, runtime_checkable
+
+import cv2
+import numpy as np
+
+from .errors import ConfigError
+
+View = Literal["ground", "satellite"]
+
+
+@runtime_checkable
+class FeatureExtractor(Protocol):
+    name: str
+    dim: int
+
+    def __call__(self, image: np.ndarray, view: View) -> np.ndarray: ...
+
+
+def check_image(image: np.ndarray, where: str = "image") -> None:
+    if not isinstance(image, np.ndarray) or image.ndim != 3 or image.shape[2] != 3 or image.dtype != np.uint8:
+        got = f"{image.dtype} {image.shape}" if isinstance(image, np.ndarray) else type(image).__name__
+        raise ConfigError(f"{where}: expected an (H, W, 3) uint8 RGB image, got {got}")
+
+
+class BilateralRGB:
+    """RGB after edge-preserving bilateral filtering, scaled to [0, 1]."""
+
+    name = "rgb"
+    dim = 3
+
+    def __init__(self, diameter: int = 7, sigma_color: float = 40.0, sigma_space: float = 5.0):
+        self.diameter, self.sigma_color, self.sigma_space = diameter, sigma_color, sigma_space
+
+    def __call__(self, image: np.ndarray, view: View) -> np.ndarray:
+        check_image(image, f"{self.name} features")
+        f = cv2.bilateralFilter(image, self.diameter, self.sigma_color, self.sigma_space)
+        return f.astype(np.float32) * (1.0 / 255.0)
+
+
+class FeatureStack:
+    """Channel-wise concatenation of several extractors, each optionally weighted."""
+
+    def __init__(self, extractors: Sequence[FeatureExtractor], weights: Sequence[float] | None = None):
+        if not extractors:
+            raise ConfigError("FeatureStack: needs at least one extractor")
+        self.extractors = list(extractors)
+        self.weights = list(weights) if weights is not None else [1.0] * len(self.extractors)
+        if len(self.weights) != len(self.extractors):
+            raise ConfigError("FeatureStack: one weight per extractor")
+        self.name = "+".join(e.name for e in self.extractors)
+        self.dim = sum(e.dim for e in self.extractors)
+
+    def __call__(self, image: np.ndarray, view: View) -> np.ndarray:
+        check_image(image, "features")
+        parts = []
+        for e, w in zip(self.extractors, self.weights):
+            f = e(image, view)
+            if f.shape != image.shape[:2] + (e.dim,):
+                raise ConfigError(f"feature extractor {e.name!r}: returned shape {f.shape}, expected "
+                                  f"{image.shape[:2] + (e.dim,)}")
+            parts.append(f * np.float32(w) if w != 1.0 else f)
+        return np.concatenate(parts, axis=2) if len(parts) > 1 else parts[0]

@@ -1,0 +1,127 @@
+import math
+
+import numpy as np
+import pytest
+
+from satloc import ConfigError, Frame, FormatError, Pose2, SatelliteMap, Sequence, StereoCamera
+from satloc.dictionary import Dictionary, GridConfig, SatelliteFeatures, build_dictionary, ground_samples
+from satloc.features import BilateralRGB
+from satloc.localizer import Localizer, LocalizerConfig, candidate_poses
+from satloc.projection import ProjectionConfig, Projections, evaluate_loss, train_projections
+
+
+def flat_ground_depth(cam: StereoCamera) -> np.ndarray:
+    """Exact z-depth of a flat ground plane for a level camera (0 above the horizon)."""
+    v = np.arange(cam.height, dtype=np.float64)[:, None] - cam.cy
+    d = np.where(v > 0.5, cam.fy * cam.mount_height / np.maximum(v, 1e-9), 0.0)
+    return np.broadcast_to(d, (cam.height, cam.width)).astype(np.float32).copy()
+
+
+def test_known_ground_point_projects_onto_the_satellite_map():
+    cam = StereoCamera(100, 60, 50.0, 50.0, 49.5, 29.5, 0.5, mount_height=1.5)
+    depth = flat_ground_depth(cam)
+    uv, pv = ground_samples(cam, depth, GridConfig(step_px=1, row_start_frac=0.0, min_depth_m=1.0, max_depth_m=100))
+    # pixel (u=79, v=44): z = fy * h / (v - cy) = 50 * 1.5 / 14.5, lateral x_cam = (u - cx) / fx * z
+    k = np.flatnonzero((uv[:, 0] == 79) & (uv[:, 1] == 44))[0]
+    z = 50 * 1.5 / 14.5
+    lateral = (79 - 49.5) / 50 * z
+    assert pv[k] == pytest.approx([z, -lateral, 0.0], abs=1e-5)  # float32 depth map  # ahead, to the right (negative y), on the ground
+    # vehicle at (10, 20) heading north: ahead is +y, right is +x; map 0.5 m/px with origin (0, 40)
+    pose = Pose2(10.0, 20.0, math.pi / 2)
+    xy = pose.transform(pv[k:k + 1, :2])[0]
+    assert xy == pytest.approx([10 + lateral, 20 + z], abs=1e-5)
+    sm = SatelliteMap(np.zeros((80, 80, 3), np.uint8), 0.5, (0.0, 40.0))
+    col, row = sm.world_to_pixel(xy)
+    assert (col, row) == pytest.approx(((10 + lateral) / 0.5 - 0.5, (40 - 20 - z) / 0.5 - 0.5), abs=1e-4)
+
+
+def synthetic_dictionary(n=3000, seed=0):
+    rng = np.random.default_rng(seed)
+    loc = rng.uniform(0, 100, (n, 2))
+    # features: a location-informative part plus a nuisance dimension with large variance
+    g = np.c_[loc / 50 + 0.05 * rng.standard_normal((n, 2)), 3 * rng.standard_normal((n, 1))].astype(np.float32)
+    s = np.c_[loc / 50 + 0.05 * rng.standard_normal((n, 2)), 3 * rng.standard_normal((n, 1))].astype(np.float32)
+    poses = np.c_[np.linspace(0, 100, 50), np.full(50, 50.0), np.zeros(50)]
+    return Dictionary(g, s, loc, np.zeros(n, np.int32), poses, GridConfig(), "synthetic")
+
+
+def test_ranking_loss_decreases_on_a_fixed_seed_problem():
+    d = synthetic_dictionary()
+    cfg = ProjectionConfig(max_anchors=2000, max_epochs=15, alpha=0.01, lr=0.02)
+    p = train_projections(d, cfg, progress=False)
+    assert p.loss_curve[-1] < 0.8 * p.loss_curve[0]
+    assert evaluate_loss(d, p, cfg) < evaluate_loss(d, Projections.identity(3, 3), cfg)
+    # the nuisance dimension is suppressed
+    assert abs(p.W_g[2, 2]) < abs(p.W_g[0, 0])
+
+
+def test_dictionary_and_projection_round_trips(tmp_path):
+    d = synthetic_dictionary(200)
+    d.save(tmp_path / "d.npz")
+    e = Dictionary.load(tmp_path / "d.npz")
+    for k in ("g", "s", "loc", "frame", "poses"):
+        assert np.array_equal(getattr(d, k), getattr(e, k))
+    assert e.grid == d.grid and e.feature_name == "synthetic"
+    p = Projections(np.arange(9, dtype=np.float32).reshape(3, 3), np.eye(3, dtype=np.float32), [3.0, 2.0], True)
+    p.save(tmp_path / "p.pt")
+    q = Projections.load(tmp_path / "p.pt")
+    assert np.array_equal(p.W_g, q.W_g) and q.loss_curve == [3.0, 2.0] and q.converged
+    sf = SatelliteFeatures(np.ones((4, 5, 2), np.float16), 0.2, (1.0, 2.0), "x")
+    sf.save(tmp_path / "sf.npz")
+    assert np.array_equal(SatelliteFeatures.load(tmp_path / "sf.npz").features, sf.features)
+
+
+def test_damaged_and_foreign_saved_files(tmp_path):
+    (tmp_path / "p.pt").write_bytes(b"not a torch file")
+    with pytest.raises(FormatError, match="p.pt: damaged"):
+        Projections.load(tmp_path / "p.pt")
+    synthetic_dictionary(50).save(tmp_path / "d.npz")
+    with pytest.raises(FormatError, match="expected a satloc 'satellite_features' file, found format 'dictionary'"):
+        SatelliteFeatures.load(tmp_path / "d.npz")
+    import torch
+    torch.save({"format": "something_else"}, tmp_path / "o.pt")
+    with pytest.raises(FormatError, match="not a satloc 'projections' file"):
+        Projections.load(tmp_path / "o.pt")
+
+
+def test_candidates_follow_the_path():
+    poses = np.array([[0, 0, 0], [10, 0, 0], [10, 10, math.pi / 2]], float)
+    c = candidate_poses(poses, 0.5, (0.0, 1.0))
+    assert len(c) == 2 * 41
+    assert np.all(np.linalg.norm(np.diff(c[:41, :2], axis=0), axis=1) <= 0.5 + 1e-9)
+    assert c[5] == pytest.approx([2.5, 0.0, 0.0])
+    assert c[41 + 5] == pytest.approx([2.5, 1.0, 0.0])  # one metre to the left
+
+
+def tiny_setup():
+    cam = StereoCamera(64, 40, 32.0, 32.0, 31.5, 19.5, 0.5, 1.5)
+    rng = np.random.default_rng(0)
+    img = rng.integers(0, 255, (40, 64, 3), np.uint8)
+    frames = [Frame(img, img, Pose2(20 + i, 20, 0.0), i, flat_ground_depth(cam)) for i in range(5)]
+    seq = Sequence(cam, frames)
+    sm = SatelliteMap(rng.integers(0, 255, (200, 200, 3), np.uint8), 0.2, (0.0, 40.0))
+    ext = BilateralRGB()
+    sf = SatelliteFeatures.compute(sm, ext)
+    return cam, seq, sf, ext
+
+
+def test_clear_errors():
+    cam, seq, sf, ext = tiny_setup()
+    grid = GridConfig(step_px=4, min_depth_m=1.0)
+    with pytest.raises(ConfigError, match="database sequence .* is empty"):
+        build_dictionary(Sequence(cam, []), sf, ext, grid, depth_source="frame", progress=False)
+    d = build_dictionary(seq, sf, ext, grid, depth_source="frame", progress=False)
+    assert len(d) > 0
+    empty = Dictionary(d.g[:0], d.s[:0], d.loc[:0], d.frame[:0], d.poses, d.grid)
+    with pytest.raises(ConfigError, match="dictionary is empty"):
+        Localizer(empty, sf, ext, cam, None, LocalizerConfig(mode="np", depth_source="frame"))
+    loc = Localizer(d, sf, ext, cam, None, LocalizerConfig(mode="np", depth_source="frame"))
+    f = seq[0]
+    with pytest.raises(FormatError, match="query frame.left: expected a 64x40"):
+        loc.localize(Frame(f.left[:20], f.right, None, 0.0, f.depth))
+    with pytest.raises(ConfigError, match="no grid sample has valid depth"):
+        loc.localize(Frame(f.left, f.right, None, 0.0, np.zeros_like(f.depth)))
+    with pytest.raises(ConfigError, match="mode 'full' needs learned projections"):
+        Localizer(d, sf, ext, cam, None, LocalizerConfig(mode="full", depth_source="frame"))
+    r = loc.localize(f)
+    assert r.posterior.shape == (len(loc.candidates),) and r.posterior.sum() == pytest.approx(1.0)
