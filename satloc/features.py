@@ -68,3 +68,23 @@ class FeatureStack:
                                   f"{image.shape[:2] + (e.dim,)}")
             parts.append(f * np.float32(w) if w != 1.0 else f)
         return np.concatenate(parts, axis=2) if len(parts) > 1 else parts[0]
+
+
+FEATURE_SETS = ("rgb", "semantic", "default")
+
+
+def make_extractor(name: str = "default") -> FeatureExtractor:
+    """A named feature set: ``rgb`` (bilateral RGB), ``semantic`` (the FCN's class probabilities and edge
+    potentials) or ``default`` (all three stacked: RGB, edge potentials, semantic attributes)."""
+    if name == "rgb":
+        return BilateralRGB()
+    if name in ("semantic", "default"):
+        from .fcn import EdgeFeatures, SemanticFeatures
+
+        parts: list[FeatureExtractor] = [EdgeFeatures(), SemanticFeatures()]
+        if name == "default":
+            parts.insert(0, BilateralRGB())
+        stack = FeatureStack(parts)
+        stack.name = name
+        return stack
+    raise ConfigError(f"features: expected one of {list(FEATURE_SETS)}, got {name!r}")

@@ -8,7 +8,8 @@ v in {g, s} the hinge ranking loss
     m(i, k) = dL(i, k) - dL(i, k*),   D_v(i, k) = || W_v (x_i - x_k) ||^2
 
 asks that, after projection, entries nearer in location are nearer in feature space, by a margin that grows
-with the location difference. W_v is renormalised to its initial Frobenius norm after each Adam step, so the
+with the location difference. Unless set, alpha is chosen per view so that margins and squared feature
+distances have the same median at W = I (features of different kinds have very different scales). W_v is renormalised to its initial Frobenius norm after each Adam step, so the
 loss cannot be lowered by merely scaling features up. Training stops when the epoch loss improves by less
 than ``tol`` (relative) for ``patience`` epochs, or after ``max_epochs``.
 """
@@ -32,7 +33,8 @@ FORMAT = "projections"
 @dataclass(frozen=True)
 class ProjectionConfig:
     neighbors: int = 20             # |N(i)|
-    alpha: float = 0.05             # margin per metre of location difference (feature units^2 / m)
+    alpha: float | None = None      # margin per metre of location difference (feature units^2 / m); None:
+                                    # per view, median neighbour distance^2 at W = I over median margin
     max_margin_m: float = 20.0      # location differences are clipped here
     lr: float = 5e-3
     batch_size: int = 2048
@@ -115,6 +117,13 @@ def ranking_loss(W: torch.Tensor, x: torch.Tensor, i: torch.Tensor, kstar: torch
     return torch.relu(alpha * margins + d_star[:, None] - d_other).mean()
 
 
+def auto_alpha(x: torch.Tensor, anchors: torch.Tensor, others: torch.Tensor, margins: torch.Tensor) -> float:
+    """alpha making the median margin equal the median squared neighbour distance at W = I."""
+    d = (x[anchors][:, None] - x[others]).pow(2).sum(-1)
+    m = float(margins[margins > 0].median()) if bool((margins > 0).any()) else 1.0
+    return max(float(d.median()), 1e-12) / max(m, 1e-12)
+
+
 def train_projections(d: Dictionary, cfg: ProjectionConfig = ProjectionConfig(), progress: bool = True) -> Projections:
     """Learn W_g and W_s on dictionary ``d`` (see the module docstring)."""
     torch.manual_seed(cfg.seed)
@@ -126,6 +135,7 @@ def train_projections(d: Dictionary, cfg: ProjectionConfig = ProjectionConfig(),
     t_anchor, t_star = torch.from_numpy(anchors), torch.from_numpy(kstar)
     t_others, t_marg = torch.from_numpy(others), torch.from_numpy(margins)
     gen = torch.Generator().manual_seed(cfg.seed)
+    alpha = {v: cfg.alpha if cfg.alpha is not None else auto_alpha(x, t_anchor, t_others, t_marg) for v, x in views.items()}
     curve: list[float] = []
     stale, converged = 0, False
     bar = tqdm(range(cfg.max_epochs), desc="projections", unit="epoch", disable=not progress, leave=False)
@@ -134,7 +144,7 @@ def train_projections(d: Dictionary, cfg: ProjectionConfig = ProjectionConfig(),
         total, count = 0.0, 0
         for b in range(0, len(perm), cfg.batch_size):
             sel = perm[b:b + cfg.batch_size]
-            loss = sum(ranking_loss(W[v], views[v], t_anchor[sel], t_star[sel], t_others[sel], t_marg[sel], cfg.alpha)
+            loss = sum(ranking_loss(W[v], views[v], t_anchor[sel], t_star[sel], t_others[sel], t_marg[sel], alpha[v])
                        for v in views)
             opt.zero_grad()
             loss.backward()
@@ -158,12 +168,14 @@ def train_projections(d: Dictionary, cfg: ProjectionConfig = ProjectionConfig(),
 
 def evaluate_loss(d: Dictionary, p: Projections, cfg: ProjectionConfig = ProjectionConfig()) -> float:
     """The ranking loss of projections ``p`` on dictionary ``d`` (both views, all sampled anchors)."""
-    anchors, kstar, others, margins = ranking_triplets(d, cfg)
+    anchors, kstar, others, margins = (torch.from_numpy(a) for a in ranking_triplets(d, cfg))
+    total = 0.0
     with torch.no_grad():
-        return float(sum(
-            ranking_loss(torch.from_numpy(W), torch.from_numpy(np.ascontiguousarray(x)), torch.from_numpy(anchors),
-                         torch.from_numpy(kstar), torch.from_numpy(others), torch.from_numpy(margins), cfg.alpha)
-            for W, x in ((p.W_g, d.g), (p.W_s, d.s))))
+        for W, x in ((p.W_g, d.g), (p.W_s, d.s)):
+            xt = torch.from_numpy(np.ascontiguousarray(x))
+            alpha = cfg.alpha if cfg.alpha is not None else auto_alpha(xt, anchors, others, margins)
+            total += float(ranking_loss(torch.from_numpy(W), xt, anchors, kstar, others, margins, alpha))
+    return total
 
 
 def plot_loss(curve: list[float], path: str | Path) -> None:

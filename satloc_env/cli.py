@@ -108,6 +108,57 @@ def cmd_scene(args) -> int:
     return 0
 
 
+def _stage_config(cls, path: str | None, overrides: dict):
+    """A stage's typed config from an optional YAML file plus command-line overrides (unknown keys raise)."""
+    import yaml
+
+    from satloc.config import from_dict
+
+    data: dict = {}
+    if path:
+        p = Path(path)
+        if not p.is_file():
+            raise SatlocError(f"{p}: config file not found")
+        data = yaml.safe_load(p.read_text()) or {}
+    data.update({k: v for k, v in overrides.items() if v is not None})
+    return from_dict(cls, data, f"{path}:" if path else "config")
+
+
+def cmd_build(args) -> int:
+    from satloc.pipeline import BuildConfig, build
+
+    cfg = _stage_config(BuildConfig, args.config, {"features": args.features})
+    print(json.dumps(build(args.database, args.map, args.out, cfg, progress=not args.quiet)))
+    return 0
+
+
+def cmd_train_projection(args) -> int:
+    from satloc.pipeline import train_projection
+    from satloc.projection import ProjectionConfig
+
+    p = train_projection(args.build, _stage_config(ProjectionConfig, args.config, {}), progress=not args.quiet)
+    print(json.dumps({"epochs": len(p.loss_curve), "converged": p.converged, "loss_first": p.loss_curve[0],
+                      "loss_last": p.loss_curve[-1], "plot": str(Path(args.build) / "projection_loss.png")}))
+    return 0
+
+
+def cmd_localize(args) -> int:
+    from satloc.localizer import LocalizerConfig
+    from satloc.pipeline import localize
+
+    cfg = _stage_config(LocalizerConfig, args.config, {"mode": args.mode})
+    s = localize(args.build, args.queries, cfg, args.out or args.build, progress=not args.quiet)
+    s.pop("errors")
+    print(json.dumps(s))
+    return 0
+
+
+def cmd_train_features(args) -> int:
+    from satloc_env.train_features import main as train_main
+
+    return train_main(args.rest) or 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="satloc", description=__doc__)
     sub = p.add_subparsers(dest="command", required=True)
@@ -143,6 +194,35 @@ def build_parser() -> argparse.ArgumentParser:
     b.add_argument("--steps", type=int, default=2000)
     b.add_argument("--scene", default="city")
     b.set_defaults(func=cmd_bench)
+
+    bl = sub.add_parser("build", help="build the ground-satellite dictionary of a database sequence")
+    bl.add_argument("--database", required=True, help="database sequence directory")
+    bl.add_argument("--map", required=True, help="satellite map directory")
+    bl.add_argument("--out", required=True, help="build directory to write")
+    bl.add_argument("--features", choices=["rgb", "semantic", "default"], default=None)
+    bl.add_argument("--config", help="YAML with BuildConfig fields")
+    bl.add_argument("--quiet", action="store_true")
+    bl.set_defaults(func=cmd_build)
+
+    tp = sub.add_parser("train-projection", help="learn the projections W_g, W_s of a build")
+    tp.add_argument("build")
+    tp.add_argument("--config", help="YAML with ProjectionConfig fields")
+    tp.add_argument("--quiet", action="store_true")
+    tp.set_defaults(func=cmd_train_projection)
+
+    lo = sub.add_parser("localize", help="localize the frames of a query sequence against a build")
+    lo.add_argument("build")
+    lo.add_argument("--queries", required=True)
+    lo.add_argument("--mode", choices=["full", "np", "go"], default=None)
+    lo.add_argument("--out", help="where to write results (default: the build directory)")
+    lo.add_argument("--config", help="YAML with LocalizerConfig fields")
+    lo.add_argument("--quiet", action="store_true")
+    lo.set_defaults(func=cmd_localize)
+
+    tf = sub.add_parser("train-features", help="train the semantic/edge FCN on simulator renders",
+                        add_help=False)
+    tf.add_argument("rest", nargs=argparse.REMAINDER)
+    tf.set_defaults(func=cmd_train_features)
 
     s = sub.add_parser("scene", help="generate a scene; print its summary, save it or draw it")
     s.add_argument("scene")

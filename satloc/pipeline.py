@@ -1,0 +1,122 @@
+"""The method as a pipeline of stages, each with one typed entry point and saved, reloadable artefacts:
+
+1. :func:`build`: database sequence + satellite map -> ``BUILD/`` (dictionary, dense satellite features);
+2. :func:`train_projection`: ``BUILD/`` -> ``BUILD/projections.pt`` (+ loss curve PNG);
+3. :func:`localize`: ``BUILD/`` + query sequence -> per-query estimates, posteriors' top candidates, errors.
+
+The command line (``satloc build | train-projection | localize``) calls these functions.
+"""
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+from tqdm import tqdm
+
+from .config import from_dict, to_dict
+from .dictionary import Dictionary, GridConfig, SatelliteFeatures, build_dictionary
+from .errors import ConfigError
+from .features import make_extractor
+from .geometry import StereoCamera
+from .localizer import Localizer, LocalizerConfig
+from .persist import read_json, save_npz, write_json, header
+from .projection import ProjectionConfig, Projections, plot_loss, train_projections
+from .satmap import SatelliteMap
+from .sequence import Sequence
+
+
+@dataclass(frozen=True)
+class BuildConfig:
+    features: str = "default"
+    grid: GridConfig = field(default_factory=GridConfig)
+    depth_source: str = "stereo"
+
+
+def build(database: str | Path, satmap: str | Path, out: str | Path, config: BuildConfig = BuildConfig(),
+          progress: bool = True) -> dict:
+    """Build the dictionary of ``database`` against ``satmap`` into ``out``; returns the build summary."""
+    out = Path(out)
+    db, sm = Sequence.load(database), SatelliteMap.load(satmap)
+    ext = make_extractor(config.features)
+    t0 = time.perf_counter()
+    sf = SatelliteFeatures.compute(sm, ext)
+    t1 = time.perf_counter()
+    d = build_dictionary(db, sf, ext, config.grid, config.depth_source, progress)
+    t2 = time.perf_counter()
+    sf.save(out / "satellite_features.npz")
+    d.save(out / "dictionary.npz")
+    summary = dict(header("build"), config=to_dict(config), camera=db.camera.to_dict(),
+                   database=str(Path(database).resolve()), map=str(Path(satmap).resolve()),
+                   entries=len(d), database_frames=len(db), database_m=round(db.path_length(), 1),
+                   satellite_features_s=round(t1 - t0, 2), dictionary_s=round(t2 - t1, 2))
+    write_json(out / "build.json", summary)
+    return summary
+
+
+def _load_build(build_dir: str | Path) -> tuple[dict, BuildConfig]:
+    meta = read_json(Path(build_dir) / "build.json", "build")
+    return meta, from_dict(BuildConfig, meta.get("config", {}), f"{Path(build_dir) / 'build.json'}: config")
+
+
+def train_projection(build_dir: str | Path, config: ProjectionConfig = ProjectionConfig(),
+                     progress: bool = True) -> Projections:
+    """Learn W_g, W_s on the build's dictionary; writes ``projections.pt`` and ``projection_loss.png``."""
+    b = Path(build_dir)
+    _load_build(b)
+    d = Dictionary.load(b / "dictionary.npz")
+    t0 = time.perf_counter()
+    p = train_projections(d, config, progress)
+    p.save(b / "projections.pt")
+    plot_loss(p.loss_curve, b / "projection_loss.png")
+    write_json(b / "projection.json", dict(header("projection_training"), config=to_dict(config),
+                                            epochs=len(p.loss_curve), converged=p.converged,
+                                            loss_first=p.loss_curve[0], loss_last=p.loss_curve[-1],
+                                            seconds=round(time.perf_counter() - t0, 2)))
+    return p
+
+
+def load_localizer(build_dir: str | Path, config: LocalizerConfig = LocalizerConfig()) -> Localizer:
+    """A localizer from a build directory (projections needed for mode ``full``)."""
+    b = Path(build_dir)
+    meta, bc = _load_build(b)
+    proj = None
+    if config.mode == "full":
+        if not (b / "projections.pt").is_file():
+            raise ConfigError(f"{b}: no projections.pt; run train-projection first or use mode 'np' / 'go'")
+        proj = Projections.load(b / "projections.pt")
+    return Localizer(Dictionary.load(b / "dictionary.npz"), SatelliteFeatures.load(b / "satellite_features.npz"),
+                     make_extractor(bc.features), StereoCamera(**meta["camera"]), proj, config)
+
+
+def localize(build_dir: str | Path, queries: str | Path, config: LocalizerConfig = LocalizerConfig(),
+             out: str | Path | None = None, progress: bool = True, localizer: Localizer | None = None) -> dict:
+    """Localize every frame of ``queries``; returns (and writes to ``out/``) estimates and errors."""
+    loc = localizer or load_localizer(build_dir, config)
+    q = Sequence.load(queries)
+    k = loc.config.posterior_k
+    est, truth, inl_score, inl = np.zeros((len(q), 3)), np.full((len(q), 3), np.nan), np.zeros(len(q)), np.zeros(len(q), bool)
+    top_poses, top_probs = np.zeros((len(q), k, 3)), np.zeros((len(q), k))
+    t0 = time.perf_counter()
+    for i in tqdm(range(len(q)), desc=f"localize ({loc.config.mode})", unit="query", disable=not progress, leave=False):
+        f = q[i]
+        r = loc.localize(f)
+        est[i] = r.estimate.as_array()
+        if f.pose is not None:
+            truth[i] = f.pose.as_array()
+        inl_score[i], inl[i] = r.inlier_score, r.inlier
+        top_poses[i], top_probs[i] = r.top(k)
+    secs = time.perf_counter() - t0
+    err = np.hypot(est[:, 0] - truth[:, 0], est[:, 1] - truth[:, 1])
+    summary = {"mode": loc.config.mode, "queries": len(q), "mean_m": float(np.nanmean(err)) if len(q) else None,
+               "std_m": float(np.nanstd(err)) if len(q) else None, "median_m": float(np.nanmedian(err)) if len(q) else None,
+               "queries_per_s": round(len(q) / secs, 2) if secs > 0 else None}
+    if out is not None:
+        out = Path(out)
+        save_npz(out / f"localization_{loc.config.mode}.npz", "localization",
+                 {"estimates": est, "truth": truth, "errors": err, "inlier_score": inl_score, "inlier": inl,
+                  "top_poses": top_poses, "top_probs": top_probs}, {"config": to_dict(loc.config)})
+        write_json(out / f"localization_{loc.config.mode}.json", dict(header("localization_summary"), **summary))
+    summary["errors"] = err
+    return summary
