@@ -28,6 +28,7 @@ from typing import Literal
 
 import cv2
 import numpy as np
+from scipy.spatial import cKDTree
 
 from .dictionary import Dictionary, FrameDepth, SatelliteFeatures, ground_samples
 from .errors import ConfigError
@@ -52,6 +53,8 @@ class LocalizerConfig:
     min_distance_frac: float = 0.05       # feature distances are floored at this fraction of the median distance
                                           # between random entries, so duplicates do not get infinite weight
     depth_source: Literal["stereo", "frame"] = "stereo"
+    prune_regions: int = 0                # >0: score only candidates near the best-voted database frames
+    prune_window_m: float = 12.0          # half-length of the path window kept around each voted frame
 
     def __post_init__(self):
         if self.candidate_spacing_m <= 0:
@@ -65,6 +68,14 @@ def _spread(x: np.ndarray, n: int = 4000) -> float:
     rng = np.random.default_rng(0)
     a, b = rng.integers(0, len(x), n), rng.integers(0, len(x), n)
     return float(np.median(np.linalg.norm(x[a] - x[b], axis=1)))
+
+
+def _path_positions(db_poses: np.ndarray, cands: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Arc length along the database path of every database frame and of every candidate (nearest frame)."""
+    p = np.nan_to_num(db_poses[:, :2])
+    s = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(p, axis=0), axis=1))])
+    _, nearest = cKDTree(p).query(cands[:, :2])
+    return s, s[nearest]
 
 
 def candidate_poses(db_poses: np.ndarray, spacing: float, lateral: tuple[float, ...]) -> np.ndarray:
@@ -128,6 +139,7 @@ class Localizer:
                               f"dictionary's feature dimensions {dg}/{ds}")
         self.depth = FrameDepth(camera, config.depth_source)
         self.candidates = candidate_poses(dictionary.poses, config.candidate_spacing_m, config.lateral_offsets_m)
+        self._frame_s, self._cand_s = _path_positions(dictionary.poses, self.candidates)
         pg = self.proj.project_g(dictionary.g)
         self.ground_index = NNIndex(pg)
         self.eps_g = config.min_distance_frac * _spread(pg) + 1e-9
@@ -171,8 +183,34 @@ class Localizer:
         dg, gid = self.ground_index.search(self.proj.project_g(g), cfg.neighbors)
         wg = np.where(gid >= 0, 1.0 / np.maximum(dg, self.eps_g), 0.0).astype(np.float32)
         cands = self.candidates if candidates is None else candidates
-        scores = self._scores(cands, pv[:, :2], gid, wg)
+        scores = np.zeros(len(cands))
+        sel = self._pruned(gid, wg) if candidates is None and cfg.prune_regions > 0 else slice(None)
+        scores[sel] = self._scores(cands[sel], pv[:, :2], gid, wg)
         return self._answer(cands, scores, len(uv))
+
+    def _pruned(self, gid: np.ndarray, wg: np.ndarray) -> np.ndarray:
+        """Indices of the candidates within ``prune_window_m`` (along the path) of the database frames that
+        the query's ground neighbours vote for most: cost independent of the number of candidates."""
+        cfg = self.config
+        nf = len(self.dictionary.poses)
+        votes = np.bincount(self.dictionary.frame[np.maximum(gid, 0)].ravel(), weights=wg.ravel(), minlength=nf)
+        s = self._frame_s
+        # smooth the votes along the path, then take peaks at least a window apart
+        order = np.argsort(s)
+        smooth = np.zeros(nf)
+        cs = np.concatenate([[0.0], np.cumsum(votes[order])])
+        lo = np.searchsorted(s[order], s[order] - cfg.prune_window_m / 2)
+        hi = np.searchsorted(s[order], s[order] + cfg.prune_window_m / 2, side="right")
+        smooth[order] = cs[hi] - cs[lo]
+        keep = np.zeros(len(self.candidates), bool)
+        taken: list[float] = []
+        for f in np.argsort(-smooth):
+            if len(taken) >= cfg.prune_regions or smooth[f] <= 0:
+                break
+            if all(abs(s[f] - t) > cfg.prune_window_m for t in taken):
+                taken.append(s[f])
+                keep |= np.abs(self._cand_s - s[f]) <= cfg.prune_window_m
+        return np.flatnonzero(keep) if keep.any() else np.arange(len(self.candidates))
 
     def _scores(self, cands: np.ndarray, pv: np.ndarray, gid: np.ndarray, wg: np.ndarray) -> np.ndarray:
         n, m = gid.shape
