@@ -153,12 +153,6 @@ def cmd_localize(args) -> int:
     return 0
 
 
-def cmd_train_features(args) -> int:
-    from satloc_env.train_features import main as train_main
-
-    return train_main(args.rest) or 0
-
-
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="satloc", description=__doc__)
     sub = p.add_subparsers(dest="command", required=True)
@@ -219,10 +213,7 @@ def build_parser() -> argparse.ArgumentParser:
     lo.add_argument("--quiet", action="store_true")
     lo.set_defaults(func=cmd_localize)
 
-    tf = sub.add_parser("train-features", help="train the semantic/edge FCN on simulator renders",
-                        add_help=False)
-    tf.add_argument("rest", nargs=argparse.REMAINDER)
-    tf.set_defaults(func=cmd_train_features)
+    sub.add_parser("train-features", help="train the semantic/edge FCN on simulator renders (see its --help)")
 
     s = sub.add_parser("scene", help="generate a scene; print its summary, save it or draw it")
     s.add_argument("scene")
@@ -234,6 +225,11 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
+    argv = sys.argv[1:] if argv is None else list(argv)
+    if argv[:1] == ["train-features"]:  # its own parser (argparse cannot forward options through REMAINDER)
+        from satloc_env.train_features import main as train_main
+
+        return train_main(argv[1:]) or 0
     args = build_parser().parse_args(argv)
     try:
         return args.func(args)

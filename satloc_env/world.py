@@ -44,7 +44,7 @@ SKY_RGB = (168, 196, 226)
 #: Texel size (metres) of the procedural textures.
 _FACADE_M, _FOLIAGE_M, _BARK_M, _CAR_M, _PERSON_M, _OBSTACLE_M = 0.1, 0.08, 0.05, 0.04, 0.03, 0.04
 #: Width (texels) of the atlas of an occluder mesh, which has no ground region.
-_OCCLUDER_ATLAS_W = 512
+_OCCLUDER_ATLAS_W = 4096  # wide enough that dense occluder sets stay under GL max texture size
 #: Baked shading: factor = _AMBIENT + (1 - _AMBIENT) * max(0, normal . sun).
 _AMBIENT = 0.55
 
