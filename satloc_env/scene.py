@@ -157,9 +157,10 @@ class SceneSpec:
 def scene_path(name_or_path: str | os.PathLike) -> Path:
     """Resolve a shipped scene name (``city``) or a path to a YAML file."""
     p = Path(name_or_path)
-    if p.suffix in (".yaml", ".yml") or p.exists():
-        return p
     cand = SCENES_DIR / f"{name_or_path}.yaml"
+    # a bare shipped name wins over a same-named file or folder in the working directory (e.g. an output dir)
+    if p.suffix in (".yaml", ".yml") or (p.exists() and not (len(p.parts) == 1 and cand.is_file())):
+        return p
     if not cand.is_file():
         shipped = sorted(q.stem for q in SCENES_DIR.glob("*.yaml"))
         raise ConfigError(f"scene {str(name_or_path)!r}: no such file and not a shipped scene (shipped: {shipped})")
