@@ -14,6 +14,7 @@ import numpy as np
 from tqdm import tqdm
 
 from .config import from_dict, to_dict
+from .context import ContextConfig, ground_context, satellite_context
 from .errors import ConfigError, FormatError
 from .features import FeatureExtractor
 from .geometry import StereoCamera
@@ -96,6 +97,25 @@ class SatelliteFeatures:
         out[inside] = self.features.reshape(-1, self.dim)[flat[inside]]
         return out, inside
 
+    def sample_context(self, xy: np.ndarray, context: ContextConfig, span: tuple[int, int]
+                       ) -> tuple[np.ndarray, np.ndarray]:
+        """Base features with their metric context (see :mod:`satloc.context`) at map points (n, 2)."""
+        flat, inside = self.pixel_index(xy)
+        return self.features_at(flat[inside], context, span, len(flat), inside), inside
+
+    def features_at(self, flat: np.ndarray, context: ContextConfig, span: tuple[int, int],
+                    n: int | None = None, where: np.ndarray | None = None) -> np.ndarray:
+        """Base + context features at flat pixel indices (rows ``where`` of an (n, D) output, zero elsewhere)."""
+        w = self.features.shape[1]
+        base = self.features.reshape(-1, self.dim)[flat].astype(np.float32)
+        ctx = satellite_context(self.features, flat // w, flat % w, self.meters_per_pixel, context, span)
+        full = np.concatenate([base, ctx], axis=1)
+        if where is None:
+            return full
+        out = np.zeros((n, full.shape[1]), np.float32)
+        out[where] = full
+        return out
+
     def save(self, path: str | Path) -> None:
         save_npz(path, "satellite_features", {"features": self.features},
                  {"meters_per_pixel": self.meters_per_pixel, "origin": list(self.origin), "name": self.name})
@@ -119,6 +139,7 @@ class Dictionary:
     poses: np.ndarray               # (F, 3) database frame poses (x, y, yaw)
     grid: GridConfig
     feature_name: str = ""
+    context: ContextConfig = ContextConfig(scales_m=())
 
     def __post_init__(self):
         n = len(self.g)
@@ -131,7 +152,7 @@ class Dictionary:
     def save(self, path: str | Path) -> None:
         save_npz(path, "dictionary", {"g": self.g, "s": self.s, "loc": self.loc, "frame": self.frame,
                                       "poses": self.poses},
-                 {"grid": to_dict(self.grid), "feature_name": self.feature_name})
+                 {"grid": to_dict(self.grid), "feature_name": self.feature_name, "context": to_dict(self.context)})
 
     @staticmethod
     def load(path: str | Path) -> "Dictionary":
@@ -140,7 +161,8 @@ class Dictionary:
         if missing:
             raise FormatError(f"{path}: missing arrays {missing}")
         return Dictionary(a["g"], a["s"], a["loc"], a["frame"], a["poses"],
-                          from_dict(GridConfig, m.get("grid", {}), f"{path}: grid"), m.get("feature_name", ""))
+                          from_dict(GridConfig, m.get("grid", {}), f"{path}: grid"), m.get("feature_name", ""),
+                          from_dict(ContextConfig, m.get("context", {"scales_m": []}), f"{path}: context"))
 
 
 class FrameDepth:
@@ -160,30 +182,46 @@ class FrameDepth:
         return self.stereo(frame.left, frame.right)
 
 
+def ground_features(fmap: np.ndarray, uv: np.ndarray, depth: np.ndarray, camera: StereoCamera,
+                    context: ContextConfig, span: tuple[int, int]) -> np.ndarray:
+    """(n, D) ground features at grid samples ``uv``: the pixel's own features and their metric context
+    (``depth``: the samples' depths in metres)."""
+    d = depth[uv[:, 1], uv[:, 0]].astype(np.float64)
+    base = fmap[uv[:, 1], uv[:, 0]].astype(np.float32)
+    if not context.scales_m:
+        return base
+    return np.concatenate([base, ground_context(fmap, uv, d, camera.fx, context, span)], axis=1)
+
+
 def build_dictionary(database: Sequence, satfeat: SatelliteFeatures, extractor: FeatureExtractor,
-                     grid: GridConfig = GridConfig(), depth_source: str = "stereo", progress: bool = True) -> Dictionary:
+                     grid: GridConfig = GridConfig(), depth_source: str = "stereo", progress: bool = True,
+                     context: ContextConfig = ContextConfig()) -> Dictionary:
     """Pair ground features of every database frame with the satellite features where they project."""
     if len(database) == 0:
         raise ConfigError(f"database sequence {database.name!r} is empty")
     cam = database.camera
     depth_of = FrameDepth(cam, depth_source)
+    span = context.span(extractor.dim, extractor.name)
     gs, ss, locs, frames = [], [], [], []
     for k in tqdm(range(len(database)), desc="dictionary", unit="frame", disable=not progress, leave=False):
         f = database[k]
         if f.pose is None:
             raise ConfigError(f"database frame {k}: has no pose; a database needs poses")
-        uv, pv = ground_samples(cam, depth_of(f, f"database frame {k}"), grid)
+        depth = depth_of(f, f"database frame {k}")
+        uv, pv = ground_samples(cam, depth, grid)
         xy = f.pose.transform(pv[:, :2])
-        s, inside = satfeat.sample(xy)
+        flat, inside = satfeat.pixel_index(xy)
         if not inside.any():
             continue
-        gf = extractor(f.left, "ground")
-        gs.append(gf[uv[inside, 1], uv[inside, 0]])
-        ss.append(s[inside])
+        gs.append(ground_features(extractor(f.left, "ground"), uv[inside], depth, cam, context, span))
+        ss.append(flat[inside])
         locs.append(xy[inside])
         frames.append(np.full(int(inside.sum()), k, np.int32))
     if not gs:
         raise ConfigError(f"database {database.name!r}: no ground sample projects inside the satellite map "
                           f"(check the poses and the map's georeference)")
-    return Dictionary(np.concatenate(gs).astype(np.float32), np.concatenate(ss).astype(np.float32),
-                      np.concatenate(locs), np.concatenate(frames), database.poses, grid, extractor.name)
+    # satellite features of all samples at once (one pass over the map for the context windows)
+    s = satfeat.features_at(np.concatenate(ss), context, span)
+    return Dictionary(np.concatenate(gs).astype(np.float32), s,
+                      np.concatenate(locs), np.concatenate(frames), database.poses, grid, extractor.name,
+                      context)

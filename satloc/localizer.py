@@ -22,16 +22,20 @@ table look-ups.
 """
 from __future__ import annotations
 
+import hashlib
 import math
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Literal
 
 import cv2
 import numpy as np
 from scipy.spatial import cKDTree
+from tqdm import tqdm
 
-from .dictionary import Dictionary, FrameDepth, SatelliteFeatures, ground_samples
-from .errors import ConfigError
+from .dictionary import Dictionary, FrameDepth, SatelliteFeatures, ground_features, ground_samples
+from .errors import ConfigError, FormatError
+from .persist import load_npz, save_npz
 from .features import FeatureExtractor
 from .geometry import Pose2, StereoCamera
 from .nn import NNIndex
@@ -53,8 +57,8 @@ class LocalizerConfig:
     min_distance_frac: float = 0.05       # feature distances are floored at this fraction of the median distance
                                           # between random entries, so duplicates do not get infinite weight
     depth_source: Literal["stereo", "frame"] = "stereo"
-    prune_regions: int = 0                # >0: score only candidates near the best-voted database frames
-    prune_window_m: float = 12.0          # half-length of the path window kept around each voted frame
+    prune_regions: int = 3                # >0: score only candidates near the best-voted path positions
+    prune_window_m: float = 12.0          # path length kept around each voted position (and peak separation)
 
     def __post_init__(self):
         if self.candidate_spacing_m <= 0:
@@ -125,7 +129,8 @@ class Localizer:
 
     def __init__(self, dictionary: Dictionary, satfeat: SatelliteFeatures, extractor: FeatureExtractor,
                  camera: StereoCamera, projections: Projections | None = None,
-                 config: LocalizerConfig = LocalizerConfig()):
+                 config: LocalizerConfig = LocalizerConfig(), table_cache: str | Path | None = None,
+                 progress: bool = False):
         if len(dictionary) == 0:
             raise ConfigError("the dictionary is empty: nothing to localize against")
         if config.mode == "full" and projections is None:
@@ -138,16 +143,51 @@ class Localizer:
             raise ConfigError(f"projections of shape {self.proj.W_g.shape}/{self.proj.W_s.shape} do not match the "
                               f"dictionary's feature dimensions {dg}/{ds}")
         self.depth = FrameDepth(camera, config.depth_source)
+        self.span = dictionary.context.span(extractor.dim, extractor.name)
+        if dictionary.context.dim(extractor.dim, extractor.name) != dg:
+            raise ConfigError(f"the extractor {extractor.name!r} ({extractor.dim} channels) with the dictionary's "
+                              f"context does not give its {dg}-dimensional ground features")
         self.candidates = candidate_poses(dictionary.poses, config.candidate_spacing_m, config.lateral_offsets_m)
         self._frame_s, self._cand_s = _path_positions(dictionary.poses, self.candidates)
+        # for vote pruning: candidates binned by path position, the heading each entry was seen with
+        self._bin_m = config.candidate_spacing_m
+        self._cand_bin = np.round(self._cand_s / self._bin_m).astype(np.int64)
+        self._bin_edges = np.arange(self._cand_bin.max() + 1)
+        self._cand_tree = cKDTree(self.candidates[:, :2])
+        self._entry_yaw = np.nan_to_num(dictionary.poses[dictionary.frame, 2])
         pg = self.proj.project_g(dictionary.g)
         self.ground_index = NNIndex(pg)
         self.eps_g = config.min_distance_frac * _spread(pg) + 1e-9
         if config.mode != "go":
-            self._build_satellite_table()
+            self._satellite_table(table_cache, progress)
 
     # --- satellite table ---------------------------------------------------------------------------
-    def _build_satellite_table(self) -> None:
+    def _table_key(self) -> str:
+        """What the satellite table depends on (a cached table with another key is recomputed)."""
+        h = hashlib.sha256()
+        for a in (self.proj.W_s, self.dictionary.s[:: max(1, len(self.dictionary) // 997)], self.candidates):
+            h.update(np.ascontiguousarray(a).tobytes())
+        h.update(repr((len(self.dictionary), self.config.neighbors, self.config.corridor_m,
+                       self.satfeat.features.shape, self.config.min_distance_frac)).encode())
+        return h.hexdigest()[:20]
+
+    def _satellite_table(self, cache: str | Path | None, progress: bool) -> None:
+        key = self._table_key()
+        if cache is not None and Path(cache).is_file():
+            try:
+                a, m = load_npz(cache, "satellite_table")
+                if m.get("key") == key:
+                    self.pixel_row, self.sat_ids, self.sat_w = a["pixel_row"], a["ids"], a["weights"]
+                    self.eps_s = float(m["eps_s"])
+                    return
+            except FormatError:
+                pass  # damaged or foreign: recompute and overwrite
+        self._build_satellite_table(progress)
+        if cache is not None:
+            save_npz(cache, "satellite_table", {"pixel_row": self.pixel_row, "ids": self.sat_ids,
+                                                "weights": self.sat_w}, {"key": key, "eps_s": self.eps_s})
+
+    def _build_satellite_table(self, progress: bool = False) -> None:
         """M nearest dictionary entries (projected satellite features) of every map pixel near a candidate."""
         sf = self.satfeat
         h, w = sf.features.shape[:2]
@@ -158,15 +198,17 @@ class Localizer:
         for u, v in np.round(pts).astype(int):
             cv2.circle(mask, (int(u), int(v)), r, 1, -1)
         flat = np.flatnonzero(mask.ravel())
-        index = NNIndex(self.proj.project_s(self.dictionary.s))
-        feats = sf.features.reshape(-1, sf.dim)
+        # millions of pixel queries: an HNSW graph pays off from a few thousand entries on
+        index = NNIndex(self.proj.project_s(self.dictionary.s), exact_max=5000)
         ids = np.empty((len(flat), self.config.neighbors), np.int32)
         dist = np.empty((len(flat), self.config.neighbors), np.float32)
-        for b in range(0, len(flat), 65536):
+        for b in tqdm(range(0, len(flat), 65536), desc="satellite table", unit="block", disable=not progress,
+                      leave=False):
             sel = flat[b:b + 65536]
-            d, i = index.search(self.proj.project_s(feats[sel].astype(np.float32)), self.config.neighbors)
+            f = sf.features_at(sel, self.dictionary.context, self.span)
+            d, i = index.search(self.proj.project_s(f), self.config.neighbors)
             ids[b:b + len(sel)], dist[b:b + len(sel)] = i, d
-        self.pixel_row = np.full(h * w, -1, np.int64)
+        self.pixel_row = np.full(h * w, -1, np.int32 if len(flat) < 2**31 else np.int64)
         self.pixel_row[flat] = np.arange(len(flat))
         self.eps_s = self.config.min_distance_frac * _spread(self.proj.project_s(self.dictionary.s)) + 1e-9
         self.sat_ids, self.sat_w = ids, (1.0 / np.maximum(dist, self.eps_s)).astype(np.float32)
@@ -176,75 +218,69 @@ class Localizer:
         """Posterior over candidate poses and the estimate for one stereo frame."""
         cfg = self.config
         frame.check(self.camera, where="query frame")
-        uv, pv = ground_samples(self.camera, self.depth(frame, "query frame"), self.dictionary.grid)
+        depth = self.depth(frame, "query frame")
+        uv, pv = ground_samples(self.camera, depth, self.dictionary.grid)
         if len(uv) == 0:
             raise ConfigError("query frame: no grid sample has valid depth (textureless, dark or mismatched pair?)")
-        g = self.extractor(frame.left, "ground")[uv[:, 1], uv[:, 0]]
+        g = ground_features(self.extractor(frame.left, "ground"), uv, depth, self.camera, self.dictionary.context,
+                            self.span)
         dg, gid = self.ground_index.search(self.proj.project_g(g), cfg.neighbors)
         wg = np.where(gid >= 0, 1.0 / np.maximum(dg, self.eps_g), 0.0).astype(np.float32)
         cands = self.candidates if candidates is None else candidates
         scores = np.zeros(len(cands))
-        sel = self._pruned(gid, wg) if candidates is None and cfg.prune_regions > 0 else slice(None)
+        sel = self._pruned(gid, wg, pv) if candidates is None and cfg.prune_regions > 0 else slice(None)
         scores[sel] = self._scores(cands[sel], pv[:, :2], gid, wg)
         return self._answer(cands, scores, len(uv))
 
-    def _pruned(self, gid: np.ndarray, wg: np.ndarray) -> np.ndarray:
-        """Indices of the candidates within ``prune_window_m`` (along the path) of the database frames that
-        the query's ground neighbours vote for most: cost independent of the number of candidates."""
+    def _pruned(self, gid: np.ndarray, wg: np.ndarray, pv: np.ndarray) -> np.ndarray:
+        """Indices of the candidates near the path positions the query's ground neighbours vote for most.
+
+        Ground neighbour i of sample j (at ``pv[j]`` in the vehicle frame) implies the vehicle stood at
+        L(i) - R(yaw_i) pv[j], yaw_i being the heading of the database frame that saw i. Votes (weighted like the
+        pairs, 1 / d_g) are binned by path position, smoothed over ``prune_window_m`` and the ``prune_regions``
+        best peaks, at least a window apart, keep the candidates within half a window of them. The cost depends
+        on the query's samples, not on the length of the database."""
         cfg = self.config
-        nf = len(self.dictionary.poses)
-        votes = np.bincount(self.dictionary.frame[np.maximum(gid, 0)].ravel(), weights=wg.ravel(), minlength=nf)
-        s = self._frame_s
-        # smooth the votes along the path, then take peaks at least a window apart
-        order = np.argsort(s)
-        smooth = np.zeros(nf)
-        cs = np.concatenate([[0.0], np.cumsum(votes[order])])
-        lo = np.searchsorted(s[order], s[order] - cfg.prune_window_m / 2)
-        hi = np.searchsorted(s[order], s[order] + cfg.prune_window_m / 2, side="right")
-        smooth[order] = cs[hi] - cs[lo]
+        ok = gid >= 0
+        ids = np.where(ok, gid, 0)
+        yaw = self._entry_yaw[ids]                                              # (n, M)
+        c, s = np.cos(yaw), np.sin(yaw)
+        loc = self.dictionary.loc[ids]
+        px = loc[..., 0] - (c * pv[:, None, 0] - s * pv[:, None, 1])
+        py = loc[..., 1] - (s * pv[:, None, 0] + c * pv[:, None, 1])
+        dist, near = self._cand_tree.query(np.stack([px[ok], py[ok]], 1))
+        w = wg[ok] * (dist <= 2.0 * max(abs(o) for o in cfg.lateral_offsets_m) + 2.0)
+        nb = len(self._bin_edges)
+        votes = np.bincount(self._cand_bin[near], weights=w, minlength=nb)
+        half = max(1, int(round(cfg.prune_window_m / 2 / self._bin_m)))
+        smooth = np.convolve(votes, np.ones(2 * half + 1), mode="same")
         keep = np.zeros(len(self.candidates), bool)
-        taken: list[float] = []
-        for f in np.argsort(-smooth):
-            if len(taken) >= cfg.prune_regions or smooth[f] <= 0:
+        taken: list[int] = []
+        for b in np.argsort(-smooth):
+            if len(taken) >= cfg.prune_regions or smooth[b] <= 0:
                 break
-            if all(abs(s[f] - t) > cfg.prune_window_m for t in taken):
-                taken.append(s[f])
-                keep |= np.abs(self._cand_s - s[f]) <= cfg.prune_window_m
+            if all(abs(b - t) > 2 * half for t in taken):
+                taken.append(int(b))
+                keep |= np.abs(self._cand_bin - b) <= half
         return np.flatnonzero(keep) if keep.any() else np.arange(len(self.candidates))
 
     def _scores(self, cands: np.ndarray, pv: np.ndarray, gid: np.ndarray, wg: np.ndarray) -> np.ndarray:
-        n, m = gid.shape
-        scores = np.zeros(len(cands))
+        """Scores of the candidate poses ``cands`` (C, 3) for samples at ``pv`` (n, 2) with ground neighbours
+        ``gid`` and weights ``wg`` (n, M); the loops are compiled (:mod:`satloc._kernels`)."""
+        from . import _kernels
+
+        cands = np.ascontiguousarray(cands, dtype=np.float64)
+        pv = np.ascontiguousarray(pv, dtype=np.float64)
+        wg = np.ascontiguousarray(wg, dtype=np.float32)
         if self.config.mode == "go":
-            loc = self.dictionary.loc[np.maximum(gid, 0)]                       # (n, M, 2)
-        else:
-            # compact weight table: ground-neighbour entry id -> (sample j, weight)
-            uniq, inv = np.unique(gid, return_inverse=True)
-            table = np.zeros((n, len(uniq)), np.float32)
-            np.add.at(table, (np.repeat(np.arange(n), m), inv.ravel()), wg.ravel())
-            remap = np.full(len(self.dictionary) + 1, -1, np.int64)
-            remap[uniq] = np.arange(len(uniq))
-        batch = max(1, 4_000_000 // max(1, n * m))
-        for b in range(0, len(cands), batch):
-            c = cands[b:b + batch]
-            cos, sin = np.cos(c[:, 2])[:, None], np.sin(c[:, 2])[:, None]
-            x = c[:, 0:1] + cos * pv[None, :, 0] - sin * pv[None, :, 1]          # (B, n)
-            y = c[:, 1:2] + sin * pv[None, :, 0] + cos * pv[None, :, 1]
-            if self.config.mode == "go":
-                d = np.hypot(loc[None, :, :, 0] - x[..., None], loc[None, :, :, 1] - y[..., None])  # (B, n, M)
-                w = np.where(d <= self.config.go_radius_m, wg[None] / np.maximum(d, 0.25), 0.0)
-                scores[b:b + len(c)] = w.sum(axis=(1, 2))
-                continue
-            flat, inside = self.satfeat.pixel_index(np.stack([x, y], -1))
-            row = np.where(inside, self.pixel_row[np.maximum(flat, 0)], -1)     # (B, n)
-            ok = row >= 0
-            sid = self.sat_ids[np.maximum(row, 0)]                               # (B, n, M)
-            sw = self.sat_w[np.maximum(row, 0)] * ok[..., None]
-            col = remap[np.maximum(sid, 0)]                                      # (B, n, M)
-            j = np.broadcast_to(np.arange(n)[None, :, None], col.shape)
-            hit = np.where(col >= 0, table[j, np.maximum(col, 0)], 0.0)
-            scores[b:b + len(c)] = (hit * sw).sum(axis=(1, 2))
-        return scores
+            loc = np.ascontiguousarray(self.dictionary.loc[np.maximum(gid, 0)], dtype=np.float64)
+            return _kernels.location_scores(cands, pv, loc, np.where(gid >= 0, wg, 0).astype(np.float32),
+                                            float(self.config.go_radius_m))
+        sf = self.satfeat
+        h, w = sf.features.shape[:2]
+        return _kernels.cooccurrence_scores(cands, pv, np.ascontiguousarray(gid, dtype=np.int64), wg,
+                                            float(sf.origin[0]), float(sf.origin[1]), float(sf.meters_per_pixel),
+                                            h, w, self.pixel_row, self.sat_ids, self.sat_w, len(self.dictionary))
 
     def _answer(self, cands: np.ndarray, scores: np.ndarray, n: int) -> Localization:
         total = scores.sum()

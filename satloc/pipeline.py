@@ -16,6 +16,7 @@ import numpy as np
 from tqdm import tqdm
 
 from .config import from_dict, to_dict
+from .context import ContextConfig
 from .dictionary import Dictionary, GridConfig, SatelliteFeatures, build_dictionary
 from .errors import ConfigError
 from .features import make_extractor
@@ -32,6 +33,8 @@ class BuildConfig:
     features: str = "default"
     grid: GridConfig = field(default_factory=GridConfig)
     depth_source: str = "stereo"
+    context: ContextConfig = field(default_factory=ContextConfig)
+    max_frames: int | None = None           # use only the first frames of the database
 
 
 def build(database: str | Path, satmap: str | Path, out: str | Path, config: BuildConfig = BuildConfig(),
@@ -39,11 +42,13 @@ def build(database: str | Path, satmap: str | Path, out: str | Path, config: Bui
     """Build the dictionary of ``database`` against ``satmap`` into ``out``; returns the build summary."""
     out = Path(out)
     db, sm = Sequence.load(database), SatelliteMap.load(satmap)
+    if config.max_frames is not None:
+        db = db.head(config.max_frames)
     ext = make_extractor(config.features)
     t0 = time.perf_counter()
     sf = SatelliteFeatures.compute(sm, ext)
     t1 = time.perf_counter()
-    d = build_dictionary(db, sf, ext, config.grid, config.depth_source, progress)
+    d = build_dictionary(db, sf, ext, config.grid, config.depth_source, progress, config.context)
     t2 = time.perf_counter()
     sf.save(out / "satellite_features.npz")
     d.save(out / "dictionary.npz")
@@ -77,8 +82,12 @@ def train_projection(build_dir: str | Path, config: ProjectionConfig = Projectio
     return p
 
 
-def load_localizer(build_dir: str | Path, config: LocalizerConfig = LocalizerConfig()) -> Localizer:
-    """A localizer from a build directory (projections needed for mode ``full``)."""
+def load_localizer(build_dir: str | Path, config: LocalizerConfig = LocalizerConfig(), cache_table: bool = True,
+                   progress: bool = False) -> Localizer:
+    """A localizer from a build directory (projections needed for mode ``full``). The satellite neighbour
+    table it precomputes is cached in the build directory (``satellite_table_<mode>.npz``) unless
+    ``cache_table`` is False; a cached table that does not match the build, projections or config is
+    recomputed."""
     b = Path(build_dir)
     meta, bc = _load_build(b)
     proj = None
@@ -87,35 +96,48 @@ def load_localizer(build_dir: str | Path, config: LocalizerConfig = LocalizerCon
             raise ConfigError(f"{b}: no projections.pt; run train-projection first or use mode 'np' / 'go'")
         proj = Projections.load(b / "projections.pt")
     return Localizer(Dictionary.load(b / "dictionary.npz"), SatelliteFeatures.load(b / "satellite_features.npz"),
-                     make_extractor(bc.features), StereoCamera(**meta["camera"]), proj, config)
+                     make_extractor(bc.features), StereoCamera(**meta["camera"]), proj, config,
+                     b / f"satellite_table_{config.mode}.npz" if cache_table else None, progress)
 
 
 def localize(build_dir: str | Path, queries: str | Path, config: LocalizerConfig = LocalizerConfig(),
-             out: str | Path | None = None, progress: bool = True, localizer: Localizer | None = None) -> dict:
-    """Localize every frame of ``queries``; returns (and writes to ``out/``) estimates and errors."""
-    loc = localizer or load_localizer(build_dir, config)
-    q = Sequence.load(queries)
+             out: str | Path | None = None, progress: bool = True, localizer: Localizer | None = None,
+             select: "np.ndarray | list[int] | None" = None) -> dict:
+    """Localize every frame of ``queries`` (or the frames ``select``); returns (and writes to ``out/``)
+    estimates, errors, inlier decisions and the top of each posterior."""
+    loc = localizer or load_localizer(build_dir, config, progress=progress)
+    seq = Sequence.load(queries) if not isinstance(queries, Sequence) else queries
+    idx = np.arange(len(seq)) if select is None else np.asarray(select, dtype=np.int64)
+    if len(idx) and (idx.min() < 0 or idx.max() >= len(seq)):
+        raise ConfigError(f"select: frame indices must lie in [0, {len(seq)}), got {idx.min()}..{idx.max()}")
+    q = [seq[int(i)] for i in idx] if select is not None else seq
     k = loc.config.posterior_k
     est, truth, inl_score, inl = np.zeros((len(q), 3)), np.full((len(q), 3), np.nan), np.zeros(len(q)), np.zeros(len(q), bool)
     top_poses, top_probs = np.zeros((len(q), k, 3)), np.zeros((len(q), k))
+    failed: list[tuple[int, str]] = []
     t0 = time.perf_counter()
     for i in tqdm(range(len(q)), desc=f"localize ({loc.config.mode})", unit="query", disable=not progress, leave=False):
         f = q[i]
-        r = loc.localize(f)
-        est[i] = r.estimate.as_array()
         if f.pose is not None:
             truth[i] = f.pose.as_array()
+        try:
+            r = loc.localize(f)
+        except ConfigError as e:  # e.g. no grid sample with valid depth: no answer for this frame
+            est[i] = np.nan
+            failed.append((int(idx[i]), str(e)))
+            continue
+        est[i] = r.estimate.as_array()
         inl_score[i], inl[i] = r.inlier_score, r.inlier
         top_poses[i], top_probs[i] = r.top(k)
     secs = time.perf_counter() - t0
     err = np.hypot(est[:, 0] - truth[:, 0], est[:, 1] - truth[:, 1])
     summary = {"mode": loc.config.mode, "queries": len(q), "mean_m": float(np.nanmean(err)) if len(q) else None,
                "std_m": float(np.nanstd(err)) if len(q) else None, "median_m": float(np.nanmedian(err)) if len(q) else None,
-               "queries_per_s": round(len(q) / secs, 2) if secs > 0 else None}
+               "queries_per_s": round(len(q) / secs, 2) if secs > 0 else None, "failed": len(failed)}
     if out is not None:
         out = Path(out)
         save_npz(out / f"localization_{loc.config.mode}.npz", "localization",
-                 {"estimates": est, "truth": truth, "errors": err, "inlier_score": inl_score, "inlier": inl,
+                 {"frames": idx, "estimates": est, "truth": truth, "errors": err, "inlier_score": inl_score, "inlier": inl,
                   "top_poses": top_poses, "top_probs": top_probs}, {"config": to_dict(loc.config)})
         write_json(out / f"localization_{loc.config.mode}.json", dict(header("localization_summary"), **summary))
     summary["errors"] = err

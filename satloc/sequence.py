@@ -188,6 +188,15 @@ class Sequence:
     def timestamps(self) -> np.ndarray:
         return self._stamps.copy()
 
+    def head(self, n: int) -> "Sequence":
+        """A view of the first ``n`` frames (frames are still read lazily from disk)."""
+        if n < 0:
+            raise ValueError(f"head: n must be >= 0, got {n}")
+        v = Sequence.__new__(Sequence)
+        v.__dict__.update(self.__dict__)
+        v._frames, v._poses, v._stamps = self._frames[:n], self._poses[:n], self._stamps[:n]
+        return v
+
     def path_length(self) -> float:
         p = self._poses[:, :2]
         p = p[np.all(np.isfinite(p), axis=1)]

@@ -125,3 +125,57 @@ def test_clear_errors():
         Localizer(d, sf, ext, cam, None, LocalizerConfig(mode="full", depth_source="frame"))
     r = loc.localize(f)
     assert r.posterior.shape == (len(loc.candidates),) and r.posterior.sum() == pytest.approx(1.0)
+
+
+def test_metric_context_windows_are_box_means():
+    from satloc.context import ContextConfig, ground_context, satellite_context
+
+    rng = np.random.default_rng(3)
+    fmap = rng.random((60, 80, 5)).astype(np.float32)
+    cfg = ContextConfig(scales_m=(1.0, 2.2))
+    # satellite: 0.2 m/px -> windows of 5 and 11 px (half 2 and 6 rounded: 1.0/0.2/2=2.5->2, 2.2/0.2/2=5.5->6)
+    rows, cols = np.array([10, 30, 59, 0]), np.array([10, 40, 79, 0])
+    out = satellite_context(fmap, rows, cols, 0.2, cfg, (1, 4), strip=7)
+    for n, (r, c) in enumerate(zip(rows, cols)):
+        for k, hr in enumerate((2, 6)):
+            win = fmap[max(0, r - hr):r + hr + 1, max(0, c - hr):c + hr + 1, 1:4]
+            np.testing.assert_allclose(out[n, 3 * k:3 * k + 3], win.mean(axis=(0, 1)), rtol=1e-5)
+    # strips are an implementation detail: the same answer with one strip
+    np.testing.assert_allclose(out, satellite_context(fmap, rows, cols, 0.2, cfg, (1, 4), strip=1000), rtol=1e-6)
+    # ground: a window of s metres at depth d is fx * s / d pixels wide
+    uv = np.array([[40, 30], [5, 5]])
+    g = ground_context(fmap, uv, np.array([10.0, 20.0]), 50.0, cfg, (0, 5))
+    r = int(round(50.0 * 1.0 / 10.0 / 2))       # 2.5 -> 2 (round half to even)
+    np.testing.assert_allclose(g[0, :5], fmap[30 - r:30 + r + 1, 40 - r:40 + r + 1].mean(axis=(0, 1)), rtol=1e-5)
+    assert g.shape == (2, 10)
+
+
+def test_compiled_scores_match_the_numpy_formula():
+    """The numba kernel against the co-occurrence score written out directly."""
+    from satloc._kernels import cooccurrence_scores
+
+    rng = np.random.default_rng(5)
+    n, m, n_entries, h, w = 30, 4, 50, 20, 25
+    gid = rng.integers(-1, n_entries, (n, m))
+    wg = rng.random((n, m)).astype(np.float32)
+    pixel_row = np.where(rng.random(h * w) < 0.8, np.arange(h * w), -1).astype(np.int32)
+    sat_ids = rng.integers(0, n_entries, (h * w, m)).astype(np.int64)
+    sat_w = rng.random((h * w, m)).astype(np.float32)
+    pv = rng.uniform(0, 2, (n, 2))
+    cands = np.column_stack([rng.uniform(0, 2, 6), rng.uniform(-2, 0, 6), rng.uniform(-3, 3, 6)])
+    got = cooccurrence_scores(cands, pv, gid, wg, 0.0, 0.0, 0.2, h, w, pixel_row, sat_ids, sat_w, n_entries)
+    for c, (x, y, yaw) in enumerate(cands):
+        want = 0.0
+        for j in range(n):
+            px = x + np.cos(yaw) * pv[j, 0] - np.sin(yaw) * pv[j, 1]
+            py = y + np.sin(yaw) * pv[j, 0] + np.cos(yaw) * pv[j, 1]
+            col, row = int(np.floor(px / 0.2)), int(np.floor(-py / 0.2))
+            if not (0 <= row < h and 0 <= col < w) or pixel_row[row * w + col] < 0:
+                continue
+            r = pixel_row[row * w + col]
+            for k in range(m):
+                for k2 in range(m):
+                    if gid[j, k2] >= 0 and gid[j, k2] == sat_ids[r, k]:
+                        want += wg[j, k2] * sat_w[r, k]
+        assert got[c] == pytest.approx(want, rel=1e-5, abs=1e-9)
+    assert got.max() > 0
