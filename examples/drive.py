@@ -18,25 +18,36 @@ def main(argv=None):
     ap.add_argument("--steps", type=int, default=200)
     ap.add_argument("--occlusion", type=float, default=0.3)
     ap.add_argument("--out", default="drive_out")
+    ap.add_argument("--localizer", default="none", help="none, auto or a build directory (see the README)")
+    ap.add_argument("--localize-every", type=int, default=10)
     args = ap.parse_args(argv)
 
-    env = gym.make("satloc/SatLoc-v0", scene=args.scene, render_mode="rgb_array", depth=True)
+    # localizer: "none" drives only; "auto" localizes against a localizer built once from the scene's
+    # database pass and cached (minutes the first time); or a build directory of `satloc build`
+    localizer = None if args.localizer == "none" else args.localizer
+    env = gym.make("satloc/SatLoc-v0", scene=args.scene, render_mode="rgb_array", depth=True, localizer=localizer,
+                   localize_every=args.localize_every)
     obs, info = env.reset(seed=0, options={"occlusion": args.occlusion})
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     odo_pose = info["pose"].copy()
+    errors = []                                          # localization errors at the steps localized
     for t in range(args.steps):
         action = env.unwrapped.autopilot_action()       # or any policy: [speed m/s, yaw rate rad/s]
         obs, reward, terminated, truncated, info = env.step(action)
         dx, dy, dyaw = obs["odometry"]                  # noisy motion since the last step
         c, s = np.cos(odo_pose[2]), np.sin(odo_pose[2])
         odo_pose += [c * dx - s * dy, s * dx + c * dy, dyaw]
+        if "error_m" in info and info["localized_step"] == info["step"]:
+            errors.append(float(info["error_m"]))       # NaN: a frame without valid stereo depth
         if t % 50 == 0:
             cv2.imwrite(str(out / f"view_{t:04d}.png"), cv2.cvtColor(env.render(), cv2.COLOR_RGB2BGR))
         if terminated or truncated:
             break
     drift = float(np.hypot(*(odo_pose[:2] - info["pose"][:2])))
     print(f"drove {float(info['route_s']):.0f} m in {t + 1} steps; dead-reckoning drift {drift:.2f} m")
+    if errors:
+        print(f"localized {len(errors)} times; median error {np.nanmedian(errors):.2f} m")
     env.close()
     return drift
 

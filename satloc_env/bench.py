@@ -2,6 +2,9 @@
 from __future__ import annotations
 
 import resource
+from typing import Iterator
+
+import numpy as np
 import time
 
 from .env import SatLocEnv
@@ -14,7 +17,7 @@ def _rss_mb() -> float:
 
 def bench_env(resolution: str = "half", steps: int = 2000, scene: str = "city", warmup: int = 20) -> dict:
     """Stereo colour + depth steps per second driven by the autopilot, and memory over the run."""
-    env = SatLocEnv(scene=scene, resolution=resolution, depth=True)
+    env = SatLocEnv(scene=scene, resolution=resolution, depth=True, localizer=None)  # rendering only
     try:
         env.reset(seed=0)
         for _ in range(warmup):
@@ -38,3 +41,57 @@ def bench_env(resolution: str = "half", steps: int = 2000, scene: str = "city", 
         "ms_per_step": round(1000 * dt / steps, 2), "rss_start_mb": round(rss_start, 1),
         "rss_end_mb": round(rss_end, 1), "peak_rss_mb": round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024, 1),
     }
+
+
+def bench_localize(sizes_km=(0.25, 1.0, 4.0), work=None, scene: str = "loop", queries: int = 40,
+                   progress: bool = True, mode: str = "full") -> "Iterator[dict]":
+    """Localization speed against databases of increasing path length (one JSON-able row per size).
+
+    One database pass (frames every metre) and one query pass of ``scene`` are recorded in ``work`` (reused
+    when present); each size builds a dictionary from the first ``size`` km of the database, learns the
+    projections, and times ``queries`` queries end to end (features, stereo depth, scoring) taken from the
+    query pass where it lies on that part of the database. Build and training times are reported too."""
+    import tempfile
+    from pathlib import Path
+
+    from satloc.localizer import LocalizerConfig
+    from satloc.pipeline import BuildConfig, build, load_localizer, localize, train_projection
+    from satloc.sequence import Sequence
+
+    from .experiment import covered_queries
+    from .record import PassConfig, RecordConfig, record_passes
+
+    work = Path(work) if work else Path(tempfile.mkdtemp(prefix="satloc_bench_"))
+    longest = max(sizes_km)
+    rec = work / "rec"
+    if not (rec / "query" / "sequence.json").is_file():
+        record_passes(RecordConfig(scene=scene, database=PassConfig(max_frames=int(longest * 1000) + 1),
+                                   query=PassConfig(lane_offset_m=-0.75, spacing_m=5.0, occlusion=0.3,
+                                                    appearance=0.5, seed=1)), rec, progress)
+    db_all, q = Sequence.load(rec / "database"), Sequence.load(rec / "query")
+    s = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(db_all.poses[:, :2], axis=0), axis=1))])
+    for km in sizes_km:
+        n = int(np.searchsorted(s, km * 1000.0)) + 1
+        db = db_all.head(n)
+        bdir = work / f"build_{km:g}km"
+        t0 = time.perf_counter()
+        summary = build(rec / "database", rec / "map", bdir, BuildConfig(max_frames=n), progress)
+        t1 = time.perf_counter()
+        train_projection(bdir, progress=progress)
+        t2 = time.perf_counter()
+        loc = load_localizer(bdir, LocalizerConfig(mode=mode), cache_table=False, progress=progress)
+        t3 = time.perf_counter()
+        sel = covered_queries(db, q, 3.0)
+        sel = sel[np.linspace(0, len(sel) - 1, min(queries, len(sel))).astype(int)] if len(sel) else sel
+        frames = [q[int(i)] for i in sel]
+        loc.localize(frames[0])  # warm-up (lazy FCN weights, faiss threads)
+        t4 = time.perf_counter()
+        errs = [loc.localize(f).estimate.distance(f.pose) for f in frames]
+        t5 = time.perf_counter()
+        yield {"bench": "localize", "scene": scene, "mode": mode, "db_km": round(db.path_length() / 1000, 3),
+               "db_frames": n, "entries": summary["entries"], "queries": len(frames),
+               "queries_per_s": round(len(frames) / (t5 - t4), 2), "ms_per_query": round(1000 * (t5 - t4) / len(frames), 1),
+               "mean_error_m": round(float(np.mean(errs)), 3), "median_error_m": round(float(np.median(errs)), 3),
+               "build_s": round(t1 - t0, 1), "train_projection_s": round(t2 - t1, 1),
+               "localizer_init_s": round(t3 - t2, 1), "peak_rss_mb": round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024, 1)}
+        del loc

@@ -3,12 +3,19 @@
 Configuration is :class:`EnvConfig` (``SatLocEnv.default_config()`` as a dict); any field can be given as a
 keyword to ``gymnasium.make`` and the per-episode ones (see :data:`EPISODE_KEYS`) again in
 ``reset(options={...})``. Unknown keys raise :class:`satloc.ConfigError`.
+
+With a localizer (``localizer=``: ``"auto"``, the default, a build directory or a
+:class:`satloc.localizer.Localizer`), every ``localize_every`` steps the stereo pair the agent sees is
+localized against the satellite map and the result goes into ``info`` (see :class:`SatLocEnv`).
 """
 from __future__ import annotations
 
 import dataclasses
 import math
-from dataclasses import dataclass
+import os
+import weakref
+from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any, Literal
 
 import cv2
@@ -20,6 +27,7 @@ from satloc.config import from_dict, override, to_dict
 from satloc.errors import ConfigError
 from satloc.geometry import Pose2, StereoCamera
 from satloc.labels import NUM_CLASSES
+from satloc.sequence import Frame
 
 from .occluders import Appearance, sample_occluders
 from .scene import Scene, load_scene
@@ -45,6 +53,16 @@ class EnvConfig:
     appearance: float | None = None
     anisotropy: int = 1                     # >1: anisotropic texture filtering (sharper far ground, ~4x slower on llvmpipe)
     zfar_m: float = 150.0
+    localizer: str | None = "auto"          # None/"none": off; "auto": cached build of the scene's database
+                                            # pass (satloc_env.autoloc); else a build directory; a Localizer
+                                            # instance given as the keyword is stored here as "<instance>"
+    localizer_mode: Literal["full", "np", "go"] = "full"   # for "auto" / a build directory
+    localize_every: int = 1                 # localize at the steps that are multiples of this (reset: step 0)
+    reward: Literal["none", "neg_error"] = "none"  # neg_error: minus the localization error (metres)
+
+
+#: the value of ``EnvConfig.localizer`` when a :class:`satloc.localizer.Localizer` instance was passed.
+LOCALIZER_INSTANCE = "<instance>"
 
 
 #: keys that ``reset(options=...)`` may change; the others fix the spaces or the renderer.
@@ -66,6 +84,34 @@ class SatLocEnv(gym.Env):
 
     ``info``: ``pose`` (x, y, yaw), ``odometry_true``, ``route_s``, ``off_road``, ``route_complete``,
     ``step`` - all fixed-shape numpy values.
+
+    Localization (``localizer`` not None / ``"none"``). ``localizer`` is ``"auto"`` (default: a localizer
+    built from the scene's database pass, cached on disk by :mod:`satloc_env.autoloc`; the first use of a
+    scene costs minutes), a build directory of ``satloc build`` + ``satloc train-projection`` (loaded in mode
+    ``localizer_mode``), or a :class:`satloc.localizer.Localizer` given as the ``localizer`` keyword (its own
+    mode holds; ``config.localizer`` then reads ``"<instance>"``). At reset and at every step that is a
+    multiple of ``localize_every``, the observed (appearance-changed) stereo pair is localized; ``info`` then
+    always carries the latest result, with K = the localizer's ``posterior_k``:
+
+    * ``estimate`` (3,) float64: x, y, yaw;
+    * ``error_m`` float64: planar distance from ``estimate`` to the *current* true ``pose`` (between
+      localizations it grows with the motion since ``localized_step``; the estimate is not propagated);
+    * ``posterior_poses`` (K, 3) and ``posterior_probs`` (K,) float64: the K most probable candidate poses
+      and their probabilities (zero-padded);
+    * ``inlier`` np.bool_ and ``inlier_score`` float64 (peak / mean score; False means "probably outside
+      the mapped area");
+    * ``localized_step`` int64: the step the result was computed at.
+
+    A frame in which no grid sample has valid stereo depth (e.g. a wall fills the view) has no result: the
+    localizer raises :class:`satloc.ConfigError`, which is caught; ``estimate`` and ``error_m`` are NaN,
+    ``posterior_*`` zeros, ``inlier`` False, ``inlier_score`` 0 and the error message is kept in
+    ``env.unwrapped.localization_error``. Without a localizer these keys are absent.
+
+    Reward: 0 (``reward="none"``), or with ``reward="neg_error"`` minus ``error_m`` (0 while there is no
+    result, i.e. after a frame without valid depth). ``neg_error`` needs a localizer.
+
+    A Localizer instance is shared, not copied, by ``env.spec.make()``; it cannot be pickled, so for
+    ``gym.make_vec(..., vectorization_mode="async")`` pass a build directory (or ``"auto"``) instead.
     """
 
     metadata = {"render_modes": ["rgb_array"], "render_fps": 10}
@@ -74,7 +120,9 @@ class SatLocEnv(gym.Env):
         if render_mode not in (None, "rgb_array"):
             raise ConfigError(f"render_mode: expected None or 'rgb_array', got {render_mode!r}")
         self.render_mode = render_mode
+        config, instance = _split_localizer(config)
         self.config = from_dict(EnvConfig, config, "SatLocEnv config")
+        self._check_localizer_config(instance is not None)
         self.camera = StereoCamera.preset(self.config.resolution)
         self.vehicle = VehicleParams()
         h, w = self.camera.height, self.camera.width
@@ -97,11 +145,82 @@ class SatLocEnv(gym.Env):
         self._renderer = None
         self.pose = Pose2()
         self._last_obs: dict | None = None
+        self._last_depth: np.ndarray | None = None
+        # localization state
+        self.localizer = None                  # the satloc.localizer.Localizer in use (None: off)
+        self.localization_error: str | None = None  # message of the last frame that could not be localized
+        self._loc_info: dict | None = None     # latest result as info arrays (error_m is filled per step)
+        self._loc_view: PosteriorView | None = None
+        if instance is not None:
+            self.localizer = instance
+            self.config = dataclasses.replace(self.config, localizer_mode=instance.config.mode)
+        elif self.config.localizer not in (None, "auto"):
+            from .autoloc import load_cached_localizer
+
+            self.localizer = load_cached_localizer(self.config.localizer, self.config.localizer_mode)
+        if self.localizer is not None:
+            self._check_localizer_camera()
 
     # --- configuration ----------------------------------------------------------------------------
     @staticmethod
     def default_config() -> dict:
         return to_dict(EnvConfig())
+
+    def _check_localizer_config(self, have_instance: bool) -> None:
+        cfg = self.config
+        loc = cfg.localizer
+        if loc is not None and loc.strip().lower() == "none":
+            self.config = cfg = dataclasses.replace(cfg, localizer=None)
+            loc = None
+        if loc == LOCALIZER_INSTANCE and not have_instance:
+            raise ConfigError(f"localizer: {LOCALIZER_INSTANCE!r} stands for a Localizer instance passed as the "
+                              "localizer keyword; pass the instance itself")
+        if loc not in (None, "auto", LOCALIZER_INSTANCE):
+            p = Path(loc).expanduser()
+            if not (p / "build.json").is_file():
+                raise ConfigError(f"localizer: {loc!r} is not a build directory (no build.json); expected None, "
+                                  "'none', 'auto', a directory written by `satloc build` or a "
+                                  "satloc.localizer.Localizer")
+            self.config = cfg = dataclasses.replace(cfg, localizer=str(p))
+        if cfg.localize_every < 1:
+            raise ConfigError(f"localize_every: expected an integer >= 1, got {cfg.localize_every}")
+        if cfg.reward == "neg_error" and loc is None:
+            raise ConfigError("reward: 'neg_error' needs a localizer (localizer is None)")
+
+    def _check_localizer_camera(self) -> None:
+        c, e = self.localizer.camera, self.camera
+        if (c.width, c.height) != (e.width, e.height):
+            raise ConfigError(f"localizer: built for {c.width}x{c.height} images, but the environment renders "
+                              f"{e.width}x{e.height} (resolution {self.config.resolution!r})")
+
+    def _check_localizer_map(self, scene: Scene) -> None:
+        """A build directory or instance is tied to one satellite map: refuse a scene with another one."""
+        sf = getattr(self.localizer, "satfeat", None)
+        if sf is None:
+            return
+        sm = scene.satmap
+        same = (sf.features.shape[:2] == sm.image.shape[:2]
+                and abs(sf.meters_per_pixel - sm.meters_per_pixel) < 1e-9
+                and np.allclose(sf.origin, sm.origin, atol=1e-6))
+        if not same:
+            raise ConfigError(f"localizer: its satellite map ({sf.features.shape[1]}x{sf.features.shape[0]} px at "
+                              f"{sf.meters_per_pixel} m/px) is not the map of scene {scene.name!r} "
+                              f"({sm.image.shape[1]}x{sm.image.shape[0]} px at {sm.meters_per_pixel} m/px)")
+
+    # a Localizer instance given to gym.make ends up in env.spec.kwargs, which gymnasium deep-copies (wrappers'
+    # spec, spec.make()); the holder makes those copies share it (it holds OpenCV/faiss objects).
+    _spec = None
+
+    @property
+    def spec(self):
+        return self._spec
+
+    @spec.setter
+    def spec(self, value):
+        loc = None if value is None else value.kwargs.get("localizer")
+        if loc is not None and not isinstance(loc, (str, os.PathLike, _SharedLocalizer)):
+            value = dataclasses.replace(value, kwargs={**value.kwargs, "localizer": _SharedLocalizer(loc)})
+        self._spec = value
 
     @property
     def scene(self) -> Scene:
@@ -116,6 +235,13 @@ class SatLocEnv(gym.Env):
         scene = load_scene(cfg.scene, cfg.aliasing)
         from .render import StereoRenderer
 
+        if self.config.localizer == "auto":
+            from .autoloc import auto_localizer
+
+            self.localizer = auto_localizer(cfg.scene, cfg.aliasing, cfg.resolution, cfg.localizer_mode)
+            self._check_localizer_camera()
+        elif self.localizer is not None:
+            self._check_localizer_map(scene)
         if self._renderer is not None:
             self._renderer.close()
         self._scene, self._scene_key = scene, key
@@ -151,7 +277,9 @@ class SatLocEnv(gym.Env):
         self._renderer.set_occluders(*sample_occluders(self.route, scene.ground_label, occ, cfg.lane_offset_m, rng))
         self.appearance = Appearance(app, rng)
         self.steps = 0
+        self._loc_info = self._loc_view = self.localization_error = None
         obs = self._observe(np.zeros(3, np.float32))
+        self._localize()
         return obs, self._info(np.zeros(3), off_road=False)
 
     def step(self, action):
@@ -168,29 +296,67 @@ class SatLocEnv(gym.Env):
         noise = self.np_random.normal(0.0, 1.0, 3) * np.array(
             [cfg.odometry_noise[0] * dist, cfg.odometry_noise[0] * dist, cfg.odometry_noise[1]])
         obs = self._observe((true_odo + noise).astype(np.float32))
+        if self.steps % self.config.localize_every == 0:
+            self._localize()
         off_road = not self.scene.is_drivable(self.pose.x, self.pose.y)
         info = self._info(true_odo, off_road)
         terminated = bool(off_road or info["route_complete"])
         truncated = self.steps >= cfg.max_steps
-        return obs, 0.0, terminated, truncated, info
+        reward = 0.0
+        if self.config.reward == "neg_error" and np.isfinite(info["error_m"]):
+            reward = -float(info["error_m"])
+        return obs, reward, terminated, truncated, info
 
     def autopilot_action(self) -> np.ndarray:
         """The route follower's action for the current pose (a scripted driver)."""
         return self.pilot.act(self.pose)
 
+    def _frame_depth_needed(self) -> bool:
+        """A localizer configured with ``depth_source="frame"`` reads the (true) depth from the frame."""
+        return self.localizer is not None and getattr(self.localizer.config, "depth_source", "stereo") == "frame"
+
     def _observe(self, odometry: np.ndarray) -> dict:
         cfg = self.config
-        out = self._renderer.render(self.pose, depth="left" if cfg.depth else False, labels=cfg.labels)
+        want_depth = cfg.depth or self._frame_depth_needed()
+        out = self._renderer.render(self.pose, depth="left" if want_depth else False, labels=cfg.labels)
         obs = {"left": self.appearance(out["left"]), "right": self.appearance(out["right"]), "odometry": odometry}
         if cfg.depth:
             obs["depth"] = out["depth_left"]
         if cfg.labels:
             obs["labels"] = out["labels_left"]
         self._last_obs = obs
+        self._last_depth = out.get("depth_left") if want_depth else None
         return obs
 
+    def _localize(self) -> None:
+        """Localize the last observed stereo pair; keeps the result for ``info`` and ``render``."""
+        loc = self.localizer
+        if loc is None:
+            return
+        k = loc.config.posterior_k
+        frame = Frame(self._last_obs["left"], self._last_obs["right"], None, self.steps * self._episode.dt,
+                      self._last_depth if self._frame_depth_needed() else None)
+        try:
+            r = loc.localize(frame)
+        except ConfigError as e:  # no grid sample with valid depth (e.g. a wall fills the view): no result
+            self.localization_error = str(e)
+            self._loc_info = {"estimate": np.full(3, np.nan), "posterior_poses": np.zeros((k, 3)),
+                              "posterior_probs": np.zeros(k), "inlier": np.bool_(False),
+                              "inlier_score": np.float64(0.0), "localized_step": np.int64(self.steps)}
+            self._loc_view = None
+            return
+        self.localization_error = None
+        poses, probs = r.top(k)
+        self._loc_info = {"estimate": np.asarray(r.estimate.as_array(), np.float64),
+                          "posterior_poses": np.asarray(poses, np.float64),
+                          "posterior_probs": np.asarray(probs, np.float64),
+                          "inlier": np.bool_(r.inlier), "inlier_score": np.float64(r.inlier_score),
+                          "localized_step": np.int64(self.steps)}
+        self._loc_view = PosteriorView(np.asarray(r.candidates, np.float64), np.asarray(r.posterior, np.float64),
+                                       self._loc_info["estimate"].copy(), bool(r.inlier))
+
     def _info(self, true_odo: np.ndarray, off_road: bool) -> dict:
-        return {
+        info = {
             "pose": self.pose.as_array(),
             "odometry_true": np.asarray(true_odo, np.float64),
             "route_s": np.float64(self.pilot.s),
@@ -198,12 +364,20 @@ class SatLocEnv(gym.Env):
             "route_complete": np.bool_(self.pilot.done),
             "step": np.int64(self.steps),
         }
+        if self._loc_info is not None:
+            li = self._loc_info
+            est = li["estimate"]
+            err = math.hypot(est[0] - self.pose.x, est[1] - self.pose.y)  # NaN when there is no result
+            info.update({k: v.copy() for k, v in li.items()})
+            info["error_m"] = np.float64(err)
+        return info
 
     # --- rendering --------------------------------------------------------------------------------
     def render(self):
         if self.render_mode != "rgb_array" or self._last_obs is None:
             return None
-        return compose_view(self._last_obs["left"], self.scene, self.pose, self.route)
+        return compose_view(self._last_obs["left"], self.scene, self.pose, self.route, self._loc_view,
+                            localized=self._loc_info is not None)
 
     def close(self):
         if self._renderer is not None:
@@ -212,12 +386,131 @@ class SatLocEnv(gym.Env):
         self._scene = self._scene_key = None
 
 
+class _SharedLocalizer:
+    """Holds a Localizer in ``env.spec.kwargs``; copies share it (see ``SatLocEnv.spec``)."""
+
+    __slots__ = ("localizer",)
+
+    def __init__(self, localizer):
+        self.localizer = localizer
+
+    def __copy__(self):
+        return self
+
+    def __deepcopy__(self, memo):
+        return self
+
+    def __repr__(self) -> str:
+        return f"<shared {type(self.localizer).__name__}>"
+
+
+def _split_localizer(config: dict) -> tuple[dict, Any]:
+    """Config with a Localizer instance (the ``localizer`` keyword) replaced by its marker, and the instance."""
+    config = dict(config)
+    value = config.get("localizer", None)
+    if isinstance(value, _SharedLocalizer):
+        value = value.localizer
+    if value is None or isinstance(value, str):
+        return config, None
+    if isinstance(value, os.PathLike):
+        config["localizer"] = os.fspath(value)
+        return config, None
+    from satloc.localizer import Localizer
+
+    if not isinstance(value, Localizer):
+        raise ConfigError(f"SatLocEnv config.localizer: expected None, 'none', 'auto', a build directory or a "
+                          f"satloc.localizer.Localizer, got {type(value).__name__} {value!r}")
+    config["localizer"] = LOCALIZER_INSTANCE
+    return config, value
+
+
 PANEL_PX = 360
 PANEL_M = 80.0
+HEAT_SIGMA_M = 1.5          # the posterior is drawn as a sum of Gaussians of this std over the candidates
+TRUTH_RGB = (255, 40, 40)
+ESTIMATE_RGB = (60, 255, 60)
 
 
-def birdseye(scene: Scene, pose: Pose2, route=None, size_px: int = PANEL_PX, size_m: float = PANEL_M) -> np.ndarray:
-    """North-up crop of the satellite tile around ``pose`` with the route and the vehicle drawn on it."""
+@dataclass
+class PosteriorView:
+    """What the bird's-eye panels draw of a localization: the posterior over all candidates and the estimate."""
+
+    candidates: np.ndarray          # (C, 3)
+    posterior: np.ndarray           # (C,)
+    estimate: np.ndarray            # (3,)
+    inlier: bool = True
+    _peaks: dict = field(default_factory=dict, repr=False)
+
+    def peak_density(self, sigma_m: float) -> float:
+        """Largest value (per m^2) of the Gaussian-smoothed posterior, at the most probable candidates."""
+        if sigma_m not in self._peaks:
+            xy, p = self.candidates[:, :2], self.posterior
+            q = xy[np.argsort(-p)[:64]]
+            acc = np.zeros(len(q))
+            for b in range(0, len(xy), 8192):
+                d2 = ((xy[b:b + 8192, None, :] - q[None]) ** 2).sum(-1)
+                acc += p[b:b + 8192] @ np.exp(-d2 / (2 * sigma_m ** 2))
+            self._peaks[sigma_m] = float(acc.max()) / (2 * math.pi * sigma_m ** 2) if len(q) else 0.0
+        return self._peaks[sigma_m]
+
+
+def _draw_heat(img: np.ndarray, view: PosteriorView, to_px, px_per_m: float) -> None:
+    """Alpha-blend the posterior heatmap onto ``img`` (in place). Normalised by the posterior's global peak,
+    so a crop away from the peak shows how little mass lies there."""
+    h, w = img.shape[:2]
+    sigma_m = max(HEAT_SIGMA_M, 1.0 / px_per_m)  # at least a pixel wide on coarse panels
+    peak = view.peak_density(sigma_m)
+    if peak <= 0:
+        return
+    sig_px = sigma_m * px_per_m
+    pad = int(math.ceil(3 * sig_px)) + 1
+    uv = np.round(to_px(view.candidates[:, :2])).astype(np.int64) + pad
+    ok = ((uv[:, 0] >= 0) & (uv[:, 0] < w + 2 * pad) & (uv[:, 1] >= 0) & (uv[:, 1] < h + 2 * pad)
+          & (view.posterior > 0))
+    if not ok.any():
+        return
+    canvas = np.zeros((h + 2 * pad, w + 2 * pad), np.float32)
+    np.add.at(canvas, (uv[ok, 1], uv[ok, 0]), view.posterior[ok].astype(np.float32))
+    dens = cv2.GaussianBlur(canvas, (0, 0), sig_px)[pad:pad + h, pad:pad + w] * px_per_m ** 2
+    heat = np.sqrt(np.clip(dens / peak, 0.0, 1.0))
+    alpha = np.where(heat > 0.05, 0.75 * heat, 0.0)[..., None]
+    colour = cv2.applyColorMap(np.round(heat * 255).astype(np.uint8), cv2.COLORMAP_INFERNO)[..., ::-1]
+    img[:] = np.round(img * (1 - alpha) + colour * alpha).astype(np.uint8)
+
+
+def _draw_estimate(img: np.ndarray, est: np.ndarray, to_px, radius: int = 6) -> None:
+    """A green ring with a heading tick; if outside the panel, an arrow at the border pointing to it."""
+    h, w = img.shape[:2]
+    c = to_px(est[:2])
+    if 0 <= c[0] < w and 0 <= c[1] < h:
+        tip = to_px(est[:2] + (2.0 * radius / max(1e-9, np.linalg.norm(to_px(est[:2] + (1.0, 0.0)) - c)))
+                    * np.array([math.cos(est[2]), math.sin(est[2])]))
+        p, t = tuple(int(v) for v in np.round(c)), tuple(int(v) for v in np.round(tip))
+        cv2.line(img, p, t, (0, 0, 0), 4, cv2.LINE_AA)
+        cv2.line(img, p, t, ESTIMATE_RGB, 2, cv2.LINE_AA)
+        cv2.circle(img, p, radius, (0, 0, 0), 4, cv2.LINE_AA)
+        cv2.circle(img, p, radius, ESTIMATE_RGB, 2, cv2.LINE_AA)
+        return
+    centre = np.array([w / 2, h / 2])
+    d = c - centre
+    f = min((w / 2 - 10) / max(abs(d[0]), 1e-9), (h / 2 - 10) / max(abs(d[1]), 1e-9))
+    tip = centre + d * f
+    tail = tip - d / np.linalg.norm(d) * 24
+    a, b = tuple(int(v) for v in np.round(tail)), tuple(int(v) for v in np.round(tip))
+    cv2.arrowedLine(img, a, b, (0, 0, 0), 5, cv2.LINE_AA, tipLength=0.45)
+    cv2.arrowedLine(img, a, b, ESTIMATE_RGB, 2, cv2.LINE_AA, tipLength=0.45)
+
+
+def _text(img: np.ndarray, text: str, org: tuple[int, int]) -> None:
+    cv2.putText(img, text, org, cv2.FONT_HERSHEY_SIMPLEX, 0.45, (0, 0, 0), 3, cv2.LINE_AA)
+    cv2.putText(img, text, org, cv2.FONT_HERSHEY_SIMPLEX, 0.45, (255, 255, 255), 1, cv2.LINE_AA)
+
+
+def birdseye(scene: Scene, pose: Pose2, route=None, size_px: int = PANEL_PX, size_m: float = PANEL_M,
+             posterior: PosteriorView | None = None, localized: bool = False) -> np.ndarray:
+    """North-up crop of the satellite tile around ``pose`` with the route and the vehicle (red) drawn on it;
+    with ``posterior``, also the posterior heatmap and the estimate (green). ``localized`` without a
+    ``posterior`` marks a frame that could not be localized."""
     sm = scene.satmap
     img = sm.crop((pose.x, pose.y), size_m, out_px=size_px).copy()
     scale = size_px / size_m
@@ -226,18 +519,76 @@ def birdseye(scene: Scene, pose: Pose2, route=None, size_px: int = PANEL_PX, siz
         d = np.asarray(xy, np.float64) - (pose.x, pose.y)
         return np.stack([size_px / 2 + d[..., 0] * scale, size_px / 2 - d[..., 1] * scale], -1)
 
+    if posterior is not None:
+        _draw_heat(img, posterior, to_px, scale)
     if route is not None:
         pts = to_px(route.points)
         cv2.polylines(img, [np.round(pts * 16).astype(np.int32).reshape(-1, 1, 2)], False, (80, 200, 255), 1,
                       cv2.LINE_AA, shift=4)
+    if posterior is not None:
+        _draw_estimate(img, posterior.estimate, to_px)
     tri = pose.transform(np.array([[2.6, 0.0], [-1.6, 1.3], [-1.6, -1.3]]))
-    cv2.fillPoly(img, [np.round(to_px(tri) * 16).astype(np.int32).reshape(-1, 1, 2)], (255, 40, 40), cv2.LINE_AA,
+    cv2.fillPoly(img, [np.round(to_px(tri) * 16).astype(np.int32).reshape(-1, 1, 2)], TRUTH_RGB, cv2.LINE_AA,
                  shift=4)
+    if posterior is not None:
+        err = math.hypot(posterior.estimate[0] - pose.x, posterior.estimate[1] - pose.y)
+        _text(img, f"error {err:.1f} m" + ("" if posterior.inlier else "  (outlier)"), (6, 18))
+    elif localized:
+        _text(img, "no estimate (no valid depth)", (6, 18))
     return img
 
 
-def compose_view(camera_img: np.ndarray, scene: Scene, pose: Pose2, route=None) -> np.ndarray:
-    """Camera view (scaled to the panel height) beside the bird's-eye panel."""
+_OVERVIEW_BASE: "weakref.WeakKeyDictionary[Scene, tuple]" = weakref.WeakKeyDictionary()
+
+
+def overview(scene: Scene, pose: Pose2, route=None, size_px: int = PANEL_PX, window_m: float = PANEL_M,
+             posterior: PosteriorView | None = None) -> np.ndarray:
+    """The whole satellite tile scaled into a ``size_px`` square (letterboxed), with the route, the
+    bird's-eye window (white), the posterior heatmap, the truth (red) and the estimate (green)."""
+    sm = scene.satmap
+    cached = _OVERVIEW_BASE.get(scene)
+    if cached is None or cached[0] != size_px:
+        H, W = sm.image.shape[:2]
+        s = size_px / max(H, W)
+        bw, bh = max(1, int(round(W * s))), max(1, int(round(H * s)))
+        panel = np.full((size_px, size_px, 3), 24, np.uint8)
+        ox, oy = (size_px - bw) // 2, (size_px - bh) // 2
+        panel[oy:oy + bh, ox:ox + bw] = cv2.resize(sm.image, (bw, bh), interpolation=cv2.INTER_AREA)
+        cached = (size_px, panel, (bw / W, bh / H), (ox, oy))
+        _OVERVIEW_BASE[scene] = cached
+    _, base, (sx, sy), (ox, oy) = cached
+    img = base.copy()
+
+    def to_px(xy):
+        uv = sm.world_to_pixel(np.asarray(xy, np.float64))
+        return np.stack([(uv[..., 0] + 0.5) * sx - 0.5 + ox, (uv[..., 1] + 0.5) * sy - 0.5 + oy], -1)
+
+    px_per_m = sx / sm.meters_per_pixel
+    if posterior is not None:
+        _draw_heat(img, posterior, to_px, px_per_m)
+    if route is not None:
+        pts = to_px(route.points)
+        cv2.polylines(img, [np.round(pts * 16).astype(np.int32).reshape(-1, 1, 2)], False, (80, 200, 255), 1,
+                      cv2.LINE_AA, shift=4)
+    c = to_px(np.array([pose.x, pose.y]))
+    half = window_m / 2 * px_per_m
+    cv2.rectangle(img, tuple(int(v) for v in np.round(c - half)), tuple(int(v) for v in np.round(c + half)),
+                  (255, 255, 255), 1, cv2.LINE_AA)
+    if posterior is not None:
+        e = to_px(posterior.estimate[:2])
+        cv2.line(img, tuple(int(v) for v in np.round(c)), tuple(int(v) for v in np.round(e)), (255, 255, 255), 1,
+                 cv2.LINE_AA)
+        _draw_estimate(img, posterior.estimate, to_px, radius=4)
+    cv2.circle(img, tuple(int(v) for v in np.round(c)), 4, (0, 0, 0), -1, cv2.LINE_AA)
+    cv2.circle(img, tuple(int(v) for v in np.round(c)), 3, TRUTH_RGB, -1, cv2.LINE_AA)
+    return img
+
+
+def compose_view(camera_img: np.ndarray, scene: Scene, pose: Pose2, route=None,
+                 posterior: PosteriorView | None = None, localized: bool = False) -> np.ndarray:
+    """Camera view (scaled to the panel height), the bird's-eye panel and the whole-map overview. The shape
+    depends only on the camera's image size."""
     h, w = camera_img.shape[:2]
     cam = cv2.resize(camera_img, (int(round(w * PANEL_PX / h)), PANEL_PX), interpolation=cv2.INTER_LINEAR)
-    return np.ascontiguousarray(np.hstack([cam, birdseye(scene, pose, route)]))
+    return np.ascontiguousarray(np.hstack([cam, birdseye(scene, pose, route, posterior=posterior, localized=localized),
+                                           overview(scene, pose, route, posterior=posterior)]))

@@ -91,8 +91,9 @@ def record_passes(config: RecordConfig | dict[str, Any], out_dir: str | Path, pr
     out = Path(out_dir)
     sequences = []
     for name, p in (("database", cfg.database), ("query", cfg.query)):
+        # localizer=None: recording needs no localization (and "auto" would itself record the database pass)
         env = SatLocEnv(scene=cfg.scene, resolution=cfg.resolution, aliasing=cfg.aliasing, speed_mps=cfg.speed_mps,
-                        depth=p.depth, labels=p.labels)
+                        depth=p.depth, labels=p.labels, localizer=None)
         try:
             env.reset(seed=p.seed)
             scene = env.scene

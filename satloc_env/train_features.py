@@ -134,7 +134,7 @@ def render_ground(scene: str, aliasing: float | None, seeds: Sequence[int], fram
                   ) -> tuple[list[np.ndarray], list[np.ndarray]]:
     """Left frames and their labels from one episode per seed, driven by the autopilot; each episode draws
     its occlusion in [0, max_occlusion], appearance in [0, 1] and lane offset in [-3.5, 3.5] m."""
-    env = gym.make(ENV_ID, scene=scene, labels=True, random_start=True, aliasing=aliasing, dt=dt)
+    env = gym.make(ENV_ID, scene=scene, labels=True, random_start=True, aliasing=aliasing, dt=dt, localizer=None)
     images, labels = [], []
     try:
         for s in seeds:

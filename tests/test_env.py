@@ -15,7 +15,9 @@ def test_ids_registered():
 
 @pytest.mark.parametrize("env_id", IDS)
 def test_check_env(env_id):
-    env = gym.make(env_id, scene="city", depth=True, labels=True)
+    # localizer=None: this checks the driving env's API; the default localizer="auto" would build the scene's
+    # localizer cache (minutes). tests/test_env_localizer.py runs check_env with a small localizer.
+    env = gym.make(env_id, scene="city", depth=True, labels=True, localizer=None)
     check_env(env.unwrapped, skip_render_check=True)
     env.close()
 
@@ -30,7 +32,7 @@ def run(env, seed, n, options=None):
 
 
 def test_determinism_same_seed_same_actions():
-    kw = dict(scene="city", depth=True, occlusion=0.8, appearance=0.7, random_start=True)
+    kw = dict(scene="city", depth=True, occlusion=0.8, appearance=0.7, random_start=True, localizer=None)
     a, b = gym.make("satloc/SatLoc-v0", **kw), gym.make("satloc/SatLoc-v0", **kw)
     ra, rb = run(a, 5, 6), run(b, 5, 6)
     for (oa, ia), (ob, ib) in zip(ra, rb):
@@ -44,7 +46,7 @@ def test_determinism_same_seed_same_actions():
 
 
 def test_autopilot_drives_along_route_and_odometry_is_consistent():
-    env = gym.make("satloc/SatLoc-v0", scene="city", odometry_noise=(0.0, 0.0))
+    env = gym.make("satloc/SatLoc-v0", scene="city", localizer=None, odometry_noise=(0.0, 0.0))
     steps = run(env, 0, 60)
     info = steps[-1][1]
     assert 40 < float(info["route_s"]) < 60  # ~8 m/s for 6 s, slower at the corner
@@ -59,7 +61,7 @@ def test_autopilot_drives_along_route_and_odometry_is_consistent():
 
 
 def test_leaving_the_road_terminates():
-    env = gym.make("satloc/SatLoc-v0", scene="city")
+    env = gym.make("satloc/SatLoc-v0", scene="city", localizer=None)
     env.reset(seed=0)
     term = False
     for _ in range(40):
@@ -71,7 +73,7 @@ def test_leaving_the_road_terminates():
 
 
 def test_time_limit_truncates():
-    env = gym.make("satloc/SatLoc-v0", scene="city", max_steps=3)
+    env = gym.make("satloc/SatLoc-v0", scene="city", localizer=None, max_steps=3)
     env.reset(seed=0)
     truncs = [env.step(env.unwrapped.autopilot_action())[3] for _ in range(3)]
     assert truncs == [False, False, True]
@@ -81,7 +83,7 @@ def test_time_limit_truncates():
 def test_config_errors_and_reset_options():
     with pytest.raises(ConfigError, match=r"unknown key\(s\) \['fov'\]"):
         gym.make("satloc/SatLoc-v0", fov=90)
-    env = gym.make("satloc/SatLoc-v0", scene="city")
+    env = gym.make("satloc/SatLoc-v0", scene="city", localizer=None)
     with pytest.raises(ConfigError, match="cannot change per episode"):
         env.reset(options={"resolution": "full"})
     with pytest.raises(ConfigError, match=r"occlusion: expected a value in \[0, 1\]"):
@@ -98,7 +100,7 @@ def default_keys():
 
 
 def test_occluders_appear_in_labels():
-    env = gym.make("satloc/SatLoc-v0", scene="city", labels=True)
+    env = gym.make("satloc/SatLoc-v0", scene="city", localizer=None, labels=True)
     obs, _ = env.reset(seed=2, options={"occlusion": 0.0})
     from satloc.labels import CLASS_ID
     person_or_obstacle = lambda o: np.isin(o["labels"], [CLASS_ID["person"], CLASS_ID["obstacle"]]).sum()
@@ -113,7 +115,7 @@ def test_occluders_appear_in_labels():
 
 
 def test_appearance_changes_colours_not_geometry():
-    env = gym.make("satloc/SatLoc-v0", scene="city", depth=True)
+    env = gym.make("satloc/SatLoc-v0", scene="city", localizer=None, depth=True)
     a, _ = env.reset(seed=3, options={"appearance": 0.0})
     b, _ = env.reset(seed=3, options={"appearance": 1.0})
     assert np.array_equal(a["depth"], b["depth"])
@@ -124,7 +126,8 @@ def test_appearance_changes_colours_not_geometry():
 def test_render_rgb_array_and_record_video(tmp_path):
     from gymnasium.wrappers import RecordVideo
     pytest.importorskip("moviepy")
-    env = RecordVideo(gym.make("satloc/SatLoc-v0", scene="city", render_mode="rgb_array"), str(tmp_path))
+    env = RecordVideo(gym.make("satloc/SatLoc-v0", scene="city", localizer=None, render_mode="rgb_array"),
+                      str(tmp_path))
     env.reset(seed=0)
     for _ in range(5):
         env.step(env.unwrapped.autopilot_action())
@@ -133,7 +136,7 @@ def test_render_rgb_array_and_record_video(tmp_path):
 
 
 def test_render_frame_shape():
-    env = gym.make("satloc/SatLoc-v0", scene="city", render_mode="rgb_array")
+    env = gym.make("satloc/SatLoc-v0", scene="city", localizer=None, render_mode="rgb_array")
     env.reset(seed=0)
     frame = env.render()
     assert frame.dtype == np.uint8 and frame.shape[0] == 360 and frame.shape[2] == 3
@@ -143,7 +146,7 @@ def test_render_frame_shape():
 
 
 def test_async_vector_env_steps():
-    envs = gym.make_vec("satloc/SatLoc-v0", 2, vectorization_mode="async", scene="city",
+    envs = gym.make_vec("satloc/SatLoc-v0", 2, vectorization_mode="async", scene="city", localizer=None,
                         vector_kwargs={"context": "spawn"})
     obs, info = envs.reset(seed=[0, 1])
     assert obs["left"].shape == (2, 188, 620, 3)

@@ -107,7 +107,7 @@ def test_ground_accuracy_on_rendered_frame(predictor):
 
     import satloc_env  # noqa: F401  (registers the env)
 
-    env = gym.make("satloc/SatLoc-v0", scene="city", labels=True)
+    env = gym.make("satloc/SatLoc-v0", scene="city", labels=True, localizer=None)
     obs, _ = env.reset(seed=12345, options={"start_s_m": 300.0, "occlusion": 0.4, "appearance": 0.4})
     for _ in range(5):
         obs, *_ = env.step(env.unwrapped.autopilot_action())

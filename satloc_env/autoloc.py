@@ -1,0 +1,273 @@
+"""The environment's ``localizer="auto"``: a localizer built from the scene's database pass, cached on disk.
+
+On first use for a (scene, aliasing, resolution) the database pass is recorded (the scene's
+``database_route``, lane offset -1.75 m, no occluders, reference appearance: ``RecordConfig().database``),
+then :func:`satloc.pipeline.build` and :func:`satloc.pipeline.train_projection` run on it; this takes minutes
+for a shipped scene. The result is a build directory under the cache root::
+
+    $SATLOC_CACHE (default ~/.cache/satloc)/
+        city-alias0-half-<hash>/       build.json, dictionary.npz, satellite_features.npz, projections.pt,
+                                       projection.json, projection_loss.png, autoloc.json (the cache key)
+        .city-alias0-half-<hash>.lock  serialises concurrent builds of that entry
+
+``<hash>`` covers the scene file's content (YAML, plus the image of an image scene or all files of a saved
+scene), the effective aliasing, the resolution, satloc's format and package versions, and the recording,
+build and projection configurations. Anything else (the recording itself) is not kept. An entry is built in
+a temporary directory beside it and renamed into place when complete, under an exclusive lock, so concurrent
+processes (e.g. async vector env workers) build it once and never see a partial entry.
+
+:func:`auto_build_dir` returns the directory (building it on a miss); the CLI and scripts can use it like a
+build directory of ``satloc build``. :func:`load_cached_localizer` loads a build directory once per process.
+"""
+from __future__ import annotations
+
+import contextlib
+import functools
+import hashlib
+import json
+import logging
+import os
+import re
+import shutil
+import sys
+import tempfile
+import time
+from dataclasses import replace
+from pathlib import Path
+from typing import Any, Iterator
+
+from satloc import __version__ as SATLOC_VERSION
+from satloc.config import to_dict
+from satloc.errors import ConfigError
+from satloc.persist import FORMAT_VERSION, header, read_json, write_json
+
+from .record import RecordConfig, record_pass
+from .scene import SCENES_DIR, load_spec, scene_path
+
+log = logging.getLogger(__name__)
+
+CACHE_ENV = "SATLOC_CACHE"
+#: files a complete cache entry has
+ENTRY_FILES = ("build.json", "dictionary.npz", "satellite_features.npz", "projections.pt", "autoloc.json")
+_KEY_VERSION = 1  # bump when the way an entry is made changes in a way the key does not show
+
+
+def cache_root(cache_dir: str | os.PathLike | None = None) -> Path:
+    """``cache_dir`` if given, else ``$SATLOC_CACHE``, else ``~/.cache/satloc``."""
+    if cache_dir is not None:
+        return Path(cache_dir).expanduser()
+    env = os.environ.get(CACHE_ENV)
+    return Path(env).expanduser() if env else Path.home() / ".cache" / "satloc"
+
+
+def _hash_files(h: "hashlib._Hash", files: list[tuple[str, Path]]) -> None:
+    for name, path in files:
+        h.update(name.encode() + b"\0")
+        with open(path, "rb") as f:
+            for chunk in iter(lambda: f.read(1 << 20), b""):
+                h.update(chunk)
+        h.update(b"\0")
+
+
+def _scene_identity(scene: str | os.PathLike) -> tuple[str, str, str, float]:
+    """(name, source, sha256 of the scene's files, the scene's own aliasing) of a scene argument as
+    :func:`satloc_env.scene.load_scene` reads it. ``source`` is the shipped name or the resolved path."""
+    p = Path(scene).expanduser()
+    h = hashlib.sha256()
+    if p.is_dir() and (p / "scene.json").is_file():  # a saved scene: all its files
+        spec = read_json(p / "scene.json", "scene").get("spec") or {}
+        files = sorted((str(f.relative_to(p)), f) for f in p.rglob("*") if f.is_file())
+        _hash_files(h, files)
+        name = str(spec.get("name", p.name))
+        return name, str(p.resolve()), h.hexdigest(), float((spec.get("knobs") or {}).get("aliasing", 0.0))
+    spec, base = load_spec(scene)
+    path = scene_path(scene).resolve()
+    files = [("scene.yaml", path)]
+    g = spec.generator_spec(str(path))
+    if g.type == "image":
+        files += [("image", base / g.image)] + ([("labels", base / g.labels)] if g.labels else [])
+    _hash_files(h, files)
+    source = path.stem if path.parent == SCENES_DIR.resolve() else str(path)
+    return spec.name, source, h.hexdigest(), float(spec.knobs.aliasing)
+
+
+def _configs(max_frames, build_config, projection_config):
+    from satloc.pipeline import BuildConfig
+    from satloc.projection import ProjectionConfig
+
+    rc = RecordConfig()
+    db = replace(rc.database, max_frames=max_frames, depth=False)  # stereo depth unless the build wants true depth
+    bc = build_config if build_config is not None else BuildConfig()
+    if bc.depth_source == "frame":
+        db = replace(db, depth=True)
+    pc = projection_config if projection_config is not None else ProjectionConfig()
+    return rc.speed_mps, db, bc, pc
+
+
+def cache_key(scene: str | os.PathLike, aliasing: float | None = None, resolution: str = "half", *,
+              max_frames: int | None = None, build_config=None, projection_config=None) -> dict:
+    """Everything a cache entry depends on, as a plain dict (written to its ``autoloc.json``)."""
+    if resolution not in ("half", "full"):
+        raise ConfigError(f"resolution: expected 'half' or 'full', got {resolution!r}")
+    if max_frames is not None and max_frames < 2:
+        raise ConfigError(f"max_frames: expected None or >= 2, got {max_frames}")
+    name, source, sha, own_aliasing = _scene_identity(scene)
+    speed, db, bc, pc = _configs(max_frames, build_config, projection_config)
+    return {"scene": name, "source": source, "scene_sha256": sha,
+            "aliasing": float(own_aliasing if aliasing is None else aliasing), "resolution": resolution,
+            "format_version": FORMAT_VERSION, "satloc_version": SATLOC_VERSION, "key_version": _KEY_VERSION,
+            "speed_mps": speed, "database_pass": to_dict(db), "build": to_dict(bc), "projection": to_dict(pc)}
+
+
+def _entry_name(key: dict) -> str:
+    digest = hashlib.sha256(json.dumps(key, sort_keys=True).encode()).hexdigest()[:16]
+    slug = re.sub(r"[^A-Za-z0-9_.-]+", "_", key["scene"]).strip("._") or "scene"
+    return f"{slug}-alias{key['aliasing']:g}-{key['resolution']}-{digest}"
+
+
+def build_path(scene: str | os.PathLike, aliasing: float | None = None, resolution: str = "half", *,
+               max_frames: int | None = None, build_config=None, projection_config=None,
+               cache_dir: str | os.PathLike | None = None) -> Path:
+    """Where :func:`auto_build_dir` keeps the entry for these arguments (whether or not it exists yet)."""
+    key = cache_key(scene, aliasing, resolution, max_frames=max_frames, build_config=build_config,
+                    projection_config=projection_config)
+    return cache_root(cache_dir) / _entry_name(key)
+
+
+def is_complete(entry: Path) -> bool:
+    return all((entry / f).is_file() for f in ENTRY_FILES)
+
+
+@contextlib.contextmanager
+def _locked(path: Path, on_wait=None) -> Iterator[None]:
+    """An exclusive advisory lock on ``path`` (no-op where ``fcntl`` is missing: the final rename stays safe);
+    ``on_wait()`` is called if another process holds it."""
+    try:
+        import fcntl
+    except ImportError:  # pragma: no cover - not POSIX
+        yield
+        return
+    with open(path, "a") as f:
+        try:
+            fcntl.flock(f, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            if on_wait is not None:
+                on_wait()
+            fcntl.flock(f, fcntl.LOCK_EX)
+        try:
+            yield
+        finally:
+            fcntl.flock(f, fcntl.LOCK_UN)
+
+
+def _announce(msg: str, progress: bool) -> None:
+    log.info(msg)
+    if progress:
+        print(f"satloc: {msg}", file=sys.stderr, flush=True)
+
+
+def auto_build_dir(scene: str | os.PathLike, aliasing: float | None = None, resolution: str = "half",
+                   progress: bool = True, *, max_frames: int | None = None, build_config=None,
+                   projection_config=None, cache_dir: str | os.PathLike | None = None) -> Path:
+    """The cached build directory of ``scene``'s database pass; records and builds it on a miss.
+
+    ``max_frames`` (stop the database pass early), ``build_config`` (:class:`satloc.pipeline.BuildConfig`) and
+    ``projection_config`` (:class:`satloc.projection.ProjectionConfig`) are for small builds (tests); they are
+    part of the cache key. ``cache_dir`` overrides the cache root (see :func:`cache_root`).
+    """
+    key = cache_key(scene, aliasing, resolution, max_frames=max_frames, build_config=build_config,
+                    projection_config=projection_config)
+    root = cache_root(cache_dir)
+    entry = root / _entry_name(key)
+    if is_complete(entry):
+        log.debug("auto localizer cache hit: %s", entry)
+        return entry
+    root.mkdir(parents=True, exist_ok=True)
+    wait = lambda: _announce(f"waiting for another process building {entry}", progress)  # noqa: E731
+    with _locked(root / f".{entry.name}.lock", wait):
+        if is_complete(entry):  # built by another process while we waited
+            return entry
+        _announce(f"building the localizer for scene {key['scene']!r} (aliasing {key['aliasing']:g}, "
+                  f"{resolution}) once, into the cache {entry}", progress)
+        tmp = Path(tempfile.mkdtemp(prefix=f".{entry.name}.", suffix=".tmp", dir=root))
+        try:
+            t0 = time.perf_counter()
+            _build_entry(tmp, key, scene, aliasing, resolution, max_frames, build_config, projection_config,
+                         progress)
+            write_json(tmp / "autoloc.json", dict(header("autoloc_cache"), key=key,
+                                                  seconds=round(time.perf_counter() - t0, 1)))
+            if entry.exists():  # an incomplete leftover (e.g. files deleted by hand)
+                old = root / f".{entry.name}.old-{os.getpid()}"
+                os.replace(entry, old)
+                shutil.rmtree(old, ignore_errors=True)
+            try:
+                os.replace(tmp, entry)
+            except OSError:
+                if not is_complete(entry):  # without working locks another process may have won the race
+                    raise
+        finally:
+            shutil.rmtree(tmp, ignore_errors=True)
+        _announce(f"localizer cache ready: {entry}", progress)
+    return entry
+
+
+def _build_entry(out: Path, key: dict, scene, aliasing, resolution, max_frames, build_config, projection_config,
+                 progress: bool) -> None:
+    from tqdm import tqdm
+
+    from satloc.pipeline import build, train_projection
+
+    from .env import SatLocEnv
+
+    speed, db, bc, pc = _configs(max_frames, build_config, projection_config)
+    rec = out / "recording"
+    stages = tqdm(total=3, desc="auto localizer", unit="stage", disable=not progress, leave=False)
+    # localizer=None: the recorder's env must not itself ask for an auto localizer (infinite recursion)
+    env = SatLocEnv(scene=os.fspath(scene), resolution=resolution, aliasing=aliasing, speed_mps=speed,
+                    depth=db.depth, labels=db.labels, localizer=None)
+    try:
+        env.reset(seed=db.seed)
+        sc = env.scene
+        sc.satmap.save(rec / "map")
+        record_pass(env, db, db.route or sc.spec.database_route, rec / "database", "database", progress,
+                    {"source": "satloc_env.autoloc", "scene": sc.name, "aliasing": sc.spec.knobs.aliasing})
+    finally:
+        env.close()
+    stages.update(1)
+    build(rec / "database", rec / "map", out, bc, progress)
+    stages.update(1)
+    train_projection(out, pc, progress)
+    stages.update(1)
+    stages.close()
+    shutil.rmtree(rec, ignore_errors=True)  # only the build is kept
+
+
+def _stamp(build_dir: Path) -> tuple:
+    return tuple((f, (build_dir / f).stat().st_mtime_ns if (build_dir / f).exists() else None)
+                 for f in ("build.json", "dictionary.npz", "satellite_features.npz", "projections.pt"))
+
+
+@functools.lru_cache(maxsize=2)
+def _load(build_dir: str, mode: str, stamp: tuple):
+    from satloc.localizer import LocalizerConfig
+    from satloc.pipeline import load_localizer
+
+    return load_localizer(build_dir, LocalizerConfig(mode=mode))
+
+
+def load_cached_localizer(build_dir: str | os.PathLike, mode: str = "full"):
+    """:func:`satloc.pipeline.load_localizer` in ``mode``, loaded once per process per (directory, mode)
+    while the directory's files are unchanged (loading builds the satellite table: seconds to minutes)."""
+    b = Path(build_dir).expanduser().resolve()
+    return _load(str(b), mode, _stamp(b))
+
+
+def auto_localizer(scene: str | os.PathLike, aliasing: float | None = None, resolution: str = "half",
+                   mode: str = "full", progress: bool = True):
+    """The localizer of ``localizer="auto"``: :func:`auto_build_dir` loaded in ``mode``."""
+    return load_cached_localizer(auto_build_dir(scene, aliasing, resolution, progress), mode)
+
+
+def describe_entry(entry: str | os.PathLike) -> dict[str, Any]:
+    """The cache key an entry was built for (its ``autoloc.json``)."""
+    return read_json(Path(entry) / "autoloc.json", "autoloc_cache")["key"]
