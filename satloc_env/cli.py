@@ -38,33 +38,43 @@ def route_overview(scene, poses: np.ndarray, max_px: int = 1400) -> np.ndarray:
 
 
 def cmd_demo(args) -> int:
-    """Drive the default route, write a strip of stereo frames and a bird's-eye picture."""
-    from satloc_env.env import SatLocEnv, compose_view
+    """The main job on the default scene: record database and query passes, build the dictionary, learn the
+    projections, localize every query with GO, NP and full, print mean (std) errors and write pictures."""
+    from satloc.config import from_dict
+    from satloc_env.experiment import ExperimentConfig, run_scene
 
+    overrides = {"scene": args.scene, "database_frames": args.db_frames or None, "features": args.features}
+    if args.query_frames:
+        overrides["query_frames"] = args.query_frames
+    cfg = from_dict(ExperimentConfig, overrides, "demo options")
+    log = (lambda *a, **k: None) if args.quiet else (lambda m: print(m, file=sys.stderr, flush=True))
+    s = run_scene(cfg, args.out, progress=not args.quiet, log=log)
     out = Path(args.out)
-    env = SatLocEnv(scene=args.scene, resolution=args.resolution, render_mode="rgb_array", depth=True)
-    obs, info = env.reset(seed=args.seed)
-    rows, poses = [], []
-    every = max(1, args.every)
-    for i in range(args.frames * every):
-        if i % every == 0:
-            d = obs["depth"]
-            depth_vis = cv2.applyColorMap(np.clip(255 - d * 255 / 60.0, 0, 255).astype(np.uint8),
-                                          cv2.COLORMAP_TURBO)[..., ::-1]
-            depth_vis[d <= 0] = 0
-            rows.append(np.hstack([obs["left"], obs["right"], depth_vis]))
-            poses.append(info["pose"])
-            if len(rows) == 1:
-                _save_rgb(out / "view.png", env.render())
-        obs, _, term, trunc, info = env.step(env.autopilot_action())
-        if term or trunc:
-            break
-    strip = np.vstack(rows[:: max(1, len(rows) // 6)][:6])
-    _save_rgb(out / "stereo_strip.png", strip)
-    _save_rgb(out / "birdseye.png", route_overview(env.scene, np.array(poses)))
-    env.close()
-    print(json.dumps({"scene": args.scene, "frames": len(rows), "driven_m": round(float(info["route_s"]), 1),
-                      "out": str(out), "files": ["view.png", "stereo_strip.png", "birdseye.png"]}))
+    print(f"satloc demo: {s['scene']}, database {s['database_m']:.0f} m, {s['queries']} queries (revisit: "
+          f"other lane, appearance and occluders)")
+    for mode, r in s["modes"].items():
+        print(f"  {mode:4s}  mean {r['mean_m']:.2f} m (std {r['std_m']:.2f})  median {r['median_m']:.2f} m  "
+              f"{100 * r['within_1m']:.0f} % within 1 m  {r['queries_per_s']:.1f} queries/s")
+    pics = sorted(p.name for p in out.glob("*.png"))
+    print(f"  pictures in {out}: {', '.join(pics)}")
+    return 0
+
+
+def cmd_experiment(args) -> int:
+    from satloc_env.experiment import markdown_table, table1
+
+    import yaml
+
+    config = {}
+    if args.config:
+        p = Path(args.config)
+        if not p.is_file():
+            raise SatlocError(f"{p}: config file not found")
+        config = yaml.safe_load(p.read_text()) or {}
+    log = (lambda *a, **k: None) if args.quiet else (lambda m: print(m, file=sys.stderr, flush=True))
+    rows = table1(args.out, tuple(args.scenes), config, progress=not args.quiet, log=log)
+    print(markdown_table(rows), end="")
+    print(f"written: {Path(args.out) / 'table1.csv'}")
     return 0
 
 
@@ -88,7 +98,13 @@ def cmd_bench(args) -> int:
     if args.what == "env":
         from satloc_env.bench import bench_env
 
-        print(json.dumps(bench_env(args.resolution, args.steps, args.scene)))
+        print(json.dumps(bench_env(args.resolution, args.steps, args.scene or "city")))
+    else:
+        from satloc_env.bench import bench_localize
+
+        for row in bench_localize(args.sizes_km, args.work or None, scene=args.scene or "loop",
+                                  queries=args.queries, progress=not args.quiet):
+            print(json.dumps(row), flush=True)
     return 0
 
 
@@ -157,14 +173,24 @@ def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="satloc", description=__doc__)
     sub = p.add_subparsers(dest="command", required=True)
 
-    d = sub.add_parser("demo", help="drive the default scene and write stereo frames and a bird's-eye picture")
+    d = sub.add_parser("demo", help="record, build, learn, localize with GO/NP/full on the default scene; "
+                                    "print errors, write pictures")
     d.add_argument("--scene", default="city")
     d.add_argument("--out", default="satloc_demo")
-    d.add_argument("--resolution", choices=["half", "full"], default="half")
-    d.add_argument("--frames", type=int, default=24)
-    d.add_argument("--every", type=int, default=10, help="keep one frame every N steps")
-    d.add_argument("--seed", type=int, default=0)
+    d.add_argument("--db-frames", type=int, default=400,
+                   help="database frames (1 m apart) to record; 0: the whole route")
+    d.add_argument("--query-frames", type=int, default=None)
+    d.add_argument("--features", choices=["rgb", "semantic", "default"], default="default")
+    d.add_argument("--quiet", action="store_true")
     d.set_defaults(func=cmd_demo)
+
+    ex = sub.add_parser("experiment", help="paper experiments on simulated scenes (table1)")
+    ex.add_argument("which", choices=["table1"])
+    ex.add_argument("--out", required=True)
+    ex.add_argument("--scenes", nargs="+", default=["city", "residential"])
+    ex.add_argument("--config", help="YAML with ExperimentConfig fields (satloc_env/experiment.py)")
+    ex.add_argument("--quiet", action="store_true")
+    ex.set_defaults(func=cmd_experiment)
 
     r = sub.add_parser("record", help="record database and query passes of a scene")
     r.add_argument("--scene", default="city")
@@ -183,10 +209,14 @@ def build_parser() -> argparse.ArgumentParser:
     r.set_defaults(func=cmd_record)
 
     b = sub.add_parser("bench", help="print benchmark figures as JSON lines")
-    b.add_argument("what", choices=["env"])
+    b.add_argument("what", choices=["env", "localize"])
     b.add_argument("--resolution", choices=["half", "full"], default="half")
     b.add_argument("--steps", type=int, default=2000)
-    b.add_argument("--scene", default="city")
+    b.add_argument("--scene", default=None, help="env: city; localize: loop (the longest route)")
+    b.add_argument("--sizes-km", type=float, nargs="+", default=[0.25, 1.0, 4.0], help="localize: database sizes")
+    b.add_argument("--queries", type=int, default=40, help="localize: queries timed per size")
+    b.add_argument("--work", help="localize: folder for recordings and builds (reused; default: a temp dir)")
+    b.add_argument("--quiet", action="store_true")
     b.set_defaults(func=cmd_bench)
 
     bl = sub.add_parser("build", help="build the ground-satellite dictionary of a database sequence")

@@ -1,0 +1,83 @@
+"""Pictures of localization results: posterior heatmaps over the satellite image, errors along the route."""
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from .geometry import Pose2
+from .localizer import Localization
+from .persist import atomic_path, load_npz
+from .satmap import SatelliteMap
+from .sequence import Sequence
+
+
+def _pyplot():
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    return plt
+
+
+def _save(fig, path: Path) -> None:
+    with atomic_path(path, suffix=Path(path).suffix) as tmp:
+        fig.savefig(tmp, dpi=110, bbox_inches="tight")
+
+
+def plot_posterior(satmap: SatelliteMap, result: Localization, truth: Pose2 | None, path: str | Path,
+                   window_m: float = 120.0, title: str = "") -> None:
+    """Two panels: the whole map and a ``window_m`` crop around the truth (or the estimate), each with the
+    posterior over candidate poses as a heatmap, the estimate (cross) and the truth (circle)."""
+    plt = _pyplot()
+    post, c = result.posterior, result.candidates
+    order = np.argsort(post)                         # most probable drawn last, on top
+    fig, axes = plt.subplots(1, 2, figsize=(12, 5.6))
+    centre = truth if truth is not None else result.estimate
+    h, w = satmap.image.shape[:2]
+    mpp = satmap.meters_per_pixel
+    x0, y0 = satmap.origin
+    full = (x0, x0 + w * mpp, y0 - h * mpp, y0)
+    rel = post / max(post.max(), 1e-300)
+    for ax, crop in zip(axes, (False, True)):
+        ax.imshow(satmap.image, extent=full, interpolation="bilinear")
+        sc = ax.scatter(c[order, 0], c[order, 1], c=np.log10(np.maximum(rel[order], 1e-4)), cmap="inferno",
+                        vmin=-4, vmax=0, s=6 if crop else 2, alpha=0.85, linewidths=0)
+        e = result.estimate
+        ax.plot([e.x], [e.y], "x", color="cyan", ms=12, mew=2.5, label="estimate")
+        if truth is not None:
+            ax.plot([truth.x], [truth.y], "o", mfc="none", mec="lime", ms=12, mew=2.5, label="truth")
+        if crop:
+            ax.set_xlim(centre.x - window_m / 2, centre.x + window_m / 2)
+            ax.set_ylim(centre.y - window_m / 2, centre.y + window_m / 2)
+        ax.set_xlabel("x east (m)")
+        ax.set_ylabel("y north (m)")
+    axes[1].legend(loc="lower right", fontsize=8)
+    cb = fig.colorbar(sc, ax=axes, shrink=0.8)
+    cb.set_label("log10 P(L|I) / max")
+    err = f", error {result.estimate.distance(truth):.2f} m" if truth is not None else ""
+    fig.suptitle(f"{title}{err}, inlier score {result.inlier_score:.1f}")
+    _save(fig, Path(path))
+    plt.close(fig)
+
+
+def plot_errors_along_route(results_dir: str | Path, queries: Sequence, frames: np.ndarray, modes,
+                            path: str | Path) -> None:
+    """Localization error of each mode (``localization_<mode>.npz`` in ``results_dir``) against the query's
+    distance along its pass."""
+    plt = _pyplot()
+    p = np.nan_to_num(queries.poses[:, :2])
+    s = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(p, axis=0), axis=1))])
+    fig, ax = plt.subplots(figsize=(10, 4))
+    for mode in modes:
+        a, _ = load_npz(Path(results_dir) / f"localization_{mode}.npz", "localization")
+        e = np.maximum(a["errors"], 1e-2)
+        ax.semilogy(s[a["frames"]], e, ".-", lw=0.8, ms=4, label=f"{mode}: mean {np.nanmean(a['errors']):.2f} m")
+    ax.axhline(1.0, color="grey", lw=0.6, ls="--")
+    ax.set_xlabel("query position along the pass (m)")
+    ax.set_ylabel("error (m)")
+    ax.legend(fontsize=8)
+    ax.grid(True, which="both", alpha=0.3)
+    _save(fig, Path(path))
+    plt.close(fig)

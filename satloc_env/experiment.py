@@ -1,0 +1,204 @@
+"""Experiments on simulated scenes: the whole pipeline from recording to errors and pictures.
+
+:func:`run_scene` records a scene's database and query passes (revisit mode: the query pass drives another
+lane, with other appearance and occluders), builds the dictionary, learns the projections, localizes the
+queries with the ablations GO, NP and full, and writes per-mode results and pictures. :func:`table1` runs it
+on several scenes and writes ``table1.csv`` (``method,scene,mean_m,std_m``). ``satloc demo`` and ``satloc
+experiment table1`` call these.
+
+Every stage's output is kept in the experiment folder and reused when the folder is run again with the same
+configuration (delete the folder to start over).
+"""
+from __future__ import annotations
+
+import csv
+import json
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from satloc.config import to_dict
+from satloc.context import ContextConfig
+from satloc.errors import ConfigError
+from satloc.localizer import Localization, LocalizerConfig
+from satloc.persist import atomic_path, read_json, write_json
+from satloc.pipeline import BuildConfig, build, load_localizer, localize, train_projection
+from satloc.projection import ProjectionConfig
+from satloc.sequence import Sequence
+
+from .record import PassConfig, RecordConfig, record_passes
+
+MODES = ("go", "np", "full")
+METHOD_NAMES = {"go": "Ours-GO", "np": "Ours-NP", "full": "Ours-full"}
+
+
+@dataclass
+class ExperimentConfig:
+    scene: str = "city"
+    database_frames: int | None = None      # stop the database pass early (None: the whole route)
+    query_frames: int | None = None
+    query_spacing_m: float = 10.0
+    query_lane_m: float = -0.75             # revisit mode: another lane than the database's -1.75 m ...
+    occlusion: float = 0.3                  # ... with occluders and another appearance
+    appearance: float = 0.5
+    coverage_m: float = 5.0                 # evaluate queries whose true pose is this close to the database path
+    features: str = "default"
+    context: ContextConfig = field(default_factory=ContextConfig)
+    projection: ProjectionConfig = field(default_factory=ProjectionConfig)
+    localizer: dict = field(default_factory=dict)   # LocalizerConfig fields other than mode
+    modes: tuple[str, ...] = MODES
+
+    def __post_init__(self):
+        bad = [m for m in self.modes if m not in MODES]
+        if bad:
+            raise ConfigError(f"modes: unknown {bad}; expected a subset of {list(MODES)}")
+
+
+def _stage_done(path: Path, config: dict) -> bool:
+    """Whether ``path`` (a stage's JSON stamp) exists and was written for this configuration."""
+    if not path.is_file():
+        return False
+    try:
+        return read_json(path).get("config") == config
+    except Exception:  # damaged stamp: redo the stage
+        return False
+
+
+def _stamp(path: Path, config: dict, **extra) -> None:
+    write_json(path, {"format": "experiment_stage", "config": config, **extra})
+
+
+def covered_queries(db: Sequence, q: Sequence, radius_m: float) -> np.ndarray:
+    """Indices of the query frames whose true position lies within ``radius_m`` of a database frame."""
+    from scipy.spatial import cKDTree
+
+    ok = np.all(np.isfinite(db.poses), axis=1)
+    d, _ = cKDTree(db.poses[ok, :2]).query(np.nan_to_num(q.poses[:, :2], nan=1e12))
+    return np.flatnonzero(d <= radius_m)
+
+
+def run_scene(cfg: ExperimentConfig, out: str | Path, progress: bool = True, log=print) -> dict:
+    """Record, build, learn, localize (each mode) and draw; returns the per-mode summaries."""
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    rec = RecordConfig(scene=cfg.scene,
+                       database=PassConfig(max_frames=cfg.database_frames),
+                       query=PassConfig(lane_offset_m=cfg.query_lane_m, spacing_m=cfg.query_spacing_m,
+                                        occlusion=cfg.occlusion, appearance=cfg.appearance, seed=1,
+                                        max_frames=cfg.query_frames))
+    times: dict[str, float] = {}
+    t = time.perf_counter()
+    rc = to_dict(rec)
+    if not _stage_done(out / "record.json", rc):
+        log(f"[{cfg.scene}] recording the database and query passes into {out / 'rec'}")
+        record_passes(rec, out / "rec", progress)
+        _stamp(out / "record.json", rc)
+    times["record_s"] = time.perf_counter() - t
+    db, q = Sequence.load(out / "rec" / "database"), Sequence.load(out / "rec" / "query")
+    bc = BuildConfig(features=cfg.features, context=cfg.context)
+    bdir = out / "build"
+    t = time.perf_counter()
+    if not _stage_done(out / "build_stage.json", dict(to_dict(bc), record=rc)):
+        log(f"[{cfg.scene}] building the dictionary ({len(db)} database frames)")
+        build(out / "rec" / "database", out / "rec" / "map", bdir, bc, progress)
+        _stamp(out / "build_stage.json", dict(to_dict(bc), record=rc))
+    times["build_s"] = time.perf_counter() - t
+    t = time.perf_counter()
+    if "full" in cfg.modes:
+        pc = dict(to_dict(cfg.projection), build=read_json(bdir / "build.json").get("entries"))
+        if not _stage_done(out / "projection_stage.json", pc) or not (bdir / "projections.pt").is_file():
+            log(f"[{cfg.scene}] learning the projections W_g, W_s")
+            train_projection(bdir, cfg.projection, progress)
+            _stamp(out / "projection_stage.json", pc)
+    times["projection_s"] = time.perf_counter() - t
+    sel = covered_queries(db, q, cfg.coverage_m)
+    if len(sel) == 0:
+        raise ConfigError(f"[{cfg.scene}] no query frame lies within {cfg.coverage_m} m of the database path")
+    results: dict[str, dict] = {}
+    examples: dict[str, list[tuple[int, Localization]]] = {}
+    for mode in cfg.modes:
+        lc = LocalizerConfig(**dict(cfg.localizer, mode=mode))
+        t = time.perf_counter()
+        loc = load_localizer(bdir, lc, progress=progress)
+        t_init = time.perf_counter() - t
+        s = localize(bdir, q, lc, out, progress, localizer=loc, select=sel)
+        err = s.pop("errors")
+        s.update(localizer_init_s=round(t_init, 2), within_1m=float(np.mean(err < 1.0)),
+                 within_10m=float(np.mean(err < 10.0)))
+        results[mode] = s
+        log(f"[{cfg.scene}] {METHOD_NAMES[mode]:9s} mean {s['mean_m']:.2f} m (std {s['std_m']:.2f}), median "
+            f"{s['median_m']:.2f} m, {100 * s['within_1m']:.0f} % within 1 m, {s['queries_per_s']:.1f} queries/s "
+            f"over {s['queries']} queries")
+        # a few posteriors to draw: the best, a median and the worst query of this mode
+        order = np.argsort(np.nan_to_num(err, nan=1e9))
+        picks = sorted({int(order[0]), int(order[len(order) // 2]), int(order[-1])})
+        examples[mode] = [(int(sel[i]), loc.localize(q[int(sel[i])])) for i in picks]
+        del loc
+    summary = {"scene": cfg.scene, "config": to_dict(cfg), "database_frames": len(db),
+               "database_m": round(db.path_length(), 1), "queries": int(len(sel)),
+               "times_s": {k: round(v, 1) for k, v in times.items()}, "modes": results}
+    write_json(out / "summary.json", summary)
+    from satloc.plots import plot_errors_along_route, plot_posterior
+
+    plot_errors_along_route(out, q, sel, cfg.modes, out / "errors_along_route.png")
+    from .scene import load_scene
+
+    scene = load_scene(cfg.scene)
+    for mode, ex in examples.items():
+        for qi, r in ex:
+            plot_posterior(scene.satmap, r, q[qi].pose, out / f"posterior_{mode}_q{qi:03d}.png",
+                           title=f"{cfg.scene} query {qi}, {METHOD_NAMES[mode]}")
+    return summary
+
+
+def table1(out: str | Path, scenes: tuple[str, ...] = ("city", "residential"), config: dict | None = None,
+           progress: bool = True, log=print) -> list[dict]:
+    """Run :func:`run_scene` on each scene; write ``table1.csv`` (method,scene,mean_m,std_m), ``table1.md``
+    and ``table1.json`` into ``out``; return the rows."""
+    from satloc.config import from_dict
+
+    out = Path(out)
+    rows = []
+    for scene in scenes:
+        cfg = from_dict(ExperimentConfig, dict(config or {}, scene=scene), "experiment config")
+        s = run_scene(cfg, out / scene, progress, log)
+        for mode in cfg.modes:
+            m = s["modes"][mode]
+            rows.append({"method": METHOD_NAMES[mode], "scene": scene, "mean_m": round(m["mean_m"], 3),
+                         "std_m": round(m["std_m"], 3), "median_m": round(m["median_m"], 3),
+                         "within_1m": round(m["within_1m"], 3), "queries": m["queries"],
+                         "queries_per_s": m["queries_per_s"]})
+    with atomic_path(out / "table1.csv", suffix=".csv") as tmp:
+        with open(tmp, "w", newline="") as f:
+            w = csv.writer(f)
+            w.writerow(["method", "scene", "mean_m", "std_m"])
+            for r in rows:
+                w.writerow([r["method"], r["scene"], f"{r['mean_m']:.3f}", f"{r['std_m']:.3f}"])
+    write_json(out / "table1.json", {"format": "table1", "rows": rows})
+    with atomic_path(out / "table1.md", suffix=".md") as tmp:
+        tmp.write_text(markdown_table(rows))
+    return rows
+
+
+def markdown_table(rows: list[dict]) -> str:
+    scenes = list(dict.fromkeys(r["scene"] for r in rows))
+    methods = list(dict.fromkeys(r["method"] for r in rows))
+    cell = {(r["method"], r["scene"]): r for r in rows}
+    lines = ["| method | " + " | ".join(f"{s}: mean (std) m | {s}: median m | {s}: within 1 m" for s in scenes) + " |",
+             "|---|" + "---|---|---|" * len(scenes)]
+    for m in methods:
+        parts = []
+        for s in scenes:
+            r = cell.get((m, s))
+            parts += ([f"{r['mean_m']:.2f} ({r['std_m']:.2f})", f"{r['median_m']:.2f}", f"{100 * r['within_1m']:.0f} %"]
+                      if r else ["", "", ""])
+        lines.append(f"| {m} | " + " | ".join(parts) + " |")
+    return "\n".join(lines) + "\n"
+
+
+def format_summary(s: dict) -> str:
+    return json.dumps({k: s[k] for k in ("scene", "database_m", "queries")} |
+                      {m: {k: v for k, v in r.items() if k in ("mean_m", "std_m", "median_m", "queries_per_s")}
+                       for m, r in s["modes"].items()})
