@@ -178,7 +178,7 @@ def build_parser() -> argparse.ArgumentParser:
     d.add_argument("--scene", default="city")
     d.add_argument("--out", default="satloc_demo")
     d.add_argument("--db-frames", type=int, default=400,
-                   help="database frames (1 m apart) to record; 0: the whole route")
+                   help="database frames to record (one every ~1.6 m at the default speed); 0: the whole route")
     d.add_argument("--query-frames", type=int, default=None)
     d.add_argument("--features", choices=["rgb", "semantic", "default"], default="default")
     d.add_argument("--quiet", action="store_true")
