@@ -8,6 +8,12 @@ import numba
 import numpy as np
 
 
+@numba.njit(cache=True, nogil=True, inline="always")
+def _place(cx, cy, co, si, px, py):
+    """Map point of the vehicle-frame point (px, py) seen from pose (cx, cy, yaw) with cos/sin (co, si)."""
+    return cx + co * px - si * py, cy + si * px + co * py
+
+
 @numba.njit(cache=True, nogil=True)
 def cooccurrence_scores(cands, pv, gid, wg, origin_x, origin_y, mpp, h, w, pixel_row, sat_ids, sat_w,
                         n_entries):
@@ -30,12 +36,10 @@ def cooccurrence_scores(cands, pv, gid, wg, origin_x, origin_y, mpp, h, w, pixel
                 table[j, remap[i]] += wg[j, k]
     out = np.zeros(len(cands))
     for c in range(len(cands)):
-        cx, cy = cands[c, 0], cands[c, 1]
         co, si = math.cos(cands[c, 2]), math.sin(cands[c, 2])
         acc = 0.0
         for j in range(n):
-            x = cx + co * pv[j, 0] - si * pv[j, 1]
-            y = cy + si * pv[j, 0] + co * pv[j, 1]
+            x, y = _place(cands[c, 0], cands[c, 1], co, si, pv[j, 0], pv[j, 1])
             col = math.floor((x - origin_x) / mpp)
             row = math.floor((origin_y - y) / mpp)
             if row < 0 or row >= h or col < 0 or col >= w:
@@ -61,12 +65,10 @@ def location_scores(cands, pv, loc, wg, radius):
     out = np.zeros(len(cands))
     r2 = radius * radius
     for c in range(len(cands)):
-        cx, cy = cands[c, 0], cands[c, 1]
         co, si = math.cos(cands[c, 2]), math.sin(cands[c, 2])
         acc = 0.0
         for j in range(n):
-            x = cx + co * pv[j, 0] - si * pv[j, 1]
-            y = cy + si * pv[j, 0] + co * pv[j, 1]
+            x, y = _place(cands[c, 0], cands[c, 1], co, si, pv[j, 0], pv[j, 1])
             for k in range(m):
                 if wg[j, k] <= 0:
                     continue

@@ -97,24 +97,12 @@ class SatelliteFeatures:
         out[inside] = self.features.reshape(-1, self.dim)[flat[inside]]
         return out, inside
 
-    def sample_context(self, xy: np.ndarray, context: ContextConfig, span: tuple[int, int]
-                       ) -> tuple[np.ndarray, np.ndarray]:
-        """Base features with their metric context (see :mod:`satloc.context`) at map points (n, 2)."""
-        flat, inside = self.pixel_index(xy)
-        return self.features_at(flat[inside], context, span, len(flat), inside), inside
-
-    def features_at(self, flat: np.ndarray, context: ContextConfig, span: tuple[int, int],
-                    n: int | None = None, where: np.ndarray | None = None) -> np.ndarray:
-        """Base + context features at flat pixel indices (rows ``where`` of an (n, D) output, zero elsewhere)."""
+    def features_at(self, flat: np.ndarray, context: ContextConfig, span: tuple[int, int]) -> np.ndarray:
+        """(n, D) base features with their metric context (see :mod:`satloc.context`) at flat pixel indices."""
         w = self.features.shape[1]
         base = self.features.reshape(-1, self.dim)[flat].astype(np.float32)
         ctx = satellite_context(self.features, flat // w, flat % w, self.meters_per_pixel, context, span)
-        full = np.concatenate([base, ctx], axis=1)
-        if where is None:
-            return full
-        out = np.zeros((n, full.shape[1]), np.float32)
-        out[where] = full
-        return out
+        return np.concatenate([base, ctx], axis=1)
 
     def save(self, path: str | Path) -> None:
         save_npz(path, "satellite_features", {"features": self.features},

@@ -74,12 +74,12 @@ def _spread(x: np.ndarray, n: int = 4000) -> float:
     return float(np.median(np.linalg.norm(x[a] - x[b], axis=1)))
 
 
-def _path_positions(db_poses: np.ndarray, cands: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Arc length along the database path of every database frame and of every candidate (nearest frame)."""
+def _path_positions(db_poses: np.ndarray, cands: np.ndarray) -> np.ndarray:
+    """Arc length along the database path of every candidate (that of its nearest database frame)."""
     p = np.nan_to_num(db_poses[:, :2])
     s = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(p, axis=0), axis=1))])
     _, nearest = cKDTree(p).query(cands[:, :2])
-    return s, s[nearest]
+    return s[nearest]
 
 
 def candidate_poses(db_poses: np.ndarray, spacing: float, lateral: tuple[float, ...]) -> np.ndarray:
@@ -148,11 +148,10 @@ class Localizer:
             raise ConfigError(f"the extractor {extractor.name!r} ({extractor.dim} channels) with the dictionary's "
                               f"context does not give its {dg}-dimensional ground features")
         self.candidates = candidate_poses(dictionary.poses, config.candidate_spacing_m, config.lateral_offsets_m)
-        self._frame_s, self._cand_s = _path_positions(dictionary.poses, self.candidates)
+        self._cand_s = _path_positions(dictionary.poses, self.candidates)
         # for vote pruning: candidates binned by path position, the heading each entry was seen with
         self._bin_m = config.candidate_spacing_m
         self._cand_bin = np.round(self._cand_s / self._bin_m).astype(np.int64)
-        self._bin_edges = np.arange(self._cand_bin.max() + 1)
         self._cand_tree = cKDTree(self.candidates[:, :2])
         self._entry_yaw = np.nan_to_num(dictionary.poses[dictionary.frame, 2])
         pg = self.proj.project_g(dictionary.g)
@@ -250,8 +249,7 @@ class Localizer:
         py = loc[..., 1] - (s * pv[:, None, 0] + c * pv[:, None, 1])
         dist, near = self._cand_tree.query(np.stack([px[ok], py[ok]], 1))
         w = wg[ok] * (dist <= 2.0 * max(abs(o) for o in cfg.lateral_offsets_m) + 2.0)
-        nb = len(self._bin_edges)
-        votes = np.bincount(self._cand_bin[near], weights=w, minlength=nb)
+        votes = np.bincount(self._cand_bin[near], weights=w, minlength=int(self._cand_bin.max()) + 1)
         half = max(1, int(round(cfg.prune_window_m / 2 / self._bin_m)))
         smooth = np.convolve(votes, np.ones(2 * half + 1), mode="same")
         keep = np.zeros(len(self.candidates), bool)

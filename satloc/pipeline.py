@@ -110,14 +110,13 @@ def localize(build_dir: str | Path, queries: str | Path, config: LocalizerConfig
     idx = np.arange(len(seq)) if select is None else np.asarray(select, dtype=np.int64)
     if len(idx) and (idx.min() < 0 or idx.max() >= len(seq)):
         raise ConfigError(f"select: frame indices must lie in [0, {len(seq)}), got {idx.min()}..{idx.max()}")
-    q = [seq[int(i)] for i in idx] if select is not None else seq
-    k = loc.config.posterior_k
-    est, truth, inl_score, inl = np.zeros((len(q), 3)), np.full((len(q), 3), np.nan), np.zeros(len(q)), np.zeros(len(q), bool)
-    top_poses, top_probs = np.zeros((len(q), k, 3)), np.zeros((len(q), k))
+    n, k = len(idx), loc.config.posterior_k
+    est, truth, inl_score, inl = np.zeros((n, 3)), np.full((n, 3), np.nan), np.zeros(n), np.zeros(n, bool)
+    top_poses, top_probs = np.zeros((n, k, 3)), np.zeros((n, k))
     failed: list[tuple[int, str]] = []
     t0 = time.perf_counter()
-    for i in tqdm(range(len(q)), desc=f"localize ({loc.config.mode})", unit="query", disable=not progress, leave=False):
-        f = q[i]
+    for i in tqdm(range(n), desc=f"localize ({loc.config.mode})", unit="query", disable=not progress, leave=False):
+        f = seq[int(idx[i])]
         if f.pose is not None:
             truth[i] = f.pose.as_array()
         try:
@@ -131,9 +130,9 @@ def localize(build_dir: str | Path, queries: str | Path, config: LocalizerConfig
         top_poses[i], top_probs[i] = r.top(k)
     secs = time.perf_counter() - t0
     err = np.hypot(est[:, 0] - truth[:, 0], est[:, 1] - truth[:, 1])
-    summary = {"mode": loc.config.mode, "queries": len(q), "mean_m": float(np.nanmean(err)) if len(q) else None,
-               "std_m": float(np.nanstd(err)) if len(q) else None, "median_m": float(np.nanmedian(err)) if len(q) else None,
-               "queries_per_s": round(len(q) / secs, 2) if secs > 0 else None, "failed": len(failed)}
+    summary = {"mode": loc.config.mode, "queries": n, "mean_m": float(np.nanmean(err)) if n else None,
+               "std_m": float(np.nanstd(err)) if n else None, "median_m": float(np.nanmedian(err)) if n else None,
+               "queries_per_s": round(n / secs, 2) if secs > 0 else None, "failed": len(failed)}
     if out is not None:
         out = Path(out)
         save_npz(out / f"localization_{loc.config.mode}.npz", "localization",

@@ -32,14 +32,15 @@ def plot_posterior(satmap: SatelliteMap, result: Localization, truth: Pose2 | No
     posterior over candidate poses as a heatmap, the estimate (cross) and the truth (circle)."""
     plt = _pyplot()
     post, c = result.posterior, result.candidates
+    rel = post / max(post.max(), 1e-300)
     order = np.argsort(post)                         # most probable drawn last, on top
+    order = order[rel[order] >= 1e-4]                # below the colour scale: not drawn, the map shows through
     fig, axes = plt.subplots(1, 2, figsize=(12, 5.6))
     centre = truth if truth is not None else result.estimate
     h, w = satmap.image.shape[:2]
     mpp = satmap.meters_per_pixel
     x0, y0 = satmap.origin
     full = (x0, x0 + w * mpp, y0 - h * mpp, y0)
-    rel = post / max(post.max(), 1e-300)
     for ax, crop in zip(axes, (False, True)):
         ax.imshow(satmap.image, extent=full, interpolation="bilinear")
         sc = ax.scatter(c[order, 0], c[order, 1], c=np.log10(np.maximum(rel[order], 1e-4)), cmap="inferno",

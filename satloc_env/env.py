@@ -506,6 +506,16 @@ def _text(img: np.ndarray, text: str, org: tuple[int, int]) -> None:
     cv2.putText(img, text, org, cv2.FONT_HERSHEY_SIMPLEX, 0.45, (255, 255, 255), 1, cv2.LINE_AA)
 
 
+def _draw_heat_and_route(img, posterior, route, to_px, px_per_m: float) -> None:
+    """The posterior heatmap (if any), then the route on top, in a panel mapped by ``to_px``."""
+    if posterior is not None:
+        _draw_heat(img, posterior, to_px, px_per_m)
+    if route is not None:
+        pts = to_px(route.points)
+        cv2.polylines(img, [np.round(pts * 16).astype(np.int32).reshape(-1, 1, 2)], False, (80, 200, 255), 1,
+                      cv2.LINE_AA, shift=4)
+
+
 def birdseye(scene: Scene, pose: Pose2, route=None, size_px: int = PANEL_PX, size_m: float = PANEL_M,
              posterior: PosteriorView | None = None, localized: bool = False) -> np.ndarray:
     """North-up crop of the satellite tile around ``pose`` with the route and the vehicle (red) drawn on it;
@@ -519,12 +529,7 @@ def birdseye(scene: Scene, pose: Pose2, route=None, size_px: int = PANEL_PX, siz
         d = np.asarray(xy, np.float64) - (pose.x, pose.y)
         return np.stack([size_px / 2 + d[..., 0] * scale, size_px / 2 - d[..., 1] * scale], -1)
 
-    if posterior is not None:
-        _draw_heat(img, posterior, to_px, scale)
-    if route is not None:
-        pts = to_px(route.points)
-        cv2.polylines(img, [np.round(pts * 16).astype(np.int32).reshape(-1, 1, 2)], False, (80, 200, 255), 1,
-                      cv2.LINE_AA, shift=4)
+    _draw_heat_and_route(img, posterior, route, to_px, scale)
     if posterior is not None:
         _draw_estimate(img, posterior.estimate, to_px)
     tri = pose.transform(np.array([[2.6, 0.0], [-1.6, 1.3], [-1.6, -1.3]]))
@@ -564,12 +569,7 @@ def overview(scene: Scene, pose: Pose2, route=None, size_px: int = PANEL_PX, win
         return np.stack([(uv[..., 0] + 0.5) * sx - 0.5 + ox, (uv[..., 1] + 0.5) * sy - 0.5 + oy], -1)
 
     px_per_m = sx / sm.meters_per_pixel
-    if posterior is not None:
-        _draw_heat(img, posterior, to_px, px_per_m)
-    if route is not None:
-        pts = to_px(route.points)
-        cv2.polylines(img, [np.round(pts * 16).astype(np.int32).reshape(-1, 1, 2)], False, (80, 200, 255), 1,
-                      cv2.LINE_AA, shift=4)
+    _draw_heat_and_route(img, posterior, route, to_px, px_per_m)
     c = to_px(np.array([pose.x, pose.y]))
     half = window_m / 2 * px_per_m
     cv2.rectangle(img, tuple(int(v) for v in np.round(c - half)), tuple(int(v) for v in np.round(c + half)),

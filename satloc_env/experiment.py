@@ -12,7 +12,6 @@ configuration (delete the folder to start over).
 from __future__ import annotations
 
 import csv
-import json
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -196,9 +195,3 @@ def markdown_table(rows: list[dict]) -> str:
                       if r else ["", "", ""])
         lines.append(f"| {m} | " + " | ".join(parts) + " |")
     return "\n".join(lines) + "\n"
-
-
-def format_summary(s: dict) -> str:
-    return json.dumps({k: s[k] for k in ("scene", "database_m", "queries")} |
-                      {m: {k: v for k, v in r.items() if k in ("mean_m", "std_m", "median_m", "queries_per_s")}
-                       for m, r in s["modes"].items()})
