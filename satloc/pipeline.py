@@ -74,10 +74,11 @@ def train_projection(build_dir: str | Path, config: ProjectionConfig = Projectio
     t0 = time.perf_counter()
     p = train_projections(d, config, progress)
     p.save(b / "projections.pt")
-    plot_loss(p.loss_curve, b / "projection_loss.png")
+    plot_loss(p.loss_curve, b / "projection_loss.png", p.val_curve, p.best_epoch)
     write_json(b / "projection.json", dict(header("projection_training"), config=to_dict(config),
                                             epochs=len(p.loss_curve), converged=p.converged,
                                             loss_first=p.loss_curve[0], loss_last=p.loss_curve[-1],
+                                            val_curve=p.val_curve, best_epoch=p.best_epoch,
                                             seconds=round(time.perf_counter() - t0, 2)))
     return p
 

@@ -36,6 +36,7 @@ METHOD_NAMES = {"go": "Ours-GO", "np": "Ours-NP", "full": "Ours-full"}
 @dataclass
 class ExperimentConfig:
     scene: str = "city"
+    aliasing: float | None = None           # the scene's aliasing knob (None: the scene file's value)
     database_frames: int | None = None      # stop the database pass early (None: the whole route)
     query_frames: int | None = None
     query_spacing_m: float = 10.0
@@ -82,7 +83,7 @@ def run_scene(cfg: ExperimentConfig, out: str | Path, progress: bool = True, log
     """Record, build, learn, localize (each mode) and draw; returns the per-mode summaries."""
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
-    rec = RecordConfig(scene=cfg.scene,
+    rec = RecordConfig(scene=cfg.scene, aliasing=cfg.aliasing,
                        database=PassConfig(max_frames=cfg.database_frames),
                        query=PassConfig(lane_offset_m=cfg.query_lane_m, spacing_m=cfg.query_spacing_m,
                                         occlusion=cfg.occlusion, appearance=cfg.appearance, seed=1,
@@ -144,7 +145,7 @@ def run_scene(cfg: ExperimentConfig, out: str | Path, progress: bool = True, log
     plot_errors_along_route(out, q, sel, cfg.modes, out / "errors_along_route.png")
     from .scene import load_scene
 
-    scene = load_scene(cfg.scene)
+    scene = load_scene(cfg.scene, cfg.aliasing)
     for mode, ex in examples.items():
         for qi, r in ex:
             plot_posterior(scene.satmap, r, q[qi].pose, out / f"posterior_{mode}_q{qi:03d}.png",

@@ -53,6 +53,23 @@ def test_ranking_loss_decreases_on_a_fixed_seed_problem():
     assert evaluate_loss(d, p, cfg) < evaluate_loss(d, Projections.identity(3, 3), cfg)
     # the nuisance dimension is suppressed
     assert abs(p.W_g[2, 2]) < abs(p.W_g[0, 0])
+    # the held-out co-occurrence margin was measured from the identity on, and the kept epoch is its best
+    assert len(p.val_curve) == len(p.loss_curve) + 1 and p.best_epoch >= 1
+    assert p.val_curve[p.best_epoch] > p.val_curve[0]
+
+
+def test_projection_learning_keeps_the_identity_when_the_held_out_margin_does_not_improve():
+    """Features carry no location information: whatever the ranking loss does, the held-out co-occurrence
+    margin does not rise significantly (val_z standard errors), so W stays the identity."""
+    rng = np.random.default_rng(1)
+    n = 3000
+    loc = rng.uniform(0, 100, (n, 2))
+    g, s = (rng.standard_normal((n, 3)).astype(np.float32) for _ in range(2))
+    poses = np.c_[np.linspace(0, 100, 50), np.full(50, 50.0), np.zeros(50)]
+    d = Dictionary(g, s, loc, np.repeat(np.arange(50, dtype=np.int32), n // 50), poses, GridConfig(), "noise")
+    p = train_projections(d, ProjectionConfig(max_anchors=2000, max_epochs=6, lr=0.02), progress=False)
+    assert p.best_epoch == 0 and len(p.val_curve) >= 2
+    assert np.array_equal(p.W_g, np.eye(3, dtype=np.float32)) and np.array_equal(p.W_s, np.eye(3, dtype=np.float32))
 
 
 def test_dictionary_and_projection_round_trips(tmp_path):
@@ -62,10 +79,12 @@ def test_dictionary_and_projection_round_trips(tmp_path):
     for k in ("g", "s", "loc", "frame", "poses"):
         assert np.array_equal(getattr(d, k), getattr(e, k))
     assert e.grid == d.grid and e.feature_name == "synthetic"
-    p = Projections(np.arange(9, dtype=np.float32).reshape(3, 3), np.eye(3, dtype=np.float32), [3.0, 2.0], True)
+    p = Projections(np.arange(9, dtype=np.float32).reshape(3, 3), np.eye(3, dtype=np.float32), [3.0, 2.0], True,
+                    [0.5, 0.75, 0.7], 1)
     p.save(tmp_path / "p.pt")
     q = Projections.load(tmp_path / "p.pt")
     assert np.array_equal(p.W_g, q.W_g) and q.loss_curve == [3.0, 2.0] and q.converged
+    assert q.val_curve == [0.5, 0.75, 0.7] and q.best_epoch == 1
     sf = SatelliteFeatures(np.ones((4, 5, 2), np.float16), 0.2, (1.0, 2.0), "x")
     sf.save(tmp_path / "sf.npz")
     assert np.array_equal(SatelliteFeatures.load(tmp_path / "sf.npz").features, sf.features)
