@@ -169,24 +169,14 @@ class CooccurrenceMargin:
             cand = np.flatnonzero(np.linalg.norm(d.loc[v] - d.loc[v[t]], axis=1) >= cfg.val_far_m)
             far[t] = v[rng.choice(cand)] if len(cand) else -1
         keep = far >= 0
-        self.g, self.s = torch.from_numpy(d.g[v[keep]]), torch.from_numpy(d.s[v[keep]])
-        self.s_far = torch.from_numpy(d.s[far[keep]])
-        self.base_g, self.base_s = torch.from_numpy(d.g[train]), torch.from_numpy(d.s[train])
-        self.m = cfg.neighbors if cfg.val_neighbors is None else cfg.val_neighbors
+        self.g, self.s, self.s_far = d.g[v[keep]], d.s[v[keep]], d.s[far[keep]]
+        self.base_g, self.base_s = d.g[train], d.s[train]
+        self.m = cfg.val_neighbors
         self.usable = bool(keep.any()) and len(train) > self.m
 
-    def _knn(self, base: torch.Tensor, q: torch.Tensor) -> torch.Tensor:
-        out = []
-        bn = base.pow(2).sum(1)
-        for b in range(0, len(q), 512):
-            x = q[b:b + 512]
-            d2 = bn[None] - 2 * x @ base.T
-            out.append(torch.topk(d2, self.m, dim=1, largest=False).indices)
-        return torch.cat(out)
-
     @staticmethod
-    def _overlap(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
-        return (a[:, :, None] == b[:, None, :]).any(-1).sum(1).float()
+    def _overlap(a: np.ndarray, b: np.ndarray) -> torch.Tensor:
+        return torch.from_numpy((a[:, :, None] == b[:, None, :]).any(-1).sum(1).astype(np.float32))
 
     @staticmethod
     def better(new: torch.Tensor, best: torch.Tensor, z: float) -> bool:
@@ -195,11 +185,14 @@ class CooccurrenceMargin:
         return bool(gain.mean() > z * gain.std() / math.sqrt(len(gain)) and gain.mean() > 0)
 
     def __call__(self, W_g: torch.Tensor, W_s: torch.Tensor) -> torch.Tensor:
-        """Per-sample co-occurrence margins."""
-        with torch.no_grad():
-            gid = self._knn(self.base_g @ W_g.T, self.g @ W_g.T)
-            bs = self.base_s @ W_s.T
-            return self._overlap(gid, self._knn(bs, self.s @ W_s.T)) - self._overlap(gid, self._knn(bs, self.s_far @ W_s.T))
+        """Per-sample co-occurrence margins (exact neighbour search)."""
+        p = Projections(W_g.detach().numpy(), W_s.detach().numpy())
+        _, gid = NNIndex(p.project_g(self.base_g), exact_max=len(self.base_g)).search(p.project_g(self.g), self.m)
+        # both satellite query sets in one batch
+        _, sid = NNIndex(p.project_s(self.base_s), exact_max=len(self.base_s)).search(
+            p.project_s(np.concatenate([self.s, self.s_far])), self.m)
+        n = len(self.g)
+        return self._overlap(gid, sid[:n]) - self._overlap(gid, sid[n:])
 
 
 def ranking_loss(W: torch.Tensor, x: torch.Tensor, i: torch.Tensor, kstar: torch.Tensor, others: torch.Tensor,
@@ -231,8 +224,7 @@ def train_projections(d: Dictionary, cfg: ProjectionConfig = ProjectionConfig(),
     gen = torch.Generator().manual_seed(cfg.seed)
     alpha = {v: cfg.alpha if cfg.alpha is not None else auto_alpha(x, t_anchor, t_others, t_marg) for v, x in views.items()}
     validate = CooccurrenceMargin(d, train, held, cfg) if len(held) else None
-    if validate is not None and not validate.usable:
-        validate = None
+    validate = validate if validate is not None and validate.usable else None
     margins0 = validate(W["g"], W["s"]) if validate else None
     val: list[float] = [float(margins0.mean())] if validate else []
     best = (0, W["g"].detach().clone(), W["s"].detach().clone(), margins0)
