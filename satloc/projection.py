@@ -304,7 +304,8 @@ def plot_loss(curve: list[float], path: str | Path, val_curve: list[float] | Non
         if best_epoch >= 0:
             ax2.axvline(best_epoch, color="tab:orange", ls=":", lw=1)
         ax2.set_ylabel("co-occurrence margin", color="tab:orange")
-        fig.legend(loc="upper center", fontsize=7, ncol=2, bbox_to_anchor=(0.5, 0.9))
+        lines = ax.get_lines() + ax2.get_lines()[:1]
+        ax.legend(lines, [ln.get_label() for ln in lines], loc="center right", fontsize=7)
     fig.tight_layout()
     with atomic_path(path, suffix=".png") as tmp:
         fig.savefig(tmp, format="png")
