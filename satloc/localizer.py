@@ -24,7 +24,7 @@ from __future__ import annotations
 
 import hashlib
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Literal
 
@@ -33,6 +33,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 from tqdm import tqdm
 
+from .align import AlignConfig, BevAligner, posterior_peaks
 from .dictionary import Dictionary, FrameDepth, SatelliteFeatures, ground_features, ground_samples
 from .errors import ConfigError, FormatError
 from .persist import load_npz, save_npz
@@ -59,12 +60,19 @@ class LocalizerConfig:
     depth_source: Literal["stereo", "frame"] = "stereo"
     prune_regions: int = 3                # >0: score only candidates near the best-voted path positions
     prune_window_m: float = 12.0          # path length kept around each voted position (and peak separation)
+    refine: bool = False                  # refine the estimate by bird's-eye alignment (satloc.align)
+    align: AlignConfig = field(default_factory=AlignConfig)
 
     def __post_init__(self):
         if self.candidate_spacing_m <= 0:
             raise ConfigError(f"candidate_spacing_m: expected > 0, got {self.candidate_spacing_m}")
         if self.neighbors < 1 or self.top_k < 1 or self.posterior_k < self.top_k:
             raise ConfigError("neighbors, top_k >= 1 and posterior_k >= top_k are required")
+
+    @property
+    def name(self) -> str:
+        """The mode, with ``+align`` when the estimate is refined (names result files and table rows)."""
+        return self.mode + ("+align" if self.refine else "")
 
 
 def _spread(x: np.ndarray, n: int = 4000) -> float:
@@ -113,6 +121,8 @@ class Localization:
     inlier_score: float
     inlier: bool
     num_samples: int
+    coarse_estimate: Pose2 | None = None    # with ``refine``: the co-occurrence estimate before alignment
+    alignment: float = float("nan")         # with ``refine``: correlation of the aligned pose (nan: not aligned)
 
     def top(self, k: int) -> tuple[np.ndarray, np.ndarray]:
         """The ``k`` most probable candidates (k, 3) and their probabilities (k,), padded with zeros."""
@@ -159,6 +169,8 @@ class Localizer:
         self.eps_g = config.min_distance_frac * _spread(pg) + 1e-9
         if config.mode != "go":
             self._satellite_table(table_cache, progress)
+        self.aligner = (BevAligner(camera, satfeat.features, satfeat.meters_per_pixel, satfeat.origin, config.align)
+                        if config.refine else None)
 
     # --- satellite table ---------------------------------------------------------------------------
     def _table_key(self) -> str:
@@ -221,15 +233,29 @@ class Localizer:
         uv, pv = ground_samples(self.camera, depth, self.dictionary.grid)
         if len(uv) == 0:
             raise ConfigError("query frame: no grid sample has valid depth (textureless, dark or mismatched pair?)")
-        g = ground_features(self.extractor(frame.left, "ground"), uv, depth, self.camera, self.dictionary.context,
-                            self.span)
+        fmap = self.extractor(frame.left, "ground")
+        g = ground_features(fmap, uv, depth, self.camera, self.dictionary.context, self.span)
         dg, gid = self.ground_index.search(self.proj.project_g(g), cfg.neighbors)
         wg = np.where(gid >= 0, 1.0 / np.maximum(dg, self.eps_g), 0.0).astype(np.float32)
         cands = self.candidates if candidates is None else candidates
         scores = np.zeros(len(cands))
         sel = self._pruned(gid, wg, pv) if candidates is None and cfg.prune_regions > 0 else slice(None)
         scores[sel] = self._scores(cands[sel], pv[:, :2], gid, wg)
-        return self._answer(cands, scores, len(uv))
+        out = self._answer(cands, scores, len(uv))
+        if self.aligner is not None and out.inlier_score > 0:
+            self._refine(out, fmap, depth)
+        return out
+
+    def _refine(self, out: Localization, fmap: np.ndarray, depth: np.ndarray) -> None:
+        """Replace the estimate by the bird's-eye alignment around the posterior's peaks (where it is found)."""
+        a = self.config.align
+        peaks = posterior_peaks(out.candidates, out.posterior, a.peaks, a.peak_separation_m)
+        if not peaks:
+            return
+        prior = np.log(out.posterior[peaks] / out.posterior[peaks[0]])
+        r = self.aligner.align(fmap, depth, [Pose2(*out.candidates[i]) for i in peaks], prior)
+        if r is not None and r.correlation >= a.min_correlation:
+            out.coarse_estimate, out.estimate, out.alignment = out.estimate, r.pose, r.correlation
 
     def _pruned(self, gid: np.ndarray, wg: np.ndarray, pv: np.ndarray) -> np.ndarray:
         """Indices of the candidates near the path positions the query's ground neighbours vote for most.

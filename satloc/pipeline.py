@@ -116,7 +116,7 @@ def localize(build_dir: str | Path, queries: str | Path, config: LocalizerConfig
     top_poses, top_probs = np.zeros((n, k, 3)), np.zeros((n, k))
     failed: list[tuple[int, str]] = []
     t0 = time.perf_counter()
-    for i in tqdm(range(n), desc=f"localize ({loc.config.mode})", unit="query", disable=not progress, leave=False):
+    for i in tqdm(range(n), desc=f"localize ({loc.config.name})", unit="query", disable=not progress, leave=False):
         f = seq[int(idx[i])]
         if f.pose is not None:
             truth[i] = f.pose.as_array()
@@ -131,14 +131,14 @@ def localize(build_dir: str | Path, queries: str | Path, config: LocalizerConfig
         top_poses[i], top_probs[i] = r.top(k)
     secs = time.perf_counter() - t0
     err = np.hypot(est[:, 0] - truth[:, 0], est[:, 1] - truth[:, 1])
-    summary = {"mode": loc.config.mode, "queries": n, "mean_m": float(np.nanmean(err)) if n else None,
+    summary = {"mode": loc.config.name, "queries": n, "mean_m": float(np.nanmean(err)) if n else None,
                "std_m": float(np.nanstd(err)) if n else None, "median_m": float(np.nanmedian(err)) if n else None,
                "queries_per_s": round(n / secs, 2) if secs > 0 else None, "failed": len(failed)}
     if out is not None:
         out = Path(out)
-        save_npz(out / f"localization_{loc.config.mode}.npz", "localization",
+        save_npz(out / f"localization_{loc.config.name}.npz", "localization",
                  {"frames": idx, "estimates": est, "truth": truth, "errors": err, "inlier_score": inl_score, "inlier": inl,
                   "top_poses": top_poses, "top_probs": top_probs}, {"config": to_dict(loc.config)})
-        write_json(out / f"localization_{loc.config.mode}.json", dict(header("localization_summary"), **summary))
+        write_json(out / f"localization_{loc.config.name}.json", dict(header("localization_summary"), **summary))
     summary["errors"] = err
     return summary

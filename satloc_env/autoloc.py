@@ -248,24 +248,25 @@ def _stamp(build_dir: Path) -> tuple:
 
 
 @functools.lru_cache(maxsize=2)
-def _load(build_dir: str, mode: str, stamp: tuple):
+def _load(build_dir: str, mode: str, refine: bool, stamp: tuple):
     from satloc.localizer import LocalizerConfig
     from satloc.pipeline import load_localizer
 
-    return load_localizer(build_dir, LocalizerConfig(mode=mode))
+    return load_localizer(build_dir, LocalizerConfig(mode=mode, refine=refine))
 
 
-def load_cached_localizer(build_dir: str | os.PathLike, mode: str = "full"):
-    """:func:`satloc.pipeline.load_localizer` in ``mode``, loaded once per process per (directory, mode)
-    while the directory's files are unchanged (loading builds the satellite table: seconds to minutes)."""
+def load_cached_localizer(build_dir: str | os.PathLike, mode: str = "full", refine: bool = False):
+    """:func:`satloc.pipeline.load_localizer` in ``mode`` (``refine``: with bird's-eye alignment), loaded once
+    per process per (directory, mode, refine) while the directory's files are unchanged (loading builds the
+    satellite table: seconds to minutes)."""
     b = Path(build_dir).expanduser().resolve()
-    return _load(str(b), mode, _stamp(b))
+    return _load(str(b), mode, bool(refine), _stamp(b))
 
 
 def auto_localizer(scene: str | os.PathLike, aliasing: float | None = None, resolution: str = "half",
-                   mode: str = "full", progress: bool = True):
+                   mode: str = "full", progress: bool = True, refine: bool = False):
     """The localizer of ``localizer="auto"``: :func:`auto_build_dir` loaded in ``mode``."""
-    return load_cached_localizer(auto_build_dir(scene, aliasing, resolution, progress), mode)
+    return load_cached_localizer(auto_build_dir(scene, aliasing, resolution, progress), mode, refine)
 
 
 def describe_entry(entry: str | os.PathLike) -> dict[str, Any]:

@@ -162,7 +162,7 @@ def cmd_localize(args) -> int:
     from satloc.localizer import LocalizerConfig
     from satloc.pipeline import localize
 
-    cfg = _stage_config(LocalizerConfig, args.config, {"mode": args.mode})
+    cfg = _stage_config(LocalizerConfig, args.config, {"mode": args.mode, "refine": True if args.refine else None})
     s = localize(args.build, args.queries, cfg, args.out or args.build, progress=not args.quiet)
     s.pop("errors")
     print(json.dumps(s))
@@ -238,6 +238,7 @@ def build_parser() -> argparse.ArgumentParser:
     lo.add_argument("build")
     lo.add_argument("--queries", required=True)
     lo.add_argument("--mode", choices=["full", "np", "go"], default=None)
+    lo.add_argument("--refine", action="store_true", help="refine each estimate by bird's-eye alignment (satloc.align)")
     lo.add_argument("--out", help="where to write results (default: the build directory)")
     lo.add_argument("--config", help="YAML with LocalizerConfig fields")
     lo.add_argument("--quiet", action="store_true")

@@ -57,6 +57,7 @@ class EnvConfig:
                                             # pass (satloc_env.autoloc); else a build directory; a Localizer
                                             # instance given as the keyword is stored here as "<instance>"
     localizer_mode: Literal["full", "np", "go"] = "full"   # for "auto" / a build directory
+    localizer_refine: bool = False          # for "auto" / a build directory: bird's-eye alignment (satloc.align)
     localize_every: int = 1                 # localize at the steps that are multiples of this (reset: step 0)
     reward: Literal["none", "neg_error"] = "none"  # neg_error: minus the localization error (metres)
 
@@ -153,11 +154,13 @@ class SatLocEnv(gym.Env):
         self._loc_view: PosteriorView | None = None
         if instance is not None:
             self.localizer = instance
-            self.config = dataclasses.replace(self.config, localizer_mode=instance.config.mode)
+            self.config = dataclasses.replace(self.config, localizer_mode=instance.config.mode,
+                                              localizer_refine=instance.config.refine)
         elif self.config.localizer not in (None, "auto"):
             from .autoloc import load_cached_localizer
 
-            self.localizer = load_cached_localizer(self.config.localizer, self.config.localizer_mode)
+            self.localizer = load_cached_localizer(self.config.localizer, self.config.localizer_mode,
+                                                   self.config.localizer_refine)
         if self.localizer is not None:
             self._check_localizer_camera()
 
@@ -238,7 +241,8 @@ class SatLocEnv(gym.Env):
         if self.config.localizer == "auto":
             from .autoloc import auto_localizer
 
-            self.localizer = auto_localizer(cfg.scene, cfg.aliasing, cfg.resolution, cfg.localizer_mode)
+            self.localizer = auto_localizer(cfg.scene, cfg.aliasing, cfg.resolution, cfg.localizer_mode,
+                                            refine=cfg.localizer_refine)
             self._check_localizer_camera()
         elif self.localizer is not None:
             self._check_localizer_map(scene)

@@ -18,7 +18,7 @@ from pathlib import Path
 
 import numpy as np
 
-from satloc.config import to_dict
+from satloc.config import from_dict, to_dict
 from satloc.context import ContextConfig
 from satloc.errors import ConfigError
 from satloc.localizer import Localization, LocalizerConfig
@@ -29,8 +29,9 @@ from satloc.sequence import Sequence
 
 from .record import PassConfig, RecordConfig, record_passes
 
-MODES = ("go", "np", "full")
-METHOD_NAMES = {"go": "Ours-GO", "np": "Ours-NP", "full": "Ours-full"}
+MODES = ("go", "np", "full", "full+align")   # "<mode>+align": that mode refined by bird's-eye alignment
+METHOD_NAMES = {"go": "Ours-GO", "np": "Ours-NP", "full": "Ours-full", "full+align": "Ours-full + BEV align",
+                "go+align": "Ours-GO + BEV align", "np+align": "Ours-NP + BEV align"}
 
 
 @dataclass
@@ -51,9 +52,9 @@ class ExperimentConfig:
     modes: tuple[str, ...] = MODES
 
     def __post_init__(self):
-        bad = [m for m in self.modes if m not in MODES]
+        bad = [m for m in self.modes if m not in METHOD_NAMES]
         if bad:
-            raise ConfigError(f"modes: unknown {bad}; expected a subset of {list(MODES)}")
+            raise ConfigError(f"modes: unknown {bad}; expected a subset of {list(METHOD_NAMES)}")
 
 
 def _stage_done(path: Path, config: dict) -> bool:
@@ -106,7 +107,7 @@ def run_scene(cfg: ExperimentConfig, out: str | Path, progress: bool = True, log
         _stamp(out / "build_stage.json", dict(to_dict(bc), record=rc))
     times["build_s"] = time.perf_counter() - t
     t = time.perf_counter()
-    if "full" in cfg.modes:
+    if any(m.startswith("full") for m in cfg.modes):
         pc = dict(to_dict(cfg.projection), build=read_json(bdir / "build.json").get("entries"))
         if not _stage_done(out / "projection_stage.json", pc) or not (bdir / "projections.pt").is_file():
             log(f"[{cfg.scene}] learning the projections W_g, W_s")
@@ -119,7 +120,8 @@ def run_scene(cfg: ExperimentConfig, out: str | Path, progress: bool = True, log
     results: dict[str, dict] = {}
     examples: dict[str, list[tuple[int, Localization]]] = {}
     for mode in cfg.modes:
-        lc = LocalizerConfig(**dict(cfg.localizer, mode=mode))
+        base, _, refine = mode.partition("+")
+        lc = from_dict(LocalizerConfig, dict(cfg.localizer, mode=base, refine=bool(refine)), "experiment localizer")
         t = time.perf_counter()
         loc = load_localizer(bdir, lc, progress=progress)
         t_init = time.perf_counter() - t
@@ -157,8 +159,6 @@ def table1(out: str | Path, scenes: tuple[str, ...] = ("city", "residential"), c
            progress: bool = True, log=print) -> list[dict]:
     """Run :func:`run_scene` on each scene; write ``table1.csv`` (method,scene,mean_m,std_m), ``table1.md``
     and ``table1.json`` into ``out``; return the rows."""
-    from satloc.config import from_dict
-
     out = Path(out)
     rows = []
     for scene in scenes:

@@ -189,7 +189,13 @@ def test_build_dir_path_and_auto(build_dir, tmp_path, monkeypatch):
     _, info = auto.reset(seed=0)
     check_info(info, k=LocalizerConfig().posterior_k)
     assert auto.unwrapped.localizer is env.unwrapped.localizer  # loaded once per process
-    env.close(), auto.close()
+    # the refined localizer is another one (its own cache slot), and reports an aligned estimate
+    ref = gym.make(ID, scene="city", localizer=str(build_dir), localizer_mode="go", localizer_refine=True)
+    _, info_r = ref.reset(seed=0)
+    assert ref.unwrapped.localizer is not env.unwrapped.localizer and ref.unwrapped.localizer.config.refine
+    check_info(info_r, k=LocalizerConfig().posterior_k)
+    assert info_r["error_m"] <= info["error_m"] + 0.5
+    env.close(), auto.close(), ref.close()
 
 
 def test_auto_cache_hits_the_second_time(build_dir, cache, monkeypatch):

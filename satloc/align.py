@@ -1,0 +1,196 @@
+"""Bird's-eye alignment: a refinement stage after the co-occurrence localizer.
+
+The co-occurrence posterior (:mod:`satloc.localizer`) lands most queries within a metre or two, on a grid of
+candidates 0.5 m apart with the heading of the path. This stage re-checks its few strongest peaks densely:
+
+1. the query's ground pixels are warped to a bird's-eye view (BEV) of the ground plane in front of the
+   vehicle, at the satellite map's resolution, through the camera's known mounting (height, pitch). Only
+   cells whose stereo depth agrees with the ground plane are kept, so cars, people, walls and anything else
+   standing on the ground are masked out;
+2. around each peak, for a few heading offsets, the satellite features are resampled in the peak's vehicle
+   frame, and the BEV is slid over them by masked normalised cross-correlation (``cv2.matchTemplate``),
+   which gives every translation on the map's pixel grid at once; the best is refined to sub-pixel by a
+   parabola through its neighbours;
+3. the answer is the best-correlated pose over all peaks, or the co-occurrence estimate where no peak
+   correlates at least ``min_correlation``.
+
+The channels compared are the features both views already have: the bilateral RGB (as grey level,
+normalised cross-correlation being blind to the gain and offset of another exposure) and the edge
+potentials.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+from .errors import ConfigError
+from .geometry import Pose2, StereoCamera
+
+
+@dataclass(frozen=True)
+class AlignConfig:
+    peaks: int = 3                        # posterior peaks re-checked
+    peak_separation_m: float = 6.0        # peaks closer than this are one
+    search_m: float = 4.0                 # translations searched around a peak (each axis, +-)
+    yaw_offsets_deg: tuple[float, ...] = (-2.0, -1.0, 0.0, 1.0, 2.0)
+    forward_m: tuple[float, float] = (3.0, 20.0)    # BEV extent ahead of the vehicle
+    half_width_m: float = 10.0                      # and to each side
+    ground_tolerance: float = 0.08        # |stereo depth - ground-plane depth| / ground-plane depth
+    channels: str = "gray"                # gray | edge | gray+edge
+    normalize_m: float = 1.0              # local contrast normalisation window (Gaussian sigma); 0: off
+    min_correlation: float = 0.2          # below: keep the co-occurrence estimate
+    min_cells: int = 400                  # fewer visible ground cells: keep the co-occurrence estimate
+    prior_weight: float = 0.1             # peak score: correlation + prior_weight * log(P(peak) / P(best peak))
+
+    def __post_init__(self):
+        if self.peaks < 1 or self.search_m <= 0 or not self.yaw_offsets_deg:
+            raise ConfigError("align: peaks >= 1, search_m > 0 and at least one yaw offset are required")
+        if not 0 < self.forward_m[0] < self.forward_m[1] or self.half_width_m <= 0:
+            raise ConfigError(f"align: forward_m must be 0 < near < far, got {self.forward_m}")
+        if self.channels not in ("gray", "edge", "gray+edge"):
+            raise ConfigError(f"align.channels: expected gray, edge or gray+edge, got {self.channels!r}")
+
+
+@dataclass
+class Alignment:
+    pose: Pose2            # best aligned pose
+    correlation: float     # its normalised cross-correlation
+    peak: int              # which seed it came from
+    cells: int             # visible ground cells in the BEV
+
+
+def _channel_maps(features: np.ndarray, channels: str) -> list[np.ndarray]:
+    f = features
+    out = []
+    if "gray" in channels:
+        out.append(np.ascontiguousarray(f[..., :3].astype(np.float32).mean(axis=2)))
+    if "edge" in channels:
+        if f.shape[2] < 4:
+            raise ConfigError("align: channels 'edge' need the default feature set (RGB + edge + semantic)")
+        out.append(np.ascontiguousarray(f[..., 3].astype(np.float32)))
+    return out
+
+
+class BevAligner:
+    """Dense alignment of a query's bird's-eye view against satellite features (see the module docstring)."""
+
+    def __init__(self, camera: StereoCamera, sat_features: np.ndarray, meters_per_pixel: float,
+                 origin: tuple[float, float], config: AlignConfig = AlignConfig()):
+        if sat_features.ndim != 3 or sat_features.shape[2] < 3:
+            raise ConfigError(f"align: satellite features must be (H, W, D>=3) with RGB first, got {sat_features.shape}")
+        self.camera, self.config = camera, config
+        self.res, self.origin = float(meters_per_pixel), (float(origin[0]), float(origin[1]))
+        self.sat = [self._normalize(c, None) for c in _channel_maps(sat_features, config.channels)]
+        # BEV grid: row r <-> x = x0 + r * res (ahead), column c <-> y = y0 + c * res (left)
+        self.x0, self.y0 = config.forward_m[0], -config.half_width_m
+        nx = int(round((config.forward_m[1] - config.forward_m[0]) / self.res)) + 1
+        ny = int(round(2 * config.half_width_m / self.res)) + 1
+        xs, ys = self.x0 + self.res * np.arange(nx), self.y0 + self.res * np.arange(ny)
+        X, Y = np.meshgrid(xs, ys, indexing="ij")
+        t = np.linalg.inv(camera.vehicle_from_camera("left"))
+        pc = np.stack([X, Y, np.zeros_like(X)], -1) @ t[:3, :3].T + t[:3, 3]
+        uv, z = camera.project(pc)
+        self.map_u, self.map_v = uv[..., 0].astype(np.float32), uv[..., 1].astype(np.float32)
+        self.plane_z = z.astype(np.float32)
+        self.in_image = ((z > 0) & (uv[..., 0] >= 0) & (uv[..., 0] <= camera.width - 1)
+                         & (uv[..., 1] >= 0) & (uv[..., 1] <= camera.height - 1))
+        self.shape = (nx, ny)
+
+    def bev(self, features: np.ndarray, depth: np.ndarray) -> tuple[list[np.ndarray], np.ndarray]:
+        """The query's BEV channels and the mask of cells where the ground is seen."""
+        d = cv2.remap(depth.astype(np.float32), self.map_u, self.map_v, cv2.INTER_NEAREST,
+                      borderMode=cv2.BORDER_CONSTANT, borderValue=0)
+        mask = self.in_image & (np.abs(d - self.plane_z) <= self.config.ground_tolerance * self.plane_z)
+        chans = [self._normalize(cv2.remap(c, self.map_u, self.map_v, cv2.INTER_LINEAR,
+                                           borderMode=cv2.BORDER_REPLICATE), mask)
+                 for c in _channel_maps(features, self.config.channels)]
+        return chans, mask
+
+    def _normalize(self, img: np.ndarray, mask: np.ndarray | None) -> np.ndarray:
+        """Local contrast normalisation: (x - local mean) / local std over a Gaussian window (masked cells
+        excluded), so that faint ground texture weighs as much as bright markings."""
+        sigma = self.config.normalize_m / self.res
+        if sigma <= 0:
+            return img
+        m = np.ones_like(img) if mask is None else mask.astype(np.float32)
+        blur = lambda a: cv2.GaussianBlur(a, (0, 0), sigma)
+        wsum = np.maximum(blur(m), 1e-3)
+        mu = blur(img * m) / wsum
+        var = np.maximum(blur(img * img * m) / wsum - mu * mu, 0.0)
+        return ((img - mu) / np.sqrt(var + 1e-4)).astype(np.float32) * m
+
+    def _crop(self, pose: Pose2, margin: int) -> list[np.ndarray]:
+        """Satellite channels resampled on the BEV grid of ``pose``, grown by ``margin`` cells on every side."""
+        nx, ny = self.shape
+        xs = self.x0 + self.res * np.arange(-margin, nx + margin)
+        ys = self.y0 + self.res * np.arange(-margin, ny + margin)
+        X, Y = np.meshgrid(xs, ys, indexing="ij")
+        c, s = math.cos(pose.yaw), math.sin(pose.yaw)
+        wx, wy = pose.x + c * X - s * Y, pose.y + s * X + c * Y
+        mu = ((wx - self.origin[0]) / self.res - 0.5).astype(np.float32)
+        mv = ((self.origin[1] - wy) / self.res - 0.5).astype(np.float32)
+        return [cv2.remap(ch, mu, mv, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=0) for ch in self.sat]
+
+    def correlate(self, chans: list[np.ndarray], mask: np.ndarray, pose: Pose2,
+                  yaw_offsets_deg: tuple[float, ...] | None = None) -> tuple[float, Pose2]:
+        """Best masked NCC around ``pose`` over the translations and heading offsets searched, and its pose."""
+        cfg = self.config
+        margin = int(math.ceil(cfg.search_m / self.res))
+        m8 = mask.astype(np.float32)
+        best, best_pose = -np.inf, pose
+        for dyaw in cfg.yaw_offsets_deg if yaw_offsets_deg is None else yaw_offsets_deg:
+            p = Pose2(pose.x, pose.y, pose.yaw + math.radians(dyaw))
+            crop = self._crop(p, margin)
+            r = sum(cv2.matchTemplate(cr, t, cv2.TM_CCOEFF_NORMED, mask=m8) for cr, t in zip(crop, chans)) / len(chans)
+            r = np.nan_to_num(r, nan=-1.0, posinf=-1.0, neginf=-1.0)
+            i, j = np.unravel_index(int(np.argmax(r)), r.shape)
+            if r[i, j] > best:
+                di, dj = _subpixel(r, i), _subpixel(r.T, j)
+                dx, dy = (i + di - margin) * self.res, (j + dj - margin) * self.res
+                c, s = math.cos(p.yaw), math.sin(p.yaw)
+                best, best_pose = float(r[i, j]), Pose2(p.x + c * dx - s * dy, p.y + s * dx + c * dy, p.yaw)
+        return best, best_pose
+
+    def align(self, features: np.ndarray, depth: np.ndarray, seeds: list[Pose2],
+              log_prior: np.ndarray | None = None) -> Alignment | None:
+        """The best pose around the ``seeds`` (by correlation plus ``prior_weight`` times the seeds'
+        ``log_prior``); None where too little ground is seen."""
+        chans, mask = self.bev(features, depth)
+        n = int(mask.sum())
+        if n < self.config.min_cells:
+            return None
+        # the seeds at their own heading first; then the other headings around the best of them only
+        results = [self.correlate(chans, mask, s, (0.0,)) for s in seeds]
+        prior = np.zeros(len(seeds)) if log_prior is None else np.asarray(log_prior, np.float64)
+        k = int(np.argmax([r[0] + self.config.prior_weight * p for r, p in zip(results, prior)]))
+        others = tuple(d for d in self.config.yaw_offsets_deg if d != 0.0)
+        if others:
+            c, p = self.correlate(chans, mask, seeds[k], others)
+            if c > results[k][0]:
+                results[k] = (c, p)
+        return Alignment(results[k][1], results[k][0], k, n)
+
+
+def _subpixel(r: np.ndarray, i: int) -> float:
+    """Offset of the maximum of a parabola through r[i-1], r[i], r[i+1] along axis 0 (column of the max)."""
+    j = int(np.argmax(r[i]))
+    if i <= 0 or i >= r.shape[0] - 1:
+        return 0.0
+    a, b, c = float(r[i - 1, j]), float(r[i, j]), float(r[i + 1, j])
+    den = a - 2 * b + c
+    return float(np.clip(0.5 * (a - c) / den, -0.5, 0.5)) if den < 0 else 0.0
+
+
+def posterior_peaks(candidates: np.ndarray, posterior: np.ndarray, k: int, separation_m: float) -> list[int]:
+    """Indices of up to ``k`` most probable candidates at least ``separation_m`` apart."""
+    order = np.argsort(-posterior)
+    taken: list[int] = []
+    for i in order:
+        if posterior[i] <= 0 or len(taken) >= k:
+            break
+        if all(np.hypot(*(candidates[i, :2] - candidates[t, :2])) >= separation_m for t in taken):
+            taken.append(int(i))
+    return taken
