@@ -16,6 +16,9 @@ Configurations of the same code (``mode``):
 * ``go`` (ground only): the satellite neighbour set is replaced by location: entry i co-occurs with sample j
   at candidate c when L(i) lies within ``go_radius_m`` of where c places j, weighted 1 / (d_g * max(dist, 0.25)).
 
+With ``refine`` (any mode), the estimate is then refined by bird's-eye alignment around the posterior's
+strongest peaks (:mod:`satloc.align`); the posterior itself is the co-occurrence one.
+
 Satellite neighbour sets depend only on the satellite pixel, so they are computed once for every map pixel in
 a corridor around the candidate path (the "satellite table"); a query then costs one ground NN search plus
 table look-ups.
@@ -169,8 +172,15 @@ class Localizer:
         self.eps_g = config.min_distance_frac * _spread(pg) + 1e-9
         if config.mode != "go":
             self._satellite_table(table_cache, progress)
-        self.aligner = (BevAligner(camera, satfeat.features, satfeat.meters_per_pixel, satfeat.origin, config.align)
-                        if config.refine else None)
+        self._aligner: BevAligner | None = None
+
+    @property
+    def aligner(self) -> BevAligner:
+        """The bird's-eye aligner of the refinement stage (built on first use)."""
+        if self._aligner is None:
+            sf = self.satfeat
+            self._aligner = BevAligner(self.camera, sf.features, sf.meters_per_pixel, sf.origin, self.config.align)
+        return self._aligner
 
     # --- satellite table ---------------------------------------------------------------------------
     def _table_key(self) -> str:
@@ -225,8 +235,9 @@ class Localizer:
         self.sat_ids, self.sat_w = ids, (1.0 / np.maximum(dist, self.eps_s)).astype(np.float32)
 
     # --- localization ------------------------------------------------------------------------------
-    def localize(self, frame: Frame, candidates: np.ndarray | None = None) -> Localization:
-        """Posterior over candidate poses and the estimate for one stereo frame."""
+    def localize(self, frame: Frame, candidates: np.ndarray | None = None, refine: bool | None = None) -> Localization:
+        """Posterior over candidate poses and the estimate for one stereo frame (``refine``: whether to refine
+        the estimate by bird's-eye alignment; None: as configured)."""
         cfg = self.config
         frame.check(self.camera, where="query frame")
         depth = self.depth(frame, "query frame")
@@ -242,7 +253,7 @@ class Localizer:
         sel = self._pruned(gid, wg, pv) if candidates is None and cfg.prune_regions > 0 else slice(None)
         scores[sel] = self._scores(cands[sel], pv[:, :2], gid, wg)
         out = self._answer(cands, scores, len(uv))
-        if self.aligner is not None and out.inlier_score > 0:
+        if (cfg.refine if refine is None else refine) and out.inlier_score > 0:
             self._refine(out, fmap, depth)
         return out
 
