@@ -29,7 +29,8 @@ def _save(fig, path: Path) -> None:
 def plot_posterior(satmap: SatelliteMap, result: Localization, truth: Pose2 | None, path: str | Path,
                    window_m: float = 120.0, title: str = "") -> None:
     """Two panels: the whole map and a ``window_m`` crop around the truth (or the estimate), each with the
-    posterior over candidate poses as a heatmap, the estimate (cross) and the truth (circle)."""
+    posterior over candidate poses as a heatmap, the estimate (cross) and the truth (circle); for a refined
+    result also the co-occurrence estimate before alignment (plus)."""
     plt = _pyplot()
     post, c = result.posterior, result.candidates
     rel = post / max(post.max(), 1e-300)
@@ -47,6 +48,9 @@ def plot_posterior(satmap: SatelliteMap, result: Localization, truth: Pose2 | No
                         vmin=-4, vmax=0, s=6 if crop else 2, alpha=0.85, linewidths=0)
         e = result.estimate
         ax.plot([e.x], [e.y], "x", color="cyan", ms=12, mew=2.5, label="estimate")
+        if result.coarse_estimate is not None:   # refined: also the co-occurrence estimate it started from
+            ce = result.coarse_estimate
+            ax.plot([ce.x], [ce.y], "+", color="white", ms=10, mew=2, label="before alignment")
         if truth is not None:
             ax.plot([truth.x], [truth.y], "o", mfc="none", mec="lime", ms=12, mew=2.5, label="truth")
         if crop:
