@@ -11,11 +11,12 @@ candidates 0.5 m apart with the heading of the path. This stage re-checks its fe
    frame, and the BEV is slid over them by masked normalised cross-correlation (``cv2.matchTemplate``),
    which gives every translation on the map's pixel grid at once; the best is refined to sub-pixel by a
    parabola through its neighbours;
-3. the answer is the best-correlated pose over all peaks, or the co-occurrence estimate where no peak
-   correlates at least ``min_correlation``.
+3. peaks compete by correlation plus ``prior_weight`` times the log of their posterior ratio; the winner is
+   searched over the heading offsets too. The answer is its aligned pose, or the co-occurrence estimate
+   where it correlates less than ``min_correlation``.
 
-The channels compared are the features both views already have: the bilateral RGB (as grey level,
-normalised cross-correlation being blind to the gain and offset of another exposure) and the edge
+The channels compared are features both views already have: the bilateral RGB as grey level (the default;
+normalised cross-correlation is blind to the gain and offset of another exposure) and, optionally, the edge
 potentials.
 """
 from __future__ import annotations
@@ -98,12 +99,18 @@ class BevAligner:
         self.in_image = ((z > 0) & (uv[..., 0] >= 0) & (uv[..., 0] <= camera.width - 1)
                          & (uv[..., 1] >= 0) & (uv[..., 1] <= camera.height - 1))
         self.shape = (nx, ny)
+        # the satellite crop around a pose: the BEV grid grown by the search margin, in the vehicle frame
+        self.margin = int(math.ceil(config.search_m / self.res))
+        self._crop_x, self._crop_y = np.meshgrid(self.x0 + self.res * np.arange(-self.margin, nx + self.margin),
+                                                 self.y0 + self.res * np.arange(-self.margin, ny + self.margin),
+                                                 indexing="ij")
 
     def bev(self, features: np.ndarray, depth: np.ndarray) -> tuple[list[np.ndarray], np.ndarray]:
-        """The query's BEV channels and the mask of cells where the ground is seen."""
+        """The query's BEV channels and the mask (float32, 1 where the ground is seen, else 0)."""
         d = cv2.remap(depth.astype(np.float32), self.map_u, self.map_v, cv2.INTER_NEAREST,
                       borderMode=cv2.BORDER_CONSTANT, borderValue=0)
-        mask = self.in_image & (np.abs(d - self.plane_z) <= self.config.ground_tolerance * self.plane_z)
+        mask = (self.in_image & (np.abs(d - self.plane_z) <= self.config.ground_tolerance * self.plane_z)
+                ).astype(np.float32)
         chans = [self._normalize(cv2.remap(c, self.map_u, self.map_v, cv2.INTER_LINEAR,
                                            borderMode=cv2.BORDER_REPLICATE), mask)
                  for c in _channel_maps(features, self.config.channels)]
@@ -115,19 +122,16 @@ class BevAligner:
         sigma = self.config.normalize_m / self.res
         if sigma <= 0:
             return img
-        m = np.ones_like(img) if mask is None else mask.astype(np.float32)
+        m = np.ones_like(img) if mask is None else mask
         blur = lambda a: cv2.GaussianBlur(a, (0, 0), sigma)
         wsum = np.maximum(blur(m), 1e-3)
         mu = blur(img * m) / wsum
         var = np.maximum(blur(img * img * m) / wsum - mu * mu, 0.0)
         return ((img - mu) / np.sqrt(var + 1e-4)).astype(np.float32) * m
 
-    def _crop(self, pose: Pose2, margin: int) -> list[np.ndarray]:
-        """Satellite channels resampled on the BEV grid of ``pose``, grown by ``margin`` cells on every side."""
-        nx, ny = self.shape
-        xs = self.x0 + self.res * np.arange(-margin, nx + margin)
-        ys = self.y0 + self.res * np.arange(-margin, ny + margin)
-        X, Y = np.meshgrid(xs, ys, indexing="ij")
+    def _crop(self, pose: Pose2) -> list[np.ndarray]:
+        """Satellite channels resampled on the BEV grid of ``pose``, grown by the search margin on every side."""
+        X, Y = self._crop_x, self._crop_y
         c, s = math.cos(pose.yaw), math.sin(pose.yaw)
         wx, wy = pose.x + c * X - s * Y, pose.y + s * X + c * Y
         mu = ((wx - self.origin[0]) / self.res - 0.5).astype(np.float32)
@@ -137,19 +141,17 @@ class BevAligner:
     def correlate(self, chans: list[np.ndarray], mask: np.ndarray, pose: Pose2,
                   yaw_offsets_deg: tuple[float, ...] | None = None) -> tuple[float, Pose2]:
         """Best masked NCC around ``pose`` over the translations and heading offsets searched, and its pose."""
-        cfg = self.config
-        margin = int(math.ceil(cfg.search_m / self.res))
-        m8 = mask.astype(np.float32)
         best, best_pose = -np.inf, pose
-        for dyaw in cfg.yaw_offsets_deg if yaw_offsets_deg is None else yaw_offsets_deg:
+        for dyaw in self.config.yaw_offsets_deg if yaw_offsets_deg is None else yaw_offsets_deg:
             p = Pose2(pose.x, pose.y, pose.yaw + math.radians(dyaw))
-            crop = self._crop(p, margin)
-            r = sum(cv2.matchTemplate(cr, t, cv2.TM_CCOEFF_NORMED, mask=m8) for cr, t in zip(crop, chans)) / len(chans)
+            crop = self._crop(p)
+            r = sum(cv2.matchTemplate(cr, t, cv2.TM_CCOEFF_NORMED, mask=mask) for cr, t in zip(crop, chans)) / len(chans)
             r = np.nan_to_num(r, nan=-1.0, posinf=-1.0, neginf=-1.0)
             i, j = np.unravel_index(int(np.argmax(r)), r.shape)
             if r[i, j] > best:
-                di, dj = _subpixel(r, i), _subpixel(r.T, j)
-                dx, dy = (i + di - margin) * self.res, (j + dj - margin) * self.res
+                di = _parabola_peak(r[i - 1, j], r[i, j], r[i + 1, j]) if 0 < i < r.shape[0] - 1 else 0.0
+                dj = _parabola_peak(r[i, j - 1], r[i, j], r[i, j + 1]) if 0 < j < r.shape[1] - 1 else 0.0
+                dx, dy = (i + di - self.margin) * self.res, (j + dj - self.margin) * self.res
                 c, s = math.cos(p.yaw), math.sin(p.yaw)
                 best, best_pose = float(r[i, j]), Pose2(p.x + c * dx - s * dy, p.y + s * dx + c * dy, p.yaw)
         return best, best_pose
@@ -174,14 +176,10 @@ class BevAligner:
         return Alignment(results[k][1], results[k][0], k, n)
 
 
-def _subpixel(r: np.ndarray, i: int) -> float:
-    """Offset of the maximum of a parabola through r[i-1], r[i], r[i+1] along axis 0 (column of the max)."""
-    j = int(np.argmax(r[i]))
-    if i <= 0 or i >= r.shape[0] - 1:
-        return 0.0
-    a, b, c = float(r[i - 1, j]), float(r[i, j]), float(r[i + 1, j])
-    den = a - 2 * b + c
-    return float(np.clip(0.5 * (a - c) / den, -0.5, 0.5)) if den < 0 else 0.0
+def _parabola_peak(a: float, b: float, c: float) -> float:
+    """Offset (in [-0.5, 0.5] samples) of the vertex of the parabola through (-1, a), (0, b), (1, c)."""
+    den = float(a) - 2 * float(b) + float(c)
+    return float(np.clip(0.5 * (float(a) - float(c)) / den, -0.5, 0.5)) if den < 0 else 0.0
 
 
 def posterior_peaks(candidates: np.ndarray, posterior: np.ndarray, k: int, separation_m: float) -> list[int]:
