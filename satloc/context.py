@@ -68,7 +68,10 @@ def ground_context(fmap: np.ndarray, uv: np.ndarray, depth: np.ndarray, fx: floa
     if not cfg.scales_m or n == 0:
         return np.zeros((n, len(cfg.scales_m) * (span[1] - span[0])), np.float32)
     h, w = fmap.shape[:2]
-    ii = cv2.integral(np.ascontiguousarray(fmap[..., span[0]:span[1]], dtype=np.float64))
+    # float64 sums of the channels as they are (converting the input first would cost a copy and be no more exact)
+    src = fmap[..., span[0]:span[1]]
+    src = np.ascontiguousarray(src, dtype=src.dtype if src.dtype in (np.float32, np.float64) else np.float32)
+    ii = cv2.integral(src, sdepth=cv2.CV_64F)
     ii = ii.reshape(h + 1, w + 1, -1)
     u, v = uv[:, 0].astype(np.int64), uv[:, 1].astype(np.int64)
     out = []

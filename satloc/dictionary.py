@@ -22,6 +22,7 @@ from .persist import load_npz, save_npz
 from .satmap import SatelliteMap
 from .sequence import Frame, Sequence
 from .stereo import StereoConfig, StereoDepth
+from ._threads import single_threaded_blas
 
 
 @dataclass(frozen=True)
@@ -191,20 +192,21 @@ def build_dictionary(database: Sequence, satfeat: SatelliteFeatures, extractor: 
     depth_of = FrameDepth(cam, depth_source)
     span = context.span(extractor.dim, extractor.name)
     gs, ss, locs, frames = [], [], [], []
-    for k in tqdm(range(len(database)), desc="dictionary", unit="frame", disable=not progress, leave=False):
-        f = database[k]
-        if f.pose is None:
-            raise ConfigError(f"database frame {k}: has no pose; a database needs poses")
-        depth = depth_of(f, f"database frame {k}")
-        uv, pv = ground_samples(cam, depth, grid)
-        xy = f.pose.transform(pv[:, :2])
-        flat, inside = satfeat.pixel_index(xy)
-        if not inside.any():
-            continue
-        gs.append(ground_features(extractor(f.left, "ground"), uv[inside], depth, cam, context, span))
-        ss.append(flat[inside])
-        locs.append(xy[inside])
-        frames.append(np.full(int(inside.sum()), k, np.int32))
+    with single_threaded_blas():  # per-frame work: see satloc._threads
+        for k in tqdm(range(len(database)), desc="dictionary", unit="frame", disable=not progress, leave=False):
+            f = database[k]
+            if f.pose is None:
+                raise ConfigError(f"database frame {k}: has no pose; a database needs poses")
+            depth = depth_of(f, f"database frame {k}")
+            uv, pv = ground_samples(cam, depth, grid)
+            xy = f.pose.transform(pv[:, :2])
+            flat, inside = satfeat.pixel_index(xy)
+            if not inside.any():
+                continue
+            gs.append(ground_features(extractor(f.left, "ground"), uv[inside], depth, cam, context, span))
+            ss.append(flat[inside])
+            locs.append(xy[inside])
+            frames.append(np.full(int(inside.sum()), k, np.int32))
     if not gs:
         raise ConfigError(f"database {database.name!r}: no ground sample projects inside the satellite map "
                           f"(check the poses and the map's georeference)")

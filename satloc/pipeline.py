@@ -112,19 +112,18 @@ def localize(build_dir: str | Path, queries: str | Path, config: LocalizerConfig
     if len(idx) and (idx.min() < 0 or idx.max() >= len(seq)):
         raise ConfigError(f"select: frame indices must lie in [0, {len(seq)}), got {idx.min()}..{idx.max()}")
     n, k = len(idx), loc.config.posterior_k
-    est, truth, inl_score, inl = np.zeros((n, 3)), np.full((n, 3), np.nan), np.zeros(n), np.zeros(n, bool)
+    est, inl_score, inl = np.zeros((n, 3)), np.zeros(n), np.zeros(n, bool)
+    truth = np.array(seq.poses[idx], dtype=np.float64).reshape(n, 3)   # nan where a frame has no pose
     top_poses, top_probs = np.zeros((n, k, 3)), np.zeros((n, k))
     failed: list[tuple[int, str]] = []
     t0 = time.perf_counter()
-    for i in tqdm(range(n), desc=f"localize ({loc.config.name})", unit="query", disable=not progress, leave=False):
-        f = seq[int(idx[i])]
-        if f.pose is not None:
-            truth[i] = f.pose.as_array()
-        try:
-            r = loc.localize(f)
-        except ConfigError as e:  # e.g. no grid sample with valid depth: no answer for this frame
+    # frames stream through the localizer: the next one's depth and features overlap this one's scoring
+    results = loc.localize_stream((seq[int(j)] for j in idx), errors="yield")
+    for i, r in enumerate(tqdm(results, total=n, desc=f"localize ({loc.config.name})", unit="query",
+                               disable=not progress, leave=False)):
+        if isinstance(r, ConfigError):  # e.g. no grid sample with valid depth: no answer for this frame
             est[i] = np.nan
-            failed.append((int(idx[i]), str(e)))
+            failed.append((int(idx[i]), str(r)))
             continue
         est[i] = r.estimate.as_array()
         inl_score[i], inl[i] = r.inlier_score, r.inlier

@@ -11,7 +11,7 @@ def test_bench_localize_prints_one_row_per_size(tmp_path, capsys):
     assert len(rows) == 1
     for r in rows:
         for key in ("db_km", "queries_per_s", "ms_per_query", "build_s", "train_projection_s", "entries",
-                    "refined_queries_per_s", "refined_median_error_m"):
+                    "sequential_queries_per_s", "refined_queries_per_s", "refined_median_error_m"):
             assert key in r, key
         assert r["queries"] == 2 and r["queries_per_s"] > 0 and 0.02 < r["db_km"] < 0.04
 

@@ -142,6 +142,8 @@ def test_clear_errors():
         loc.localize(Frame(f.left, f.right, None, 0.0, np.zeros_like(f.depth)))
     with pytest.raises(ConfigError, match="mode 'full' needs learned projections"):
         Localizer(d, sf, ext, cam, None, LocalizerConfig(mode="full", depth_source="frame"))
+    with pytest.raises(ConfigError, match="ef_search: expected >= neighbors"):
+        LocalizerConfig(ef_search=8)
     r = loc.localize(f)
     assert r.posterior.shape == (len(loc.candidates),) and r.posterior.sum() == pytest.approx(1.0)
 
@@ -198,3 +200,67 @@ def test_compiled_scores_match_the_numpy_formula():
                         want += wg[j, k2] * sat_w[r, k]
         assert got[c] == pytest.approx(want, rel=1e-5, abs=1e-9)
     assert got.max() > 0
+
+
+def test_stream_gives_what_single_calls_give_and_reports_bad_frames():
+    cam, seq, sf, ext = tiny_setup()
+    d = build_dictionary(seq, sf, ext, GridConfig(step_px=4, min_depth_m=1.0), depth_source="frame", progress=False)
+    loc = Localizer(d, sf, ext, cam, None, LocalizerConfig(mode="np", depth_source="frame"))
+    frames = [seq[i] for i in range(len(seq))]
+    single = [loc.localize(f) for f in frames]
+    for overlap in (True, False):
+        streamed = list(loc.localize_stream(iter(frames), overlap=overlap))
+        assert len(streamed) == len(frames)
+        for a, b in zip(single, streamed):
+            assert a.estimate == b.estimate and np.array_equal(a.posterior, b.posterior)
+    # a frame without valid depth: its error in place (errors="yield"), or raised, ending the stream
+    bad = Frame(frames[0].left, frames[0].right, None, 0.0, np.zeros_like(frames[0].depth))
+    out = list(loc.localize_stream([frames[1], bad, frames[2]], errors="yield"))
+    assert isinstance(out[1], ConfigError) and "no grid sample has valid depth" in str(out[1])
+    assert out[0].estimate == single[1].estimate and out[2].estimate == single[2].estimate
+    got = []
+    with pytest.raises(ConfigError, match="no grid sample has valid depth"):
+        for r in loc.localize_stream([frames[1], bad, frames[2]]):
+            got.append(r)
+    assert len(got) == 1
+    with pytest.raises(ConfigError, match="errors must be 'raise' or 'yield'"):
+        list(loc.localize_stream(frames, errors="ignore"))
+
+
+def test_overlapped_keeps_order_propagates_errors_and_stops_early():
+    import threading
+
+    from satloc._threads import overlapped
+
+    workers = set()
+
+    def square(x):
+        workers.add(threading.current_thread().name)
+        if x == 7:
+            raise ValueError("seven")
+        return x * x
+
+    assert list(overlapped(square, range(6))) == [0, 1, 4, 9, 16, 25]
+    assert workers and all(w.startswith("satloc-overlap") for w in workers)
+    assert list(overlapped(square, [])) == []
+    with pytest.raises(ValueError, match="seven"):
+        list(overlapped(square, range(10)))
+    pulled = []
+    gen = overlapped(square, (pulled.append(i) or i for i in range(100)))
+    assert [next(gen), next(gen)] == [0, 1]
+    gen.close()                               # the worker stops: at most one item beyond those taken
+    assert len(pulled) <= 3
+    workers.clear()
+    assert list(overlapped(square, range(3), enabled=False)) == [0, 1, 4] and workers == {threading.current_thread().name}
+
+
+def test_single_threaded_blas_limits_and_restores():
+    from threadpoolctl import threadpool_info
+
+    from satloc._threads import single_threaded_blas
+
+    before = [i["num_threads"] for i in threadpool_info() if i["user_api"] == "blas"]
+    assert before  # numpy's BLAS at least
+    with single_threaded_blas():
+        assert all(i["num_threads"] == 1 for i in threadpool_info() if i["user_api"] == "blas")
+    assert [i["num_threads"] for i in threadpool_info() if i["user_api"] == "blas"] == before
