@@ -27,7 +27,11 @@ def _controller():
 
 @contextlib.contextmanager
 def single_threaded_blas() -> Iterator[None]:
-    """Run the block with every loaded BLAS library limited to one thread (restored afterwards)."""
+    """Run the block with every loaded BLAS library limited to one thread (restored afterwards).
+
+    Meant for one thread at a time: some BLAS builds keep the setting per thread (OpenMP ones), others per
+    process, so blocks overlapping in several threads can leave a process-wide one at a single thread, which
+    costs speed, not correctness. :meth:`Localizer.localize_stream` sets it from the consuming thread only."""
     with _controller().limit(limits=1, user_api="blas"):
         yield
 

@@ -263,4 +263,7 @@ def test_single_threaded_blas_limits_and_restores():
     assert before  # numpy's BLAS at least
     with single_threaded_blas():
         assert all(i["num_threads"] == 1 for i in threadpool_info() if i["user_api"] == "blas")
+        with single_threaded_blas():  # nested (localize inside a stream's consumer): the outer limit stays
+            pass
+        assert all(i["num_threads"] == 1 for i in threadpool_info() if i["user_api"] == "blas")
     assert [i["num_threads"] for i in threadpool_info() if i["user_api"] == "blas"] == before
