@@ -178,8 +178,9 @@ class BevAligner:
 
 def _parabola_peak(a: float, b: float, c: float) -> float:
     """Offset (in [-0.5, 0.5] samples) of the vertex of the parabola through (-1, a), (0, b), (1, c)."""
-    den = float(a) - 2 * float(b) + float(c)
-    return float(np.clip(0.5 * (float(a) - float(c)) / den, -0.5, 0.5)) if den < 0 else 0.0
+    a, b, c = float(a), float(b), float(c)
+    den = a - 2 * b + c
+    return float(np.clip(0.5 * (a - c) / den, -0.5, 0.5)) if den < 0 else 0.0
 
 
 def posterior_peaks(candidates: np.ndarray, posterior: np.ndarray, k: int, separation_m: float) -> list[int]:

@@ -60,7 +60,7 @@ def bench_localize(sizes_km=(0.25, 1.0, 4.0), work=None, scene: str = "loop", qu
     from pathlib import Path
 
     from satloc.localizer import LocalizerConfig
-    from satloc.pipeline import BuildConfig, build, load_localizer, localize, train_projection
+    from satloc.pipeline import BuildConfig, build, load_localizer, train_projection
     from satloc.sequence import Sequence
 
     from .experiment import covered_queries
