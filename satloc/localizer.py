@@ -46,6 +46,7 @@ from .nn import NNIndex
 from .projection import Projections
 from ._threads import overlapped, single_threaded_blas
 from .sequence import Frame
+from .track import TrackConfig, Tracker
 
 
 @dataclass(frozen=True)
@@ -68,6 +69,8 @@ class LocalizerConfig:
     prune_window_m: float = 12.0          # path length kept around each voted position (and peak separation)
     refine: bool = False                  # refine the estimate by bird's-eye alignment (satloc.align)
     align: AlignConfig = field(default_factory=AlignConfig)
+    track: bool = False                   # sequences: fuse each frame into a belief moved by odometry (satloc.track)
+    tracking: TrackConfig = field(default_factory=TrackConfig)
 
     def __post_init__(self):
         if self.candidate_spacing_m <= 0:
@@ -79,8 +82,9 @@ class LocalizerConfig:
 
     @property
     def name(self) -> str:
-        """The mode, with ``+align`` when the estimate is refined (names result files and table rows)."""
-        return self.mode + ("+align" if self.refine else "")
+        """The mode, with ``+track`` when sequences are tracked and ``+align`` when the estimate is refined
+        (names result files and table rows)."""
+        return self.mode + ("+track" if self.track else "") + ("+align" if self.refine else "")
 
 
 def _spread(x: np.ndarray, n: int = 4000) -> float:
@@ -248,23 +252,39 @@ class Localizer:
         self.sat_ids, self.sat_w = ids, (1.0 / np.maximum(dist, self.eps_s)).astype(np.float32)
 
     # --- localization ------------------------------------------------------------------------------
-    def localize(self, frame: Frame, candidates: np.ndarray | None = None, refine: bool | None = None) -> Localization:
+    def localize(self, frame: Frame, candidates: np.ndarray | None = None, refine: bool | None = None,
+                 tracker: Tracker | None = None) -> Localization:
         """Posterior over candidate poses and the estimate for one stereo frame (``refine``: whether to refine
-        the estimate by bird's-eye alignment; None: as configured)."""
+        the estimate by bird's-eye alignment; None: as configured). With a ``tracker`` (:mod:`satloc.track`,
+        already moved by the odometry since its last frame) the frame's posterior is fused into its belief and
+        the answer (posterior, estimate, refinement peaks) is the fused one; the inlier score stays the frame's."""
         with single_threaded_blas():  # see satloc._threads: spinning BLAS workers slow the network and stereo
-            return self._score(self._observe(frame), candidates, refine)
+            return self._score(self._observe(frame), candidates, refine, tracker)
+
+    def tracker(self, config: TrackConfig | None = None) -> Tracker:
+        """A :class:`satloc.track.Tracker` over this localizer's candidate poses (``config``: default
+        ``self.config.tracking``)."""
+        return Tracker(self.candidates, self.config.tracking if config is None else config)
 
     def localize_stream(self, frames: Iterable[Frame], refine: bool | None = None, overlap: bool = True,
-                        errors: Literal["raise", "yield"] = "raise") -> Iterator[Localization | ConfigError]:
+                        errors: Literal["raise", "yield"] = "raise", tracker: Tracker | None = None,
+                        odometry: Iterable[np.ndarray] | None = None) -> Iterator[Localization | ConfigError]:
         """Localizations of a stream of frames, in order, the same as :meth:`localize` gives for each.
 
         With ``overlap`` the next frame is fetched and its stereo depth and features computed on a worker
         thread while the current one is scored (:func:`satloc._threads.overlapped`): on 2 cores, 12-30 % more
         queries per second (measured on the loop and city scenes). ``errors="yield"``: a frame that cannot be
         localized (e.g. no grid sample with valid depth) yields its :class:`ConfigError` instead of ending the
-        stream."""
+        stream.
+
+        With a ``tracker``, ``odometry`` gives for each frame the motion (dx, dy, dyaw) since the previous frame
+        (the first one's is used only if the tracker already holds a belief); the tracker is moved by it before
+        the frame is fused, also for a frame that cannot be localized."""
         if errors not in ("raise", "yield"):
             raise ConfigError(f"localize_stream: errors must be 'raise' or 'yield', got {errors!r}")
+        if (tracker is None) != (odometry is None):
+            raise ConfigError("localize_stream: tracking needs both a tracker and the odometry of every frame")
+        odo = iter(odometry) if odometry is not None else None
 
         def observe(frame: Frame) -> _Observation | ConfigError:
             try:
@@ -273,10 +293,15 @@ class Localizer:
                 return e
 
         for obs in overlapped(observe, frames, enabled=overlap):
+            if tracker is not None:
+                motion = next(odo, None)
+                if motion is None:
+                    raise ConfigError("localize_stream: the odometry ran out before the frames")
+                tracker.predict(motion)
             if not isinstance(obs, ConfigError):
                 try:
                     with single_threaded_blas():  # only this thread sets the (process-wide) limit
-                        obs = self._score(obs, None, refine)
+                        obs = self._score(obs, None, refine, tracker)
                 except ConfigError as e:
                     obs = e
             if isinstance(obs, ConfigError) and errors == "raise":
@@ -295,17 +320,25 @@ class Localizer:
         g = ground_features(fmap, uv, depth, self.camera, self.dictionary.context, self.span)
         return _Observation(depth, uv, pv, fmap, g)
 
-    def _score(self, obs: _Observation, candidates: np.ndarray | None, refine: bool | None) -> Localization:
+    def _score(self, obs: _Observation, candidates: np.ndarray | None, refine: bool | None,
+               tracker: Tracker | None = None) -> Localization:
         """The posterior over the candidates (and the refined estimate) from an observation."""
         cfg = self.config
+        if tracker is not None and (candidates is not None or tracker.candidates.shape != self.candidates.shape):
+            raise ConfigError("tracking needs the localizer's own candidates (make the tracker with "
+                              "Localizer.tracker() and pass no candidates)")
         pv = obs.pv
         dg, gid = self.ground_index.search(self.proj.project_g(obs.g), cfg.neighbors)
         wg = np.where(gid >= 0, 1.0 / np.maximum(dg, self.eps_g), 0.0).astype(np.float32)
         cands = self.candidates if candidates is None else candidates
         scores = np.zeros(len(cands))
         sel = self._pruned(gid, wg, pv) if candidates is None and cfg.prune_regions > 0 else slice(None)
+        if tracker is not None and tracker.belief is not None and not isinstance(sel, slice):
+            # also score where the tracked belief is, wherever this frame's votes point
+            b = tracker.belief
+            sel = np.union1d(sel, np.flatnonzero(b >= 1e-3 * b.max()))
         scores[sel] = self._scores(cands[sel], pv[:, :2], gid, wg)
-        out = self._answer(cands, scores, len(obs.uv))
+        out = self._answer(cands, scores, len(obs.uv), tracker)
         if (cfg.refine if refine is None else refine) and out.inlier_score > 0:
             self._refine(out, obs.fmap, obs.depth)
         return out
@@ -372,7 +405,7 @@ class Localizer:
                                             float(sf.origin[0]), float(sf.origin[1]), float(sf.meters_per_pixel),
                                             h, w, self.pixel_row, self.sat_ids, self.sat_w, len(self.dictionary))
 
-    def _answer(self, cands: np.ndarray, scores: np.ndarray, n: int) -> Localization:
+    def _answer(self, cands: np.ndarray, scores: np.ndarray, n: int, tracker: Tracker | None = None) -> Localization:
         total = scores.sum()
         if total <= 0 or not np.isfinite(total):
             post = np.full(len(cands), 1.0 / len(cands))
@@ -380,6 +413,8 @@ class Localizer:
         else:
             post = scores / total
             inlier_score = float(scores.max() / scores.mean())
+        if tracker is not None:
+            post = tracker.fuse(post)
         k = min(self.config.top_k, len(cands))
         top = np.argsort(-post)[:k]
         w = post[top] / max(post[top].sum(), 1e-300)

@@ -103,14 +103,28 @@ def load_localizer(build_dir: str | Path, config: LocalizerConfig = LocalizerCon
 
 def localize(build_dir: str | Path, queries: str | Path, config: LocalizerConfig = LocalizerConfig(),
              out: str | Path | None = None, progress: bool = True, localizer: Localizer | None = None,
-             select: "np.ndarray | list[int] | None" = None) -> dict:
+             select: "np.ndarray | list[int] | None" = None, odometry: "np.ndarray | None" = None) -> dict:
     """Localize every frame of ``queries`` (or the frames ``select``); returns (and writes to ``out/``)
-    estimates, errors, inlier decisions and the top of each posterior."""
+    estimates, errors, inlier decisions and the top of each posterior.
+
+    With ``config.track`` the frames are tracked (:mod:`satloc.track`) and ``odometry`` (N, 3) gives, for each
+    localized frame, the motion since the previous localized one (row 0 is not used); e.g.
+    :func:`satloc.track.noisy_odometry` of the frames' poses simulates it."""
     loc = localizer or load_localizer(build_dir, config, progress=progress)
     seq = Sequence.load(queries) if not isinstance(queries, Sequence) else queries
     idx = np.arange(len(seq)) if select is None else np.asarray(select, dtype=np.int64)
     if len(idx) and (idx.min() < 0 or idx.max() >= len(seq)):
         raise ConfigError(f"select: frame indices must lie in [0, {len(seq)}), got {idx.min()}..{idx.max()}")
+    tracker = None
+    if loc.config.track:
+        if odometry is None:
+            raise ConfigError("tracking (config.track) needs odometry: an (N, 3) array of the motion between the "
+                              "localized frames, e.g. satloc.track.noisy_odometry(poses, noise)")
+        odometry = np.asarray(odometry, np.float64)
+        if odometry.shape != (len(idx), 3) or not np.all(np.isfinite(odometry[1:])):
+            raise ConfigError(f"odometry: expected a ({len(idx)}, 3) array, one row per localized frame, finite "
+                              f"after row 0; got shape {odometry.shape}")
+        tracker = loc.tracker()
     n, k = len(idx), loc.config.posterior_k
     est, inl_score, inl = np.zeros((n, 3)), np.zeros(n), np.zeros(n, bool)
     truth = np.array(seq.poses[idx], dtype=np.float64).reshape(n, 3)   # nan where a frame has no pose
@@ -118,7 +132,8 @@ def localize(build_dir: str | Path, queries: str | Path, config: LocalizerConfig
     failed: list[tuple[int, str]] = []
     t0 = time.perf_counter()
     # frames stream through the localizer: the next one's depth and features overlap this one's scoring
-    results = loc.localize_stream((seq[int(j)] for j in idx), errors="yield")
+    results = loc.localize_stream((seq[int(j)] for j in idx), errors="yield", tracker=tracker,
+                                  odometry=odometry if tracker is not None else None)
     for i, r in enumerate(tqdm(results, total=n, desc=f"localize ({loc.config.name})", unit="query",
                                disable=not progress, leave=False)):
         if isinstance(r, ConfigError):  # e.g. no grid sample with valid depth: no answer for this frame

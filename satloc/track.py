@@ -1,0 +1,141 @@
+"""Tracking: a Bayes filter over the localizer's candidate poses, driven by odometry.
+
+A single ground image cannot tell look-alike places apart: in a grid city two street corners with a park on
+the left and offices on the right give co-occurrence posteriors with two equal peaks, and the top-3 average
+then lands on the wrong one (or between them). A vehicle that moves knows how far it went since its last
+image. :class:`Tracker` keeps a belief over the candidate poses of a :class:`satloc.localizer.Localizer`:
+
+* **predict** (odometry ``(dx, dy, dyaw)``, the motion since the previous frame in the previous vehicle
+  frame, as the environment's ``odometry`` observation): every candidate is moved by the odometry and its
+  probability spread over the candidates near where it lands, with a Gaussian of standard deviation
+  ``sqrt(sigma_m**2 + (sigma_frac * distance)**2)`` and only onto candidates whose heading is within
+  ``heading_gate_deg`` of the moved heading. Probability moved off the candidate set (past the end of an
+  open path) is dropped. A fraction ``revive`` of the mass is spread uniformly, so that a belief that
+  locked onto a wrong place (or a vehicle moved without odometry) recovers once images disagree with it;
+* **fuse** (a frame's co-occurrence posterior P(L | I)): belief × (P(L | I) + ``floor`` / C), normalised.
+  The floor keeps candidates the localizer did not score (vote pruning gives them 0) alive.
+
+The first frame's belief is its own posterior. The localizer's estimate (top-3 average) and the bird's-eye
+refinement's peaks are then taken from the fused posterior: ``Localizer.localize(frame, tracker=...)`` and
+``Localizer.localize_stream(frames, tracker=..., odometry=...)``.
+
+Measured on the Table 1 queries (README, "Tracking"): tracking removes the gross failures of single images.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from .errors import ConfigError
+from .geometry import Pose2, wrap_angle
+
+
+@dataclass(frozen=True)
+class TrackConfig:
+    sigma_m: float = 0.5              # spread of a prediction, metres (at least the candidate spacing)
+    sigma_frac: float = 0.05          # plus this fraction of the distance travelled (odometry error)
+    heading_gate_deg: float = 30.0    # a candidate receives probability only from headings this close
+    floor: float = 0.05               # fuse: P(L | I) + floor / C, per candidate
+    revive: float = 1e-6              # mass spread uniformly at each prediction
+    prune: float = 1e-7               # candidates below this fraction of the best one are not moved
+
+    def __post_init__(self):
+        if self.sigma_m <= 0 or self.sigma_frac < 0:
+            raise ConfigError(f"track: sigma_m > 0 and sigma_frac >= 0 are required, got {self.sigma_m}, {self.sigma_frac}")
+        if not 0 < self.heading_gate_deg <= 180:
+            raise ConfigError(f"track.heading_gate_deg: expected in (0, 180], got {self.heading_gate_deg}")
+        if self.floor < 0 or not 0 <= self.revive < 1 or not 0 <= self.prune < 1:
+            raise ConfigError("track: floor >= 0, 0 <= revive < 1 and 0 <= prune < 1 are required")
+
+
+def relative_motion(a: Pose2, b: Pose2) -> np.ndarray:
+    """The odometry (dx, dy, dyaw) from pose ``a`` to pose ``b``, in ``a``'s vehicle frame."""
+    d = a.between(b)
+    return np.array([d.x, d.y, d.yaw])
+
+
+def compose_motion(first: np.ndarray, then: np.ndarray) -> np.ndarray:
+    """Odometry ``first`` followed by ``then`` (each in the frame it starts from) as one motion."""
+    p = Pose2(*np.asarray(first, np.float64)) @ Pose2(*np.asarray(then, np.float64))
+    return np.array([p.x, p.y, p.yaw])
+
+
+def noisy_odometry(poses: np.ndarray, noise: tuple[float, float], seed: int = 0) -> np.ndarray:
+    """(N, 3) simulated odometry between consecutive ``poses`` (N, 3): the true relative motion plus Gaussian
+    noise of std ``noise[0]`` times the distance (each axis) and ``noise[1]`` radians (heading), the
+    environment's odometry model. Row 0 (no previous pose) and rows next to a pose with NaN are NaN."""
+    poses = np.asarray(poses, np.float64)
+    out = np.full((len(poses), 3), np.nan)
+    rng = np.random.default_rng(seed)
+    for i in range(1, len(poses)):
+        z = rng.normal(0.0, 1.0, 3)
+        if np.all(np.isfinite(poses[i - 1])) and np.all(np.isfinite(poses[i])):
+            m = relative_motion(Pose2(*poses[i - 1]), Pose2(*poses[i]))
+            dist = math.hypot(m[0], m[1])
+            out[i] = m + z * np.array([noise[0] * dist, noise[0] * dist, noise[1]])
+    return out
+
+
+class Tracker:
+    """Belief over fixed candidate poses (C, 3), updated by :meth:`predict` (odometry) and :meth:`fuse`
+    (a frame's posterior). See the module docstring."""
+
+    def __init__(self, candidates: np.ndarray, config: TrackConfig = TrackConfig()):
+        c = np.asarray(candidates, np.float64)
+        if c.ndim != 2 or c.shape[1] != 3 or len(c) == 0:
+            raise ConfigError(f"tracker: candidates must be a non-empty (C, 3) array of poses, got {c.shape}")
+        self.candidates, self.config = c, config
+        self._tree = cKDTree(c[:, :2])
+        self.belief: np.ndarray | None = None
+
+    def reset(self) -> None:
+        """Forget: the next fused posterior starts a new belief."""
+        self.belief = None
+
+    def predict(self, odometry: np.ndarray | None) -> None:
+        """Move the belief by ``odometry`` (dx, dy, dyaw); nothing before the first frame. ``None`` or a
+        non-finite odometry (unknown motion) is an error: reset the tracker instead."""
+        if self.belief is None:
+            return
+        o = np.asarray(odometry if odometry is not None else (), np.float64).ravel()
+        if o.shape != (3,) or not np.all(np.isfinite(o)):
+            raise ConfigError(f"tracker: odometry must be 3 finite numbers (dx, dy, dyaw), got {odometry!r}; "
+                              "reset() the tracker where the motion is unknown")
+        cfg, c, b = self.config, self.candidates, self.belief
+        live = np.flatnonzero(b > cfg.prune * b.max())
+        dist = math.hypot(o[0], o[1])
+        sigma = math.hypot(cfg.sigma_m, cfg.sigma_frac * dist)
+        cy, sy = np.cos(c[live, 2]), np.sin(c[live, 2])
+        moved = np.stack([c[live, 0] + cy * o[0] - sy * o[1], c[live, 1] + sy * o[0] + cy * o[1]], 1)
+        myaw = c[live, 2] + o[2]
+        near = self._tree.query_ball_point(moved, 3.0 * sigma, return_sorted=False)
+        counts = np.fromiter((len(n) for n in near), np.int64, len(near))
+        src = np.repeat(np.arange(len(live)), counts)
+        dst = np.fromiter((j for n in near for j in n), np.int64, int(counts.sum()))
+        d2 = ((c[dst, :2] - moved[src]) ** 2).sum(axis=1)
+        ok = np.cos(wrap_angle(c[dst, 2] - myaw[src])) >= math.cos(math.radians(cfg.heading_gate_deg))
+        w = np.where(ok, np.exp(-0.5 * d2 / sigma ** 2), 0.0)
+        norm = np.bincount(src, weights=w, minlength=len(live))
+        share = np.divide(w, norm[src], out=np.zeros_like(w), where=norm[src] > 0)
+        new = np.bincount(dst, weights=share * b[live][src], minlength=len(c))
+        total = new.sum()
+        new = new / total if total > 0 else np.full(len(c), 1.0 / len(c))
+        self.belief = (1.0 - cfg.revive) * new + cfg.revive / len(c)
+
+    def fuse(self, posterior: np.ndarray) -> np.ndarray:
+        """The belief times ``posterior`` (one frame's P(L | I), plus the floor), normalised; it becomes the
+        new belief and is returned. The first call just takes ``posterior``."""
+        p = np.asarray(posterior, np.float64)
+        if p.shape != (len(self.candidates),):
+            raise ConfigError(f"tracker: posterior of shape {p.shape} does not match the {len(self.candidates)} "
+                              "candidates (a tracker belongs to one localizer)")
+        if self.belief is None:
+            self.belief = p / p.sum() if p.sum() > 0 else np.full(len(p), 1.0 / len(p))
+            return self.belief.copy()
+        f = self.belief * (p / max(p.sum(), 1e-300) + self.config.floor / len(p))
+        total = f.sum()
+        self.belief = f / total if total > 0 else np.full(len(p), 1.0 / len(p))
+        return self.belief.copy()

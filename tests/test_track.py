@@ -1,0 +1,179 @@
+"""Tracking (satloc.track): the odometry-driven belief over candidate poses, and its use by the localizer."""
+import math
+
+import numpy as np
+import pytest
+
+from satloc import ConfigError, Pose2
+from satloc.localizer import Localizer, LocalizerConfig
+from satloc.track import TrackConfig, Tracker, compose_motion, noisy_odometry, relative_motion
+
+from test_method import build_dictionary, GridConfig, tiny_setup
+
+STEP = 5.0
+
+
+def line_candidates(length=200.0, spacing=0.5):
+    """Candidates along the x axis (heading east), plus the same positions heading west."""
+    x = np.arange(0.0, length + 1e-9, spacing)
+    east = np.stack([x, np.zeros_like(x), np.zeros_like(x)], 1)
+    west = np.stack([x, np.zeros_like(x), np.full_like(x, math.pi)], 1)
+    return np.concatenate([east, west])
+
+
+def peaks(cands, centres, sigma=0.7):
+    """A posterior with equal Gaussian peaks at the x positions ``centres`` (eastward candidates only)."""
+    p = np.zeros(len(cands))
+    for c in centres:
+        p += np.exp(-0.5 * ((cands[:, 0] - c) / sigma) ** 2) * (cands[:, 2] == 0)
+    return p / p.sum()
+
+
+def argmax_x(belief, cands):
+    return float(cands[int(np.argmax(belief)), 0])
+
+
+def test_motion_helpers_round_trip():
+    a, b, c = Pose2(3.0, -2.0, 0.4), Pose2(7.0, 1.0, 1.3), Pose2(4.0, 6.0, -2.9)
+    ab, bc = relative_motion(a, b), relative_motion(b, c)
+    assert (a @ Pose2(*ab)).as_array() == pytest.approx(b.as_array())
+    assert (a @ Pose2(*compose_motion(ab, bc))).as_array() == pytest.approx(c.as_array())
+    poses = np.array([[0, 0, 0], [5, 0, 0.1], [9, 1, 0.5], [np.nan, np.nan, np.nan], [12, 3, 0.6]], float)
+    odo = noisy_odometry(poses, (0.0, 0.0))
+    assert np.all(np.isnan(odo[[0, 3, 4]]))          # no previous pose, or a pose missing on either side
+    assert (Pose2(*poses[1]) @ Pose2(*odo[2])).as_array() == pytest.approx(poses[2])
+    noisy = noisy_odometry(poses, (0.05, 0.02), seed=3)
+    assert np.array_equal(noisy[1:3], noisy_odometry(poses, (0.05, 0.02), seed=3)[1:3])  # seeded
+    assert not np.allclose(noisy[1:3], odo[1:3])
+
+
+def test_predict_moves_the_belief_by_the_odometry_and_keeps_headings_apart():
+    cands = line_candidates()
+    t = Tracker(cands, TrackConfig(revive=0.0))
+    t.predict(np.array([STEP, 0.0, 0.0]))          # before the first frame: nothing to move
+    assert t.belief is None
+    start = np.zeros(len(cands))
+    start[40] = 1.0                                  # x = 20 m, heading east
+    t.fuse(start)
+    t.predict(np.array([STEP, 0.0, 0.0]))
+    b = t.belief
+    assert b.sum() == pytest.approx(1.0)
+    assert float(b @ cands[:, 0]) == pytest.approx(20.0 + STEP, abs=0.05)
+    assert b[cands[:, 2] != 0].sum() == 0            # no probability crosses to the opposite heading
+    # the spread grows with the distance travelled (odometry error)
+    spread = lambda b: math.sqrt(float(b @ (cands[:, 0] - b @ cands[:, 0]) ** 2))
+    t2 = Tracker(cands, TrackConfig(revive=0.0))
+    t2.fuse(start)
+    t2.predict(np.array([40.0, 0.0, 0.0]))
+    assert spread(t2.belief) > 1.5 * spread(b)
+
+
+def test_tracking_resolves_aliasing_that_single_frames_cannot():
+    cands = line_candidates()
+    rng = np.random.default_rng(0)
+    t = Tracker(cands)
+    wrong_single = 0
+    for k in range(12):
+        truth = 10.0 + STEP * k
+        alias = 100.0 + 90.0 * rng.random()      # a look-alike place, not where the odometry leads
+        p = peaks(cands, [alias]) if k % 3 == 2 else peaks(cands, [truth, alias])
+        if k:
+            t.predict(np.array([STEP, 0.0, 0.0]))
+        b = t.fuse(p)
+        wrong_single += abs(argmax_x(p, cands) - truth) > 0.5
+        if k >= 1:
+            assert abs(argmax_x(b, cands) - truth) <= 0.5, k
+    assert wrong_single == 4                     # the frames that show only the alias
+
+
+def test_a_belief_locked_on_the_wrong_place_recovers():
+    cands = line_candidates()
+    t = Tracker(cands)
+    x = 20.0
+    for _ in range(5):
+        t.fuse(peaks(cands, [x]))
+        t.predict(np.array([STEP, 0.0, 0.0]))
+        x += STEP
+    x += 70.0                                        # moved without odometry (kidnapped)
+    recovered = None
+    for k in range(6):
+        b = t.fuse(peaks(cands, [x]))
+        if abs(argmax_x(b, cands) - x) <= 0.5:
+            recovered = k
+            break
+        t.predict(np.array([STEP, 0.0, 0.0]))
+        x += STEP
+    assert recovered is not None and recovered <= 3
+
+
+def test_tracker_errors():
+    cands = line_candidates()
+    with pytest.raises(ConfigError, match="sigma_m"):
+        TrackConfig(sigma_m=0.0)
+    with pytest.raises(ConfigError, match="heading_gate_deg"):
+        TrackConfig(heading_gate_deg=0.0)
+    with pytest.raises(ConfigError, match="revive"):
+        TrackConfig(revive=1.0)
+    with pytest.raises(ConfigError, match=r"non-empty \(C, 3\)"):
+        Tracker(np.zeros((0, 3)))
+    t = Tracker(cands)
+    with pytest.raises(ConfigError, match="does not match the 802 candidates"):
+        t.fuse(np.ones(10))
+    t.fuse(peaks(cands, [20.0]))
+    for bad in (None, [1.0, 2.0], [np.nan, 0.0, 0.0]):
+        with pytest.raises(ConfigError, match="odometry must be 3 finite numbers"):
+            t.predict(bad)
+    t.reset()
+    assert t.belief is None
+
+
+def test_localizer_tracks_a_stream_like_single_calls():
+    cam, seq, sf, ext = tiny_setup()
+    d = build_dictionary(seq, sf, ext, GridConfig(step_px=4, min_depth_m=1.0), depth_source="frame", progress=False)
+    loc = Localizer(d, sf, ext, cam, None, LocalizerConfig(mode="np", depth_source="frame", track=True))
+    assert loc.config.name == "np+track"
+    frames = [seq[i] for i in range(len(seq))]
+    odo = noisy_odometry(seq.poses, (0.02, 0.01))
+    manual, t = [], loc.tracker()
+    for f, o in zip(frames, odo):
+        t.predict(o)
+        manual.append(loc.localize(f, tracker=t))
+    assert np.allclose(t.belief, manual[-1].posterior)
+    streamed = list(loc.localize_stream(frames, tracker=loc.tracker(), odometry=odo))
+    for a, b in zip(manual, streamed):
+        assert a.estimate == b.estimate and np.array_equal(a.posterior, b.posterior)
+    single = loc.localize(frames[-1])
+    assert not np.array_equal(single.posterior, manual[-1].posterior)   # the belief did change the answer
+    assert single.inlier_score == manual[-1].inlier_score             # the inlier test stays the frame's
+    with pytest.raises(ConfigError, match="needs both a tracker and the odometry"):
+        list(loc.localize_stream(frames, tracker=loc.tracker()))
+    with pytest.raises(ConfigError, match="odometry ran out"):
+        list(loc.localize_stream(frames, tracker=loc.tracker(), odometry=odo[:2]))
+    with pytest.raises(ConfigError, match="the localizer's own candidates"):
+        loc.localize(frames[0], candidates=loc.candidates[:10], tracker=loc.tracker())
+
+
+def test_pipeline_localize_needs_matching_odometry_to_track(tmp_path):
+    from satloc.pipeline import localize
+
+    cam, seq, sf, ext = tiny_setup()
+    d = build_dictionary(seq, sf, ext, GridConfig(step_px=4, min_depth_m=1.0), depth_source="frame", progress=False)
+    cfg = LocalizerConfig(mode="np", depth_source="frame", track=True)
+    loc = Localizer(d, sf, ext, cam, None, cfg)
+    with pytest.raises(ConfigError, match="needs odometry"):
+        localize(None, seq, cfg, progress=False, localizer=loc)
+    with pytest.raises(ConfigError, match=r"expected a \(5, 3\) array"):
+        localize(None, seq, cfg, progress=False, localizer=loc, odometry=np.zeros((4, 3)))
+    s = localize(None, seq, cfg, tmp_path, progress=False, localizer=loc, odometry=noisy_odometry(seq.poses, (0.02, 0.01)))
+    assert s["mode"] == "np+track" and (tmp_path / "localization_np+track.npz").is_file()
+    assert s["queries"] == 5 and s["failed"] == 0 and np.isfinite(s["mean_m"])
+
+
+def test_experiment_modes_name_tracking_and_alignment():
+    from satloc_env.experiment import METHOD_NAMES, MODES, ExperimentConfig
+
+    assert set(MODES) <= set(METHOD_NAMES)
+    assert METHOD_NAMES["full+track+align"] == "Ours-full + track + BEV align"
+    assert METHOD_NAMES["go+track"] == "Ours-GO + track"
+    with pytest.raises(ConfigError, match="unknown"):
+        ExperimentConfig(modes=("full+align+track",))
