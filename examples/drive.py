@@ -17,17 +17,22 @@ def main(argv=None):
     ap.add_argument("--scene", default="city")
     ap.add_argument("--steps", type=int, default=200)
     ap.add_argument("--occlusion", type=float, default=0.3)
+    ap.add_argument("--appearance", type=float, default=None, help="appearance change (default: the scene's)")
+    ap.add_argument("--lane", type=float, default=-1.75, help="lateral offset from the route centre, metres")
     ap.add_argument("--out", default="drive_out")
     ap.add_argument("--localizer", default="none", help="none, auto or a build directory (see the README)")
     ap.add_argument("--localize-every", type=int, default=10)
+    ap.add_argument("--track", action="store_true", help="fuse localizations over time with the odometry")
+    ap.add_argument("--refine", action="store_true", help="refine each estimate by bird's-eye alignment")
     args = ap.parse_args(argv)
 
     # localizer: "none" drives only; "auto" localizes against a localizer built once from the scene's
     # database pass and cached (minutes the first time); or a build directory of `satloc build`
     localizer = None if args.localizer == "none" else args.localizer
     env = gym.make("satloc/SatLoc-v0", scene=args.scene, render_mode="rgb_array", depth=True, localizer=localizer,
-                   localize_every=args.localize_every)
-    obs, info = env.reset(seed=0, options={"occlusion": args.occlusion})
+                   localize_every=args.localize_every, localizer_track=args.track, localizer_refine=args.refine,
+                   lane_offset_m=args.lane)
+    obs, info = env.reset(seed=0, options={"occlusion": args.occlusion, "appearance": args.appearance})
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     odo_pose = info["pose"].copy()
@@ -47,7 +52,9 @@ def main(argv=None):
     drift = float(np.hypot(*(odo_pose[:2] - info["pose"][:2])))
     print(f"drove {float(info['route_s']):.0f} m in {t + 1} steps; dead-reckoning drift {drift:.2f} m")
     if errors:
-        print(f"localized {len(errors)} times; median error {np.nanmedian(errors):.2f} m")
+        e = np.array(errors)
+        print(f"localized {len(e)} times; error mean {np.nanmean(e):.2f} m, median {np.nanmedian(e):.2f} m, "
+              f"max {np.nanmax(e):.2f} m, {int(np.sum(e > 10))} off by more than 10 m")
     env.close()
     return drift
 

@@ -54,7 +54,7 @@ def cmd_demo(args) -> int:
     print(f"satloc demo: {s['scene']}, database {s['database_m']:.0f} m, {s['queries']} queries (revisit: "
           f"other lane, appearance and occluders)")
     for mode, r in s["modes"].items():
-        print(f"  {mode:4s}  mean {r['mean_m']:.2f} m (std {r['std_m']:.2f})  median {r['median_m']:.2f} m  "
+        print(f"  {mode:16s}  mean {r['mean_m']:.2f} m (std {r['std_m']:.2f})  median {r['median_m']:.2f} m  "
               f"{100 * r['within_1m']:.0f} % within 1 m  {r['queries_per_s']:.1f} queries/s")
     pics = sorted(p.name for p in out.glob("*.png"))
     print(f"  pictures in {out}: {', '.join(pics)}")
@@ -163,8 +163,19 @@ def cmd_localize(args) -> int:
     from satloc.localizer import LocalizerConfig
     from satloc.pipeline import localize
 
-    cfg = _stage_config(LocalizerConfig, args.config, {"mode": args.mode, "refine": True if args.refine else None})
-    s = localize(args.build, args.queries, cfg, args.out or args.build, progress=not args.quiet)
+    cfg = _stage_config(LocalizerConfig, args.config, {"mode": args.mode, "refine": True if args.refine else None,
+                                                       "track": True if args.track else None})
+    odometry = None
+    if cfg.track:  # simulated odometry: the true motion between the sequence's frames, with noise
+        from satloc.sequence import Sequence
+        from satloc.track import noisy_odometry
+
+        seq = Sequence.load(args.queries)
+        if not np.all(np.isfinite(seq.poses)):
+            raise SatlocError(f"{args.queries}: --track simulates odometry from the frames' poses, and some "
+                              "frames have none")
+        odometry = noisy_odometry(seq.poses, tuple(args.odometry_noise), args.odometry_seed)
+    s = localize(args.build, args.queries, cfg, args.out or args.build, progress=not args.quiet, odometry=odometry)
     s.pop("errors")
     print(json.dumps(s))
     return 0
@@ -240,6 +251,11 @@ def build_parser() -> argparse.ArgumentParser:
     lo.add_argument("--queries", required=True)
     lo.add_argument("--mode", choices=["full", "np", "go"], default=None)
     lo.add_argument("--refine", action="store_true", help="refine each estimate by bird's-eye alignment (satloc.align)")
+    lo.add_argument("--track", action="store_true",
+                    help="track the sequence with odometry (satloc.track), simulated from the frames' poses")
+    lo.add_argument("--odometry-noise", type=float, nargs=2, default=[0.02, 0.01], metavar=("FRAC", "RAD"),
+                    help="--track: odometry noise std, fraction of the distance and radians per frame")
+    lo.add_argument("--odometry-seed", type=int, default=0)
     lo.add_argument("--out", help="where to write results (default: the build directory)")
     lo.add_argument("--config", help="YAML with LocalizerConfig fields")
     lo.add_argument("--quiet", action="store_true")

@@ -28,6 +28,7 @@ from satloc.errors import ConfigError
 from satloc.geometry import Pose2, StereoCamera
 from satloc.labels import NUM_CLASSES
 from satloc.sequence import Frame
+from satloc.track import compose_motion
 
 from .occluders import Appearance, sample_occluders
 from .scene import Scene, load_scene
@@ -58,6 +59,8 @@ class EnvConfig:
                                             # instance given as the keyword is stored here as "<instance>"
     localizer_mode: Literal["full", "np", "go"] = "full"   # for "auto" / a build directory
     localizer_refine: bool = False          # for "auto" / a build directory: bird's-eye alignment (satloc.align)
+    localizer_track: bool = False           # fuse each localization into a belief moved by the odometry
+                                            # observations (satloc.track); a new episode starts a new belief
     localize_every: int = 1                 # localize at the steps that are multiples of this (reset: step 0)
     reward: Literal["none", "neg_error"] = "none"  # neg_error: minus the localization error (metres)
 
@@ -102,6 +105,10 @@ class SatLocEnv(gym.Env):
     * ``inlier`` np.bool_ and ``inlier_score`` float64 (peak / mean score; False means "probably outside
       the mapped area");
     * ``localized_step`` int64: the step the result was computed at.
+
+    With ``localizer_track`` each localization is fused into a belief over the candidate poses that the
+    odometry observations move between localizations (:mod:`satloc.track`): the posterior, estimate and
+    error are then the tracked ones. The belief starts again at every reset.
 
     A frame in which no grid sample has valid stereo depth (e.g. a wall fills the view) has no result: the
     localizer raises :class:`satloc.ConfigError`, which is caught; ``estimate`` and ``error_m`` are NaN,
@@ -155,7 +162,8 @@ class SatLocEnv(gym.Env):
         if instance is not None:
             self.localizer = instance
             self.config = dataclasses.replace(self.config, localizer_mode=instance.config.mode,
-                                              localizer_refine=instance.config.refine)
+                                              localizer_refine=instance.config.refine,
+                                              localizer_track=self.config.localizer_track or instance.config.track)
         elif self.config.localizer not in (None, "auto"):
             from .autoloc import load_cached_localizer
 
@@ -282,6 +290,8 @@ class SatLocEnv(gym.Env):
         self.appearance = Appearance(app, rng)
         self.steps = 0
         self._loc_info = self._loc_view = self.localization_error = None
+        self._tracker = None                   # tracking (localizer_track): a new belief each episode
+        self._odo_since = np.zeros(3)          # observed odometry since the last localization
         obs = self._observe(np.zeros(3, np.float32))
         self._localize()
         return obs, self._info(np.zeros(3), off_road=False)
@@ -300,6 +310,7 @@ class SatLocEnv(gym.Env):
         noise = self.np_random.normal(0.0, 1.0, 3) * np.array(
             [cfg.odometry_noise[0] * dist, cfg.odometry_noise[0] * dist, cfg.odometry_noise[1]])
         obs = self._observe((true_odo + noise).astype(np.float32))
+        self._odo_since = compose_motion(self._odo_since, obs["odometry"].astype(np.float64))
         if self.steps % self.config.localize_every == 0:
             self._localize()
         off_road = not self.scene.is_drivable(self.pose.x, self.pose.y)
@@ -340,8 +351,15 @@ class SatLocEnv(gym.Env):
         k = loc.config.posterior_k
         frame = Frame(self._last_obs["left"], self._last_obs["right"], None, self.steps * self._episode.dt,
                       self._last_depth if self._frame_depth_needed() else None)
+        tracker = None
+        if self.config.localizer_track:
+            if self._tracker is None:
+                self._tracker = loc.tracker()
+            tracker = self._tracker
+            tracker.predict(self._odo_since)   # the noisy odometry the agent observed, not the true motion
+            self._odo_since = np.zeros(3)
         try:
-            r = loc.localize(frame)
+            r = loc.localize(frame, tracker=tracker)
         except ConfigError as e:  # no grid sample with valid depth (e.g. a wall fills the view): no result
             self.localization_error = str(e)
             self._loc_info = {"estimate": np.full(3, np.nan), "posterior_poses": np.zeros((k, 3)),

@@ -26,12 +26,17 @@ from satloc.persist import atomic_path, read_json, write_json
 from satloc.pipeline import BuildConfig, build, load_localizer, localize, train_projection
 from satloc.projection import ProjectionConfig
 from satloc.sequence import Sequence
+from satloc.track import noisy_odometry
 
 from .record import PassConfig, RecordConfig, record_passes
 
-MODES = ("go", "np", "full", "full+align")   # "<mode>+align": that mode refined by bird's-eye alignment
-METHOD_NAMES = {"go": "Ours-GO", "np": "Ours-NP", "full": "Ours-full", "full+align": "Ours-full + BEV align",
-                "go+align": "Ours-GO + BEV align", "np+align": "Ours-NP + BEV align"}
+# "<mode>[+track][+align]": tracked over the query sequence with odometry (satloc.track), refined by bird's-eye
+# alignment (satloc.align)
+MODES = ("go", "np", "full", "full+align", "go+track", "np+track", "full+track", "full+track+align")
+_BASE_NAMES = {"go": "Ours-GO", "np": "Ours-NP", "full": "Ours-full"}
+_SUFFIX_NAMES = {"track": "track", "align": "BEV align"}
+METHOD_NAMES = {b + "".join("+" + s for s in suf): " + ".join([name] + [_SUFFIX_NAMES[s] for s in suf])
+                for b, name in _BASE_NAMES.items() for suf in ((), ("align",), ("track",), ("track", "align"))}
 
 
 @dataclass
@@ -50,6 +55,9 @@ class ExperimentConfig:
     projection: ProjectionConfig = field(default_factory=ProjectionConfig)
     localizer: dict = field(default_factory=dict)   # LocalizerConfig fields other than mode
     modes: tuple[str, ...] = MODES
+    odometry_noise: tuple[float, float] = (0.02, 0.01)  # tracked modes: simulated odometry between queries, std
+                                                        # (fraction of the distance, radians)
+    odometry_seed: int = 0
 
     def __post_init__(self):
         bad = [m for m in self.modes if m not in METHOD_NAMES]
@@ -117,15 +125,18 @@ def run_scene(cfg: ExperimentConfig, out: str | Path, progress: bool = True, log
     sel = covered_queries(db, q, cfg.coverage_m)
     if len(sel) == 0:
         raise ConfigError(f"[{cfg.scene}] no query frame lies within {cfg.coverage_m} m of the database path")
+    # tracked modes: odometry between consecutive evaluated queries, simulated from their true poses
+    odo = noisy_odometry(q.poses[sel], cfg.odometry_noise, cfg.odometry_seed)
     results: dict[str, dict] = {}
     examples: dict[str, list[tuple[int, Localization]]] = {}
     for mode in cfg.modes:
-        base, _, refine = mode.partition("+")
-        lc = from_dict(LocalizerConfig, dict(cfg.localizer, mode=base, refine=bool(refine)), "experiment localizer")
+        base, *flags = mode.split("+")
+        lc = from_dict(LocalizerConfig, dict(cfg.localizer, mode=base, refine="align" in flags,
+                                             track="track" in flags), "experiment localizer")
         t = time.perf_counter()
         loc = load_localizer(bdir, lc, progress=progress)
         t_init = time.perf_counter() - t
-        s = localize(bdir, q, lc, out, progress, localizer=loc, select=sel)
+        s = localize(bdir, q, lc, out, progress, localizer=loc, select=sel, odometry=odo)
         err = s.pop("errors")
         s.update(localizer_init_s=round(t_init, 2), within_1m=float(np.mean(err < 1.0)),
                  within_10m=float(np.mean(err < 10.0)))
@@ -136,7 +147,13 @@ def run_scene(cfg: ExperimentConfig, out: str | Path, progress: bool = True, log
         # a few posteriors to draw: the best, a median and the worst query of this mode
         order = np.argsort(np.nan_to_num(err, nan=1e9))
         picks = sorted({int(order[0]), int(order[len(order) // 2]), int(order[-1])})
-        examples[mode] = [(int(sel[i]), loc.localize(q[int(sel[i])])) for i in picks]
+        if lc.track:  # a tracked posterior needs the frames before it: run the sequence again up to the last pick
+            stream = loc.localize_stream((q[int(j)] for j in sel[: picks[-1] + 1]), errors="yield",
+                                         tracker=loc.tracker(), odometry=odo[: picks[-1] + 1])
+            kept = {i: r for i, r in enumerate(stream) if i in picks}
+            examples[mode] = [(int(sel[i]), r) for i, r in kept.items() if isinstance(r, Localization)]
+        else:
+            examples[mode] = [(int(sel[i]), loc.localize(q[int(sel[i])])) for i in picks]
         del loc
     summary = {"scene": cfg.scene, "config": to_dict(cfg), "database_frames": len(db),
                "database_m": round(db.path_length(), 1), "queries": int(len(sel)),

@@ -19,6 +19,7 @@ from satloc.localizer import LocalizerConfig
 from satloc.persist import read_json
 from satloc.pipeline import BuildConfig, load_localizer
 from satloc.projection import ProjectionConfig
+from satloc.track import Tracker, compose_motion
 from satloc_env import autoloc
 from satloc_env.env import ESTIMATE_RGB, PANEL_PX, PosteriorView, compose_view
 
@@ -109,6 +110,31 @@ def test_localize_every_recomputes_every_n_steps(loc, monkeypatch):
     assert np.array_equal(infos[1]["estimate"], infos[2]["estimate"])
     assert infos[1]["error_m"] != infos[2]["error_m"]
     assert not np.array_equal(infos[2]["estimate"], infos[3]["estimate"])
+    env.close()
+
+
+def test_tracking_moves_the_belief_with_the_observed_odometry(loc, monkeypatch):
+    env = gym.make(ID, scene="city", localizer=loc, localizer_track=True, localize_every=2)
+    seen = []
+    real_predict = Tracker.predict
+    monkeypatch.setattr(Tracker, "predict", lambda self, o: seen.append(np.array(o)) or real_predict(self, o))
+    _, info = env.reset(seed=0)
+    check_info(info)
+    tracker = env.unwrapped._tracker
+    assert tracker is not None and tracker.belief is not None
+    odo = []
+    for _ in range(4):
+        obs, _, _, _, info = env.step(autopilot(env))
+        odo.append(obs["odometry"].astype(np.float64))
+        check_info(info)
+    # localized at steps 0, 2, 4: moved by the two noisy odometry observations composed, each time
+    assert len(seen) == 3 and np.array_equal(seen[0], np.zeros(3))
+    assert seen[1] == pytest.approx(compose_motion(odo[0], odo[1]), abs=1e-9)
+    assert seen[2] == pytest.approx(compose_motion(odo[2], odo[3]), abs=1e-9)
+    assert np.allclose(info["posterior_probs"], np.sort(tracker.belief)[::-1][:K])
+    assert info["error_m"] < 2.0
+    env.reset(seed=1)   # a new episode: a new belief
+    assert env.unwrapped._tracker is not tracker
     env.close()
 
 
