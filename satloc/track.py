@@ -114,7 +114,7 @@ class Tracker:
         near = self._tree.query_ball_point(moved, 3.0 * sigma, return_sorted=False)
         counts = np.fromiter((len(n) for n in near), np.int64, len(near))
         src = np.repeat(np.arange(len(live)), counts)
-        dst = np.fromiter((j for n in near for j in n), np.int64, int(counts.sum()))
+        dst = np.concatenate([np.asarray(n, np.int64) for n in near]) if len(near) else np.zeros(0, np.int64)
         d2 = ((c[dst, :2] - moved[src]) ** 2).sum(axis=1)
         ok = np.cos(wrap_angle(c[dst, 2] - myaw[src])) >= math.cos(math.radians(cfg.heading_gate_deg))
         w = np.where(ok, np.exp(-0.5 * d2 / sigma ** 2), 0.0)

@@ -39,8 +39,8 @@ def route_overview(scene, poses: np.ndarray, max_px: int = 1400) -> np.ndarray:
 
 def cmd_demo(args) -> int:
     """The main job on the default scene: record database and query passes, build the dictionary, learn the
-    projections, localize every query with GO, NP, full and full refined by bird's-eye alignment, print mean
-    (std) errors and write pictures."""
+    projections, localize every query with GO, NP, full and full refined by bird's-eye alignment, single
+    images and tracked, print mean (std) errors and write pictures."""
     from satloc.config import from_dict
     from satloc_env.experiment import ExperimentConfig, run_scene
 
@@ -185,7 +185,7 @@ def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="satloc", description=__doc__)
     sub = p.add_subparsers(dest="command", required=True)
 
-    d = sub.add_parser("demo", help="record, build, learn, localize with GO/NP/full/full+align on the default scene; "
+    d = sub.add_parser("demo", help="record, build, learn, localize with GO/NP/full/full+align, tracked too, on the default scene; "
                                     "print errors, write pictures")
     d.add_argument("--scene", default="city")
     d.add_argument("--out", default="satloc_demo")

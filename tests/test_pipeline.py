@@ -78,30 +78,30 @@ def test_localizer_lands_within_1m_on_a_small_scene(recording, tmp_path):
 
 
 def test_demo_and_table1_on_a_tiny_section(tmp_path, capsys):
-    from satloc_env.experiment import table1
+    from satloc_env.experiment import MODES, table1
 
     out = tmp_path / "demo"
     assert main(["demo", "--out", str(out), "--db-frames", "20", "--query-frames", "3", "--features", "rgb",
                  "--quiet"]) == 0
     text = capsys.readouterr().out
-    for mode in ("go", "np", "full", "full+align"):
+    for mode in MODES:
         assert f"  {mode} " in text and (out / f"localization_{mode}.npz").is_file()
     assert (out / "errors_along_route.png").stat().st_size > 5000
     assert len(list(out.glob("posterior_*.png"))) >= 3
     summary = json.loads((out / "summary.json").read_text())
-    assert summary["queries"] >= 2 and set(summary["modes"]) == {"go", "np", "full", "full+align"}
+    assert summary["queries"] >= 2 and set(summary["modes"]) == set(MODES)
+    assert {"full+track", "full+track+align"} <= set(MODES)
     # table1 on one scene reuses nothing from the demo folder and writes the csv with the documented columns
-    rows = table1(tmp_path / "t1", ("city",), {"database_frames": 20, "query_frames": 3, "features": "rgb",
-                                               "projection": {"max_anchors": 2000, "max_epochs": 2}},
-                  progress=False, log=lambda m: None)
+    # (two of the modes, to keep the test short; the demo above ran them all)
+    small = {"database_frames": 20, "query_frames": 3, "features": "rgb", "modes": ["go", "full+track+align"],
+             "projection": {"max_anchors": 2000, "max_epochs": 2}}
+    rows = table1(tmp_path / "t1", ("city",), small, progress=False, log=lambda m: None)
     lines = (tmp_path / "t1" / "table1.csv").read_text().splitlines()
-    assert lines[0] == "method,scene,mean_m,std_m" and len(lines) == 5 and len(rows) == 4
-    assert {ln.split(",")[0] for ln in lines[1:]} == {"Ours-GO", "Ours-NP", "Ours-full", "Ours-full + BEV align"}
+    assert lines[0] == "method,scene,mean_m,std_m" and len(lines) == 3 and len(rows) == 2
+    assert [ln.split(",")[0] for ln in lines[1:]] == ["Ours-GO", "Ours-full + track + BEV align"]
     # running again reuses the recorded and built stages (no new recording)
     stamp = (tmp_path / "t1" / "city" / "record.json").stat().st_mtime_ns
-    table1(tmp_path / "t1", ("city",), {"database_frames": 20, "query_frames": 3, "features": "rgb",
-                                        "projection": {"max_anchors": 2000, "max_epochs": 2}},
-           progress=False, log=lambda m: None)
+    table1(tmp_path / "t1", ("city",), small, progress=False, log=lambda m: None)
     assert (tmp_path / "t1" / "city" / "record.json").stat().st_mtime_ns == stamp
     with pytest.raises(Exception, match="unknown key"):
         table1(tmp_path / "t2", ("city",), {"databse_frames": 20}, progress=False)
