@@ -13,7 +13,7 @@ from pathlib import Path
 
 import numpy as np
 
-from satloc_env.experiment import ExperimentConfig, run_scene
+from satloc_env.experiment import METHOD_NAMES, ExperimentConfig, run_scene
 
 
 def main(argv=None):
@@ -24,7 +24,9 @@ def main(argv=None):
     ap.add_argument("--db-frames", type=int, default=150, help="database frames (about 1.6 m apart)")
     ap.add_argument("--query-frames", type=int, default=None, help="query frames (10 m apart; default: all "
                     "that lie on the database section)")
-    ap.add_argument("--modes", nargs="+", default=["go", "np"], choices=["go", "np", "full"])
+    ap.add_argument("--modes", nargs="+", default=["go", "np"], choices=sorted(METHOD_NAMES), metavar="MODE",
+                    help="e.g. go np full full+align go+track full+track+align (+track: the query pass as one "
+                    "sequence with simulated odometry)")
     ap.add_argument("--features", default="default")
     ap.add_argument("--out", default="stress_out")
     args = ap.parse_args(argv)
@@ -41,7 +43,7 @@ def main(argv=None):
                 rows.append(dict(aliasing=a, occlusion=o, mode=mode, mean_m=round(m["mean_m"], 3),
                                  median_m=round(m["median_m"], 3), within_1m=round(m["within_1m"], 3),
                                  queries=m["queries"]))
-                print(f"aliasing {a:4.2f}  occlusion {o:4.2f}  {mode:4s}  mean {m['mean_m']:7.2f} m  "
+                print(f"aliasing {a:4.2f}  occlusion {o:4.2f}  {mode:16s}  mean {m['mean_m']:7.2f} m  "
                       f"median {m['median_m']:6.2f} m  within 1 m {100 * m['within_1m']:3.0f} %  "
                       f"({m['queries']} queries)", flush=True)
     with open(out / "stress.csv", "w", newline="") as f:

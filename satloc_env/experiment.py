@@ -2,7 +2,8 @@
 
 :func:`run_scene` records a scene's database and query passes (revisit mode: the query pass drives another
 lane, with other appearance and occluders), builds the dictionary, learns the projections, localizes the
-queries with the ablations GO, NP and full, and writes per-mode results and pictures. :func:`table1` runs it
+queries with the ablations GO, NP and full (single images, refined by bird's-eye alignment, and tracked
+over the query sequence with simulated odometry), and writes per-mode results and pictures. :func:`table1` runs it
 on several scenes and writes ``table1.csv`` (``method,scene,mean_m,std_m``). ``satloc demo`` and ``satloc
 experiment table1`` call these.
 
