@@ -49,6 +49,9 @@ from .sequence import Frame
 from .track import TrackConfig, Tracker
 
 
+_END = object()  # end of an iterator (a None odometry row is a value)
+
+
 @dataclass(frozen=True)
 class LocalizerConfig:
     mode: Literal["full", "np", "go"] = "full"
@@ -69,7 +72,9 @@ class LocalizerConfig:
     prune_window_m: float = 12.0          # path length kept around each voted position (and peak separation)
     refine: bool = False                  # refine the estimate by bird's-eye alignment (satloc.align)
     align: AlignConfig = field(default_factory=AlignConfig)
-    track: bool = False                   # sequences: fuse each frame into a belief moved by odometry (satloc.track)
+    track: bool = False                   # sequences: fuse each frame into a belief moved by odometry (satloc.track);
+                                          # acted on by satloc.pipeline.localize and the environment; a direct
+                                          # localize()/localize_stream() call tracks when given a tracker
     tracking: TrackConfig = field(default_factory=TrackConfig)
 
     def __post_init__(self):
@@ -294,8 +299,8 @@ class Localizer:
 
         for obs in overlapped(observe, frames, enabled=overlap):
             if tracker is not None:
-                motion = next(odo, None)
-                if motion is None:
+                motion = next(odo, _END)
+                if motion is _END:
                     raise ConfigError("localize_stream: the odometry ran out before the frames")
                 tracker.predict(motion)
             if not isinstance(obs, ConfigError):
@@ -324,7 +329,8 @@ class Localizer:
                tracker: Tracker | None = None) -> Localization:
         """The posterior over the candidates (and the refined estimate) from an observation."""
         cfg = self.config
-        if tracker is not None and (candidates is not None or tracker.candidates.shape != self.candidates.shape):
+        if tracker is not None and (candidates is not None or not (
+                tracker.candidates is self.candidates or np.array_equal(tracker.candidates, self.candidates))):
             raise ConfigError("tracking needs the localizer's own candidates (make the tracker with "
                               "Localizer.tracker() and pass no candidates)")
         pv = obs.pv
@@ -349,6 +355,8 @@ class Localizer:
         peaks = posterior_peaks(out.candidates, out.posterior, a.peaks, a.peak_separation_m)
         if not peaks:
             return
+        if a.prior_weight > 0:  # a peak this much less probable cannot win (correlations lie in [-1, 1])
+            peaks = [i for i in peaks if out.posterior[i] >= out.posterior[peaks[0]] * math.exp(-2.0 / a.prior_weight)]
         prior = np.log(out.posterior[peaks] / out.posterior[peaks[0]])
         r = self.aligner.align(fmap, depth, [Pose2(*out.candidates[i]) for i in peaks], prior)
         if r is not None and r.correlation >= a.min_correlation:

@@ -9,8 +9,9 @@ image. :class:`Tracker` keeps a belief over the candidate poses of a :class:`sat
   frame, as the environment's ``odometry`` observation): every candidate is moved by the odometry and its
   probability spread over the candidates near where it lands, with a Gaussian of standard deviation
   ``sqrt(sigma_m**2 + (sigma_frac * distance)**2)`` and only onto candidates whose heading is within
-  ``heading_gate_deg`` of the moved heading. Probability moved off the candidate set (past the end of an
-  open path) is dropped. A fraction ``revive`` of the mass is spread uniformly, so that a belief that
+  ``heading_gate_deg`` of the moved heading. Each candidate's share is renormalised over the candidates it
+  reaches; a candidate that lands more than 3 sigma from any (past the end of an open path) loses its
+  probability, and if all of it is lost the belief becomes uniform. A fraction ``revive`` of the mass is spread uniformly, so that a belief that
   locked onto a wrong place (or a vehicle moved without odometry) recovers once images disagree with it;
 * **fuse** (a frame's co-occurrence posterior P(L | I)): belief × (P(L | I) + ``floor`` / C), normalised.
   The floor keeps candidates the localizer did not score (vote pruning gives them 0) alive.
@@ -19,7 +20,12 @@ The first frame's belief is its own posterior. The localizer's estimate (top-3 a
 refinement's peaks are then taken from the fused posterior: ``Localizer.localize(frame, tracker=...)`` and
 ``Localizer.localize_stream(frames, tracker=..., odometry=...)``.
 
-Measured on the Table 1 queries (README, "Tracking"): tracking removes the gross failures of single images.
+Measured on the Table 1 queries (README, "The method", tracking): tracking removes the gross failures of
+single images.
+
+The spread grows with the straight-line distance of the odometry, not with the distance driven: across a
+long stretch between two localized frames (a detour outside the map, a turn with ``localize_every`` > 1)
+it is too confident for real odometry, whose error grows with the distance driven.
 """
 from __future__ import annotations
 
@@ -67,6 +73,8 @@ def noisy_odometry(poses: np.ndarray, noise: tuple[float, float], seed: int = 0)
     """(N, 3) simulated odometry between consecutive ``poses`` (N, 3): the true relative motion plus Gaussian
     noise of std ``noise[0]`` times the distance (each axis) and ``noise[1]`` radians (heading), the
     environment's odometry model. Row 0 (no previous pose) and rows next to a pose with NaN are NaN."""
+    if len(noise) != 2 or min(noise) < 0:
+        raise ConfigError(f"odometry noise: expected 2 non-negative numbers (fraction, radians), got {noise}")
     poses = np.asarray(poses, np.float64)
     out = np.full((len(poses), 3), np.nan)
     rng = np.random.default_rng(seed)
@@ -132,10 +140,13 @@ class Tracker:
         if p.shape != (len(self.candidates),):
             raise ConfigError(f"tracker: posterior of shape {p.shape} does not match the {len(self.candidates)} "
                               "candidates (a tracker belongs to one localizer)")
+        if not np.all(np.isfinite(p)) or np.any(p < 0):
+            raise ConfigError("tracker: the posterior must be finite and non-negative")
+        own = p / p.sum() if p.sum() > 0 else np.full(len(p), 1.0 / len(p))
         if self.belief is None:
-            self.belief = p / p.sum() if p.sum() > 0 else np.full(len(p), 1.0 / len(p))
+            self.belief = own
             return self.belief.copy()
-        f = self.belief * (p / max(p.sum(), 1e-300) + self.config.floor / len(p))
+        f = self.belief * (own + self.config.floor / len(p))
         total = f.sum()
-        self.belief = f / total if total > 0 else np.full(len(p), 1.0 / len(p))
+        self.belief = f / total if total > 0 else own   # no overlap at all (floor 0): start from this frame
         return self.belief.copy()

@@ -108,7 +108,8 @@ class SatLocEnv(gym.Env):
 
     With ``localizer_track`` each localization is fused into a belief over the candidate poses that the
     odometry observations move between localizations (:mod:`satloc.track`): the posterior, estimate and
-    error are then the tracked ones. The belief starts again at every reset.
+    error are then the tracked ones. The belief starts again at every reset. A Localizer instance whose
+    ``config.track`` is set is tracked too.
 
     A frame in which no grid sample has valid stereo depth (e.g. a wall fills the view) has no result: the
     localizer raises :class:`satloc.ConfigError`, which is caught; ``estimate`` and ``error_m`` are NaN,
@@ -193,6 +194,8 @@ class SatLocEnv(gym.Env):
                                   "'none', 'auto', a directory written by `satloc build` or a "
                                   "satloc.localizer.Localizer")
             self.config = cfg = dataclasses.replace(cfg, localizer=str(p))
+        if cfg.localizer_track and loc is None:
+            raise ConfigError("localizer_track: tracking needs a localizer (localizer is None)")
         if cfg.localize_every < 1:
             raise ConfigError(f"localize_every: expected an integer >= 1, got {cfg.localize_every}")
         if cfg.reward == "neg_error" and loc is None:

@@ -61,6 +61,8 @@ class ExperimentConfig:
     odometry_seed: int = 0
 
     def __post_init__(self):
+        if len(self.odometry_noise) != 2 or min(self.odometry_noise) < 0:
+            raise ConfigError(f"odometry_noise: expected 2 non-negative numbers, got {list(self.odometry_noise)}")
         bad = [m for m in self.modes if m not in METHOD_NAMES]
         if bad:
             raise ConfigError(f"modes: unknown {bad}; expected a subset of {list(METHOD_NAMES)}")

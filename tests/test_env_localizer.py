@@ -166,6 +166,7 @@ def test_config_errors(loc, build_dir, tmp_path):
     bad = [
         (dict(reward="distance"), r"reward: expected one of \['none', 'neg_error'\]"),
         (dict(localizer=None, reward="neg_error"), "needs a localizer"),
+        (dict(localizer="none", localizer_track=True), "localizer_track: tracking needs a localizer"),
         (dict(localizer=None, localize_every=0), "localize_every: expected an integer >= 1"),
         (dict(localizer=str(build_dir), localizer_mode="fast"), "localizer_mode: expected one of"),
         (dict(localizer=str(tmp_path / "nope")), "is not a build directory"),

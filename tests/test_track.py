@@ -68,6 +68,23 @@ def test_predict_moves_the_belief_by_the_odometry_and_keeps_headings_apart():
     assert spread(t2.belief) > 1.5 * spread(b)
 
 
+def test_predict_follows_turns_and_sideways_motion():
+    # candidates on a counter-clockwise circle of radius 20 m, heading along it, on 3 lanes 1 m apart
+    th = np.arange(0.0, 2 * math.pi, 0.5 / 20.0)
+    cands = np.concatenate([np.stack([(20 + o) * np.cos(th), (20 + o) * np.sin(th), th + math.pi / 2], 1)
+                            for o in (-1.0, 0.0, 1.0)])
+    cands[:, 2] = np.vectorize(lambda a: math.atan2(math.sin(a), math.cos(a)))(cands[:, 2])
+    t = Tracker(cands, TrackConfig(sigma_m=0.3, sigma_frac=0.0, revive=0.0))
+    i, j = 10, len(th) + 70       # from the inner lane to the middle lane, 60 candidates (30 m) on
+    start = np.zeros(len(cands))
+    start[i] = 1.0
+    t.fuse(start)
+    t.predict(relative_motion(Pose2(*cands[i]), Pose2(*cands[j])))   # a turn with a sideways component
+    assert int(np.argmax(t.belief)) == j
+    assert abs(float(t.belief @ cands[:, 0]) - cands[j, 0]) < 0.15
+    assert abs(float(t.belief @ cands[:, 1]) - cands[j, 1]) < 0.15
+
+
 def test_tracking_resolves_aliasing_that_single_frames_cannot():
     cands = line_candidates()
     rng = np.random.default_rng(0)
@@ -114,6 +131,8 @@ def test_tracker_errors():
         TrackConfig(heading_gate_deg=0.0)
     with pytest.raises(ConfigError, match="revive"):
         TrackConfig(revive=1.0)
+    with pytest.raises(ConfigError, match="odometry noise: expected 2 non-negative"):
+        noisy_odometry(np.zeros((3, 3)), (-0.1, 0.0))
     with pytest.raises(ConfigError, match=r"non-empty \(C, 3\)"):
         Tracker(np.zeros((0, 3)))
     t = Tracker(cands)
@@ -123,6 +142,8 @@ def test_tracker_errors():
     for bad in (None, [1.0, 2.0], [np.nan, 0.0, 0.0]):
         with pytest.raises(ConfigError, match="odometry must be 3 finite numbers"):
             t.predict(bad)
+    with pytest.raises(ConfigError, match="finite and non-negative"):
+        t.fuse(np.full(len(cands), np.nan))
     t.reset()
     assert t.belief is None
 
@@ -143,8 +164,19 @@ def test_localizer_tracks_a_stream_like_single_calls():
     for a, b in zip(manual, streamed):
         assert a.estimate == b.estimate and np.array_equal(a.posterior, b.posterior)
     single = loc.localize(frames[-1])
-    assert not np.array_equal(single.posterior, manual[-1].posterior)   # the belief did change the answer
     assert single.inlier_score == manual[-1].inlier_score             # the inlier test stays the frame's
+    # the answer is the belief times the frame's posterior (plus the floor), renormalised
+    t_before = loc.tracker()
+    for f, o in zip(frames[:-1], odo[:-1]):
+        t_before.predict(o)
+        loc.localize(f, tracker=t_before)
+    t_before.predict(odo[-1])
+    prior = t_before.belief.copy()
+    fused = prior * (single.posterior + loc.config.tracking.floor / len(prior))
+    assert np.allclose(manual[-1].posterior, fused / fused.sum(), rtol=1e-9, atol=1e-15)
+    # a None first odometry row is a value (unused: no belief yet), not the end of the odometry
+    first = list(loc.localize_stream(frames, tracker=loc.tracker(), odometry=[None] + list(odo[1:])))
+    assert np.array_equal(first[-1].posterior, manual[-1].posterior)
     with pytest.raises(ConfigError, match="needs both a tracker and the odometry"):
         list(loc.localize_stream(frames, tracker=loc.tracker()))
     with pytest.raises(ConfigError, match="odometry ran out"):
