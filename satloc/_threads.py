@@ -36,7 +36,7 @@ def single_threaded_blas() -> Iterator[None]:
         yield
 
 
-_END = object()
+_END = object()  # the end of an iterator, where None may be a value
 
 
 def overlapped(fn: Callable[[T], R], items: Iterable[T], enabled: bool = True) -> Iterator[R]:

@@ -44,12 +44,9 @@ from .features import FeatureExtractor
 from .geometry import Pose2, StereoCamera
 from .nn import NNIndex
 from .projection import Projections
-from ._threads import overlapped, single_threaded_blas
+from ._threads import _END, overlapped, single_threaded_blas
 from .sequence import Frame
 from .track import TrackConfig, Tracker
-
-
-_END = object()  # end of an iterator (a None odometry row is a value)
 
 
 @dataclass(frozen=True)

@@ -11,6 +11,7 @@ from __future__ import annotations
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Callable
 
 import numpy as np
 from tqdm import tqdm
@@ -21,7 +22,7 @@ from .dictionary import Dictionary, GridConfig, SatelliteFeatures, build_diction
 from .errors import ConfigError
 from .features import make_extractor
 from .geometry import StereoCamera
-from .localizer import Localizer, LocalizerConfig
+from .localizer import Localization, Localizer, LocalizerConfig
 from .persist import read_json, save_npz, write_json, header
 from .projection import ProjectionConfig, Projections, plot_loss, train_projections
 from .satmap import SatelliteMap
@@ -103,13 +104,15 @@ def load_localizer(build_dir: str | Path, config: LocalizerConfig = LocalizerCon
 
 def localize(build_dir: str | Path, queries: str | Path, config: LocalizerConfig = LocalizerConfig(),
              out: str | Path | None = None, progress: bool = True, localizer: Localizer | None = None,
-             select: "np.ndarray | list[int] | None" = None, odometry: "np.ndarray | None" = None) -> dict:
+             select: "np.ndarray | list[int] | None" = None, odometry: "np.ndarray | None" = None,
+             on_result: Callable[[int, Localization], None] | None = None) -> dict:
     """Localize every frame of ``queries`` (or the frames ``select``); returns (and writes to ``out/``)
     estimates, errors, inlier decisions and the top of each posterior.
 
     With ``config.track`` the frames are tracked (:mod:`satloc.track`) and ``odometry`` (N, 3) gives, for each
     localized frame, the motion since the previous localized one (row 0 is not used); e.g.
-    :func:`satloc.track.noisy_odometry` of the frames' poses simulates it."""
+    :func:`satloc.track.noisy_odometry` of the frames' poses simulates it. ``on_result(i, localization)`` is
+    called for each frame localized (``i``: its position in ``select``), e.g. to keep posteriors to draw."""
     loc = localizer or load_localizer(build_dir, config, progress=progress)
     seq = Sequence.load(queries) if not isinstance(queries, Sequence) else queries
     idx = np.arange(len(seq)) if select is None else np.asarray(select, dtype=np.int64)
@@ -142,6 +145,8 @@ def localize(build_dir: str | Path, queries: str | Path, config: LocalizerConfig
             continue
         est[i] = r.estimate.as_array()
         inl_score[i], inl[i] = r.inlier_score, r.inlier
+        if on_result is not None:
+            on_result(i, r)
         top_poses[i], top_probs[i] = r.top(k)
     secs = time.perf_counter() - t0
     err = np.hypot(est[:, 0] - truth[:, 0], est[:, 1] - truth[:, 1])

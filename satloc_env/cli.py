@@ -165,17 +165,17 @@ def cmd_localize(args) -> int:
 
     cfg = _stage_config(LocalizerConfig, args.config, {"mode": args.mode, "refine": True if args.refine else None,
                                                        "track": True if args.track else None})
-    odometry = None
+    odometry, queries = None, args.queries
     if cfg.track:  # simulated odometry: the true motion between the sequence's frames, with noise
         from satloc.sequence import Sequence
         from satloc.track import noisy_odometry
 
-        seq = Sequence.load(args.queries)
+        seq = queries = Sequence.load(args.queries)
         if not np.all(np.isfinite(seq.poses)):
             raise SatlocError(f"{args.queries}: --track simulates odometry from the frames' poses, and some "
                               "frames have none")
         odometry = noisy_odometry(seq.poses, tuple(args.odometry_noise), args.odometry_seed)
-    s = localize(args.build, args.queries, cfg, args.out or args.build, progress=not args.quiet, odometry=odometry)
+    s = localize(args.build, queries, cfg, args.out or args.build, progress=not args.quiet, odometry=odometry)
     s.pop("errors")
     print(json.dumps(s))
     return 0

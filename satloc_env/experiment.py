@@ -139,7 +139,9 @@ def run_scene(cfg: ExperimentConfig, out: str | Path, progress: bool = True, log
         t = time.perf_counter()
         loc = load_localizer(bdir, lc, progress=progress)
         t_init = time.perf_counter() - t
-        s = localize(bdir, q, lc, out, progress, localizer=loc, select=sel, odometry=odo)
+        kept: dict[int, Localization] = {}   # every result, to draw a few posteriors without localizing again
+        s = localize(bdir, q, lc, out, progress, localizer=loc, select=sel, odometry=odo,
+                     on_result=kept.__setitem__)
         err = s.pop("errors")
         s.update(localizer_init_s=round(t_init, 2), within_1m=float(np.mean(err < 1.0)),
                  within_10m=float(np.mean(err < 10.0)))
@@ -150,14 +152,8 @@ def run_scene(cfg: ExperimentConfig, out: str | Path, progress: bool = True, log
         # a few posteriors to draw: the best, a median and the worst query of this mode
         order = np.argsort(np.nan_to_num(err, nan=1e9))
         picks = sorted({int(order[0]), int(order[len(order) // 2]), int(order[-1])})
-        if lc.track:  # a tracked posterior needs the frames before it: run the sequence again up to the last pick
-            stream = loc.localize_stream((q[int(j)] for j in sel[: picks[-1] + 1]), errors="yield",
-                                         tracker=loc.tracker(), odometry=odo[: picks[-1] + 1])
-            kept = {i: r for i, r in enumerate(stream) if i in picks}
-            examples[mode] = [(int(sel[i]), r) for i, r in kept.items() if isinstance(r, Localization)]
-        else:
-            examples[mode] = [(int(sel[i]), loc.localize(q[int(sel[i])])) for i in picks]
-        del loc
+        examples[mode] = [(int(sel[i]), kept[i]) for i in picks if i in kept]
+        del loc, kept
     summary = {"scene": cfg.scene, "config": to_dict(cfg), "database_frames": len(db),
                "database_m": round(db.path_length(), 1), "queries": int(len(sel)),
                "times_s": {k: round(v, 1) for k, v in times.items()}, "modes": results}
