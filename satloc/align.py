@@ -15,12 +15,16 @@ candidates 0.5 m apart with the heading of the path. This stage re-checks its fe
    searched over the heading offsets too. The answer is its aligned pose, or the co-occurrence estimate
    where it correlates less than ``min_correlation``.
 
+:meth:`BevAligner.scan` computes the same correlation at every candidate pose of the map at once, a
+likelihood from the ground view alone (used to measure perceptual aliasing).
+
 The channels compared are features both views already have: the bilateral RGB as grey level (the default;
 normalised cross-correlation is blind to the gain and offset of another exposure) and, optionally, the edge
 potentials.
 """
 from __future__ import annotations
 
+import hashlib
 import math
 from dataclasses import dataclass
 
@@ -174,6 +178,73 @@ class BevAligner:
             if c > results[k][0]:
                 results[k] = (c, p)
         return Alignment(results[k][1], results[k][0], k, n)
+
+
+    def scan(self, features: np.ndarray, depth: np.ndarray, candidates: np.ndarray, search_m: float = 1.0,
+             yaw_bin_deg: float = 2.0) -> np.ndarray | None:
+        """Bird's-eye correlation of one query at every candidate pose: (C,) best masked NCC within
+        ``search_m`` (each axis) of each candidate's position, at its heading rounded to ``yaw_bin_deg``;
+        None where too little ground is seen.
+
+        A likelihood over the whole map from the ground view alone, independent of the dictionary (used to
+        measure perceptual aliasing, :func:`satloc_env.experiment.aliasing`). Candidates are grouped by heading
+        bin and by connected stretches of path; each group's satellite crop is resampled once per candidate
+        set (cached) and slid under the BEV by one ``cv2.matchTemplate``, so the cost grows with the length of
+        path, not with the number of candidates."""
+        if search_m < 0 or yaw_bin_deg <= 0:
+            raise ConfigError(f"scan: search_m >= 0 and yaw_bin_deg > 0 required, got {search_m}, {yaw_bin_deg}")
+        chans, mask = self.bev(features, depth)
+        if int(mask.sum()) < self.config.min_cells:
+            return None
+        cand = np.asarray(candidates, np.float64)
+        key = (cand.shape, hashlib.blake2b(np.ascontiguousarray(cand).tobytes(), digest_size=16).digest(),
+               float(search_m), float(yaw_bin_deg))
+        if getattr(self, "_scan_key", None) != key:
+            self._scan_groups, self._scan_key = self._scan_plan(cand, search_m, yaw_bin_deg), key
+        m = int(math.ceil(search_m / self.res))
+        kernel = np.ones((2 * m + 1, 2 * m + 1), np.uint8)
+        out = np.full(len(cand), -1.0)
+        for idx, crops, ri, rj in self._scan_groups:
+            r = sum(cv2.matchTemplate(cr, t, cv2.TM_CCOEFF_NORMED, mask=mask) for cr, t in zip(crops, chans)) / len(chans)
+            r = cv2.dilate(np.nan_to_num(r, nan=-1.0, posinf=-1.0, neginf=-1.0).astype(np.float32), kernel)
+            out[idx] = r[ri, rj]
+        return out
+
+    def _scan_plan(self, cand: np.ndarray, search_m: float, yaw_bin_deg: float) -> list:
+        """Groups of candidates (same heading bin, connected within 2 m) with their rotated satellite crops
+        and each candidate's cell in the correlation map."""
+        from scipy.sparse.csgraph import connected_components
+        from scipy.spatial import cKDTree
+
+        m = int(math.ceil(search_m / self.res))
+        nx, ny = self.shape
+        nbins = max(1, int(round(360.0 / yaw_bin_deg)))
+        ybin = np.round(np.degrees(cand[:, 2]) / (360.0 / nbins)).astype(np.int64) % nbins
+        groups = []
+        for b in np.unique(ybin):
+            sel = np.flatnonzero(ybin == b)
+            _, comp = connected_components(cKDTree(cand[sel, :2]).sparse_distance_matrix(
+                cKDTree(cand[sel, :2]), 2.0, output_type="coo_matrix"), directed=False)
+            th = math.radians(b * 360.0 / nbins)
+            c, s = math.cos(th), math.sin(th)
+            for k in np.unique(comp):
+                idx = sel[comp == k]
+                a = cand[idx, 0] * c + cand[idx, 1] * s          # along the heading
+                l = -cand[idx, 0] * s + cand[idx, 1] * c         # to its left
+                a0, l0 = a.min() + self.x0 - m * self.res, l.min() + self.y0 - m * self.res
+                na = int(math.ceil((a.max() - a.min()) / self.res)) + nx + 2 * m + 1
+                nl = int(math.ceil((l.max() - l.min()) / self.res)) + ny + 2 * m + 1
+                A, L = np.meshgrid(a0 + self.res * np.arange(na), l0 + self.res * np.arange(nl), indexing="ij")
+                mu = ((A * c - L * s - self.origin[0]) / self.res - 0.5).astype(np.float32)
+                mv = ((self.origin[1] - (A * s + L * c)) / self.res - 0.5).astype(np.float32)
+                crops = [cv2.remap(ch, mu, mv, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=0)
+                         for ch in self.sat]
+                # the template's first cell (x0, y0 in the vehicle frame) sits at crop cell (i, j) for a vehicle
+                # at a = a0 + i * res - x0, l = l0 + j * res - y0
+                ri = np.clip(np.round((a + self.x0 - a0) / self.res).astype(np.int64), 0, na - nx)
+                rj = np.clip(np.round((l + self.y0 - l0) / self.res).astype(np.int64), 0, nl - ny)
+                groups.append((idx, crops, ri, rj))
+        return groups
 
 
 def _parabola_peak(a: float, b: float, c: float) -> float:

@@ -62,7 +62,7 @@ def cmd_demo(args) -> int:
 
 
 def cmd_experiment(args) -> int:
-    from satloc_env.experiment import markdown_table, table1
+    from satloc_env.experiment import aliasing, markdown_table, table1
 
     import yaml
 
@@ -73,6 +73,11 @@ def cmd_experiment(args) -> int:
             raise SatlocError(f"{p}: config file not found")
         config = yaml.safe_load(p.read_text()) or {}
     log = (lambda *a, **k: None) if args.quiet else (lambda m: print(m, file=sys.stderr, flush=True))
+    if args.which == "aliasing":
+        aliasing(args.out, tuple(args.scenes), config, progress=not args.quiet, log=log)
+        print((Path(args.out) / "aliasing.md").read_text(), end="")
+        print(f"written: {Path(args.out) / 'aliasing.csv'}")
+        return 0
     rows = table1(args.out, tuple(args.scenes), config, progress=not args.quiet, log=log)
     print(markdown_table(rows), end="")
     print(f"written: {Path(args.out) / 'table1.csv'}")
@@ -196,8 +201,9 @@ def build_parser() -> argparse.ArgumentParser:
     d.add_argument("--quiet", action="store_true")
     d.set_defaults(func=cmd_demo)
 
-    ex = sub.add_parser("experiment", help="paper experiments on simulated scenes (table1)")
-    ex.add_argument("which", choices=["table1"])
+    ex = sub.add_parser("experiment", help="paper experiments on simulated scenes: table1; aliasing (how often "
+                                           "each single-image cue prefers a look-alike place)")
+    ex.add_argument("which", choices=["table1", "aliasing"])
     ex.add_argument("--out", required=True)
     ex.add_argument("--scenes", nargs="+", default=["city", "residential"])
     ex.add_argument("--config", help="YAML with ExperimentConfig fields (satloc_env/experiment.py)")

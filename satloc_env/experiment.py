@@ -5,7 +5,8 @@ lane, with other appearance and occluders), builds the dictionary, learns the pr
 queries with the ablations GO, NP and full (single images, refined by bird's-eye alignment, and tracked
 over the query sequence with simulated odometry), and writes per-mode results and pictures. :func:`table1` runs it
 on several scenes and writes ``table1.csv`` (``method,scene,mean_m,std_m``). ``satloc demo`` and ``satloc
-experiment table1`` call these.
+experiment table1`` call these. :func:`aliasing` (``satloc experiment aliasing``) measures, on the same
+folders, how often each single-image cue scores a place more than 10 m away above the truth.
 
 Every stage's output is kept in the experiment folder and reused when the folder is run again with the same
 configuration (delete the folder to start over).
@@ -91,9 +92,9 @@ def covered_queries(db: Sequence, q: Sequence, radius_m: float) -> np.ndarray:
     return np.flatnonzero(d <= radius_m)
 
 
-def run_scene(cfg: ExperimentConfig, out: str | Path, progress: bool = True, log=print) -> dict:
-    """Record, build, learn, localize (each mode) and draw; returns the per-mode summaries."""
-    out = Path(out)
+def _stages(cfg: ExperimentConfig, out: Path, progress: bool, log) -> tuple[Sequence, Sequence, Path, dict]:
+    """Record, build and learn (each stage skipped where its output is already there with the same
+    configuration); the database and query passes, the build folder and the stage times."""
     out.mkdir(parents=True, exist_ok=True)
     rec = RecordConfig(scene=cfg.scene, aliasing=cfg.aliasing,
                        database=PassConfig(max_frames=cfg.database_frames),
@@ -125,9 +126,21 @@ def run_scene(cfg: ExperimentConfig, out: str | Path, progress: bool = True, log
             train_projection(bdir, cfg.projection, progress)
             _stamp(out / "projection_stage.json", pc)
     times["projection_s"] = time.perf_counter() - t
+    return db, q, bdir, times
+
+
+def _covered(cfg: ExperimentConfig, db: Sequence, q: Sequence) -> np.ndarray:
     sel = covered_queries(db, q, cfg.coverage_m)
     if len(sel) == 0:
         raise ConfigError(f"[{cfg.scene}] no query frame lies within {cfg.coverage_m} m of the database path")
+    return sel
+
+
+def run_scene(cfg: ExperimentConfig, out: str | Path, progress: bool = True, log=print) -> dict:
+    """Record, build, learn, localize (each mode) and draw; returns the per-mode summaries."""
+    out = Path(out)
+    db, q, bdir, times = _stages(cfg, out, progress, log)
+    sel = _covered(cfg, db, q)
     # tracked modes: odometry between consecutive evaluated queries, simulated from their true poses
     odo = noisy_odometry(q.poses[sel], cfg.odometry_noise, cfg.odometry_seed)
     results: dict[str, dict] = {}
@@ -195,6 +208,131 @@ def table1(out: str | Path, scenes: tuple[str, ...] = ("city", "residential"), c
     write_json(out / "table1.json", {"format": "table1", "rows": rows})
     with atomic_path(out / "table1.md", suffix=".md") as tmp:
         tmp.write_text(markdown_table(rows))
+    return rows
+
+
+# single-image separability (``satloc experiment aliasing``): where does a cue put the truth against look-alikes?
+NEAR_M, NEAR_YAW_DEG, FAR_M = 2.0, 20.0, 10.0
+
+
+def aliasing_scene(cfg: ExperimentConfig, out: str | Path, progress: bool = True, log=print) -> dict:
+    """Single-image perceptual aliasing on one scene, cue by cue.
+
+    For every evaluated query and each cue, the *margin* compares the best candidate pose near the truth
+    (within ``NEAR_M`` m and ``NEAR_YAW_DEG`` degrees) with the best candidate more than ``FAR_M`` m away:
+
+    * co-occurrence cues (the modes GO, NP, full of ``cfg.modes``): log P(near) - log P(far), the posterior
+      computed over *all* candidates (no vote pruning, no refinement, no tracking);
+    * ``bev``: bird's-eye correlation of the query's ground view with the satellite image at every candidate
+      (:meth:`satloc.align.BevAligner.scan`), NCC(near) - NCC(far).
+
+    A margin <= 0 means that cue, alone, prefers a place more than ``FAR_M`` m away: a gross failure no
+    refinement of that cue can undo. Writes ``aliasing.json`` (per-query margins) and ``aliasing.png`` into
+    ``out``; returns the summary."""
+    out = Path(out)
+    db, q, bdir, _ = _stages(cfg, out, progress, log)
+    sel = _covered(cfg, db, q)
+    bases = list(dict.fromkeys(m.split("+")[0] for m in cfg.modes))
+    locs = {b: load_localizer(bdir, from_dict(LocalizerConfig, dict(cfg.localizer, mode=b, prune_regions=0,
+                                                                    refine=False, track=False),
+                                              "experiment localizer"), progress=progress) for b in bases}
+    any_loc = next(iter(locs.values()))
+    cands = any_loc.candidates
+    cues = bases + ["bev"]
+    margins = {c: np.full(len(sel), np.nan) for c in cues}
+    from tqdm import tqdm
+
+    t = time.perf_counter()
+    for n, qi in enumerate(tqdm(sel, desc=f"{cfg.scene} aliasing", unit="query", disable=not progress, leave=False)):
+        f = q[int(qi)]
+        d = np.hypot(cands[:, 0] - f.pose.x, cands[:, 1] - f.pose.y)
+        dyaw = np.abs((cands[:, 2] - f.pose.yaw + np.pi) % (2 * np.pi) - np.pi)
+        near, far = (d <= NEAR_M) & (dyaw <= np.radians(NEAR_YAW_DEG)), d > FAR_M
+        if not near.any() or not far.any():
+            continue
+        for b, loc in locs.items():
+            try:
+                p = loc.localize(f).posterior
+            except ConfigError:
+                continue
+            margins[b][n] = float(np.log(max(p[near].max(), 1e-300)) - np.log(max(p[far].max(), 1e-300)))
+        corr = any_loc.aligner.scan(any_loc.extractor(f.left, "ground"), any_loc.depth(f), cands)
+        if corr is not None:
+            margins["bev"][n] = float(corr[near].max() - corr[far].max())
+    elapsed = time.perf_counter() - t
+    valid = np.all([np.isfinite(margins[c]) for c in cues], axis=0)
+    lost = {c: margins[c] <= 0 for c in cues}
+    lost_cooc = np.all([lost[b] for b in bases], axis=0) & valid
+    lost_all = lost_cooc & lost["bev"]
+    summary = {"scene": cfg.scene, "queries": int(len(sel)), "measured": int(valid.sum()),
+               "near_m": NEAR_M, "near_yaw_deg": NEAR_YAW_DEG, "far_m": FAR_M, "seconds": round(elapsed, 1),
+               "cues": {c: {"far_wins": int((lost[c] & valid).sum()),
+                            "median_margin": float(np.median(margins[c][valid])) if valid.any() else None}
+                        for c in cues},
+               "lost_by_every_cooccurrence_mode": [int(sel[i]) for i in np.flatnonzero(lost_cooc)],
+               "lost_by_every_cue": [int(sel[i]) for i in np.flatnonzero(lost_all)],
+               "frames": [int(i) for i in sel],
+               "margins": {c: [None if not np.isfinite(v) else round(float(v), 4) for v in margins[c]] for c in cues}}
+    write_json(out / "aliasing.json", summary)
+    _plot_margins(q, sel, margins, bases, out / "aliasing.png", cfg.scene)
+    return summary
+
+
+def _plot_margins(q: Sequence, sel: np.ndarray, margins: dict, bases: list[str], path: Path, scene: str) -> None:
+    from satloc.plots import _pyplot, _save
+
+    plt = _pyplot()
+    p = np.nan_to_num(q.poses[:, :2])
+    s = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(p, axis=0), axis=1))])[sel]
+    fig, axes = plt.subplots(2, 1, figsize=(10, 6), sharex=True)
+    for b in bases:
+        m = margins[b]
+        axes[0].plot(s, m, ".-", lw=0.8, ms=4, label=f"{b}: far place wins {int((m <= 0).sum())}x")
+    m = margins["bev"]
+    axes[1].plot(s, m, ".-", lw=0.8, ms=4, color="tab:purple", label=f"bev: far place wins {int((m <= 0).sum())}x")
+    axes[0].set_ylabel("log P(near truth) - log P(> 10 m)")
+    axes[1].set_ylabel("NCC(near truth) - NCC(> 10 m)")
+    axes[1].set_xlabel("query position along the pass (m)")
+    for ax in axes:
+        ax.axhline(0.0, color="red", lw=0.8)
+        ax.grid(True, alpha=0.3)
+        ax.legend(fontsize=8, loc="upper right")
+    fig.suptitle(f"{scene}: single-image margin of the truth over the best place more than {FAR_M:.0f} m away "
+                 "(below the red line: a look-alike wins)")
+    _save(fig, path)
+    plt.close(fig)
+
+
+def aliasing(out: str | Path, scenes: tuple[str, ...] = ("city", "residential"), config: dict | None = None,
+             progress: bool = True, log=print) -> list[dict]:
+    """Run :func:`aliasing_scene` on each scene (in ``out/<scene>``, the same stages as :func:`table1`, reused
+    when already there); write ``aliasing.csv`` (scene,cue,queries,far_wins,median_margin) and ``aliasing.md``
+    into ``out``; return the rows."""
+    out = Path(out)
+    rows = []
+    for scene in scenes:
+        cfg = from_dict(ExperimentConfig, dict(config or {}, scene=scene), "experiment config")
+        s = aliasing_scene(cfg, out / scene, progress, log)
+        for cue, c in s["cues"].items():
+            rows.append({"scene": scene, "cue": cue, "queries": s["measured"], "far_wins": c["far_wins"],
+                         "median_margin": round(c["median_margin"], 3) if c["median_margin"] is not None else None})
+        rows.append({"scene": scene, "cue": "every co-occurrence mode", "queries": s["measured"],
+                     "far_wins": len(s["lost_by_every_cooccurrence_mode"]), "median_margin": None})
+        rows.append({"scene": scene, "cue": "every cue", "queries": s["measured"],
+                     "far_wins": len(s["lost_by_every_cue"]), "median_margin": None})
+        log(f"[{scene}] queries where every cue prefers a place > {FAR_M:.0f} m away: {s['lost_by_every_cue']}")
+    with atomic_path(out / "aliasing.csv", suffix=".csv") as tmp:
+        with open(tmp, "w", newline="") as f:
+            w = csv.writer(f)
+            w.writerow(["scene", "cue", "queries", "far_wins", "median_margin"])
+            for r in rows:
+                w.writerow([r["scene"], r["cue"], r["queries"], r["far_wins"],
+                            "" if r["median_margin"] is None else f"{r['median_margin']:.3f}"])
+    lines = ["| scene | cue | queries | a place > 10 m away wins | median margin |", "|---|---|---|---|---|"]
+    lines += [f"| {r['scene']} | {r['cue']} | {r['queries']} | {r['far_wins']} | "
+              f"{'' if r['median_margin'] is None else r['median_margin']} |" for r in rows]
+    with atomic_path(out / "aliasing.md", suffix=".md") as tmp:
+        tmp.write_text("\n".join(lines) + "\n")
     return rows
 
 

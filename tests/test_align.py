@@ -88,3 +88,34 @@ def test_posterior_peaks_are_separated():
     assert posterior_peaks(cands, post, 2, 6.0) == [0, 2]
     assert posterior_peaks(cands, post, 5, 6.0) == [0, 2, 3]
     assert posterior_peaks(cands, np.zeros(4), 3, 6.0) == []
+
+
+def test_scan_scores_every_candidate_and_peaks_at_the_truth():
+    cam = StereoCamera.kitti_half()
+    feats, mpp, origin = textured_map()
+    truth = Pose2(60.0, 55.0, math.radians(20.0))
+    img, depth = render_ground(cam, feats, mpp, origin, truth)
+    al = BevAligner(cam, feats, mpp, origin, AlignConfig())
+    # candidates along two paths: one through the truth (heading 20 deg), one elsewhere (heading 110 deg)
+    s = np.arange(-20.0, 20.01, 0.5)
+    h1, h2 = math.radians(20.0), math.radians(110.0)
+    path1 = np.stack([truth.x + s * math.cos(h1), truth.y + s * math.sin(h1), np.full_like(s, h1)], 1)
+    path2 = np.stack([40.0 + s * math.cos(h2), 70.0 + s * math.sin(h2), np.full_like(s, h2)], 1)
+    cands = np.concatenate([path2, path1])
+    corr = al.scan(img, depth, cands, search_m=1.0)
+    assert corr.shape == (len(cands),)
+    best = int(np.argmax(corr))      # every candidate within the search window of the truth scores its peak
+    assert np.hypot(*(cands[best, :2] - [truth.x, truth.y])) <= 1.0 + 1e-6
+    exact = al.scan(img, depth, cands, search_m=0.0)
+    assert np.hypot(*(cands[int(np.argmax(exact)), :2] - [truth.x, truth.y])) < 1e-6
+    # at the truth it is the aligner's own correlation there
+    at_truth = int(np.argmin(np.hypot(cands[:, 0] - truth.x, cands[:, 1] - truth.y)))
+    ref, _ = al.correlate(*al.bev(img, depth), truth, (0.0,))
+    assert corr[at_truth] == pytest.approx(ref, abs=0.02) and ref > 0.8
+    assert corr[: len(path2)].max() < ref - 0.3
+    # cached plan: the same answer the second time; a view without ground gives None
+    assert np.array_equal(al.scan(img, depth, cands, search_m=1.0), corr)
+    wall = np.full((cam.height, cam.width), 3.0, np.float32)
+    assert al.scan(img, wall, cands) is None
+    with pytest.raises(ConfigError, match="scan"):
+        al.scan(img, depth, cands, yaw_bin_deg=0.0)

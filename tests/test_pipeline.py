@@ -3,6 +3,7 @@ import json
 
 import numpy as np
 import pytest
+import yaml
 
 from satloc import Sequence
 from satloc.pipeline import BuildConfig, build, load_localizer, localize, train_projection
@@ -105,3 +106,30 @@ def test_demo_and_table1_on_a_tiny_section(tmp_path, capsys):
     assert (tmp_path / "t1" / "city" / "record.json").stat().st_mtime_ns == stamp
     with pytest.raises(Exception, match="unknown key"):
         table1(tmp_path / "t2", ("city",), {"databse_frames": 20}, progress=False)
+    # the aliasing diagnostic, from the command line, on the same folder: its stages are reused
+    (tmp_path / "small.yaml").write_text(yaml.safe_dump(small))
+    assert main(["experiment", "aliasing", "--out", str(tmp_path / "t1"), "--scenes", "city", "--config",
+                 str(tmp_path / "small.yaml"), "--quiet"]) == 0
+    assert (tmp_path / "t1" / "city" / "record.json").stat().st_mtime_ns == stamp
+    assert "| city | bev |" in capsys.readouterr().out
+    lines = (tmp_path / "t1" / "aliasing.csv").read_text().splitlines()
+    assert lines[0] == "scene,cue,queries,far_wins,median_margin"
+    assert [ln.split(",")[1] for ln in lines[1:]] == ["go", "full", "bev", "every co-occurrence mode", "every cue"]
+    al = json.loads((tmp_path / "t1" / "city" / "aliasing.json").read_text())
+    assert al["measured"] >= 2 and len(al["frames"]) == al["queries"]
+    for cue in ("go", "full", "bev"):
+        m = np.array([np.nan if v is None else v for v in al["margins"][cue]])
+        assert np.isfinite(m).sum() >= al["measured"] and al["cues"][cue]["far_wins"] == int((m <= 0).sum())
+    # the GO margin of the first query, recomputed from the unpruned posterior (definition in aliasing_scene)
+    from satloc_env.experiment import FAR_M, NEAR_M, NEAR_YAW_DEG
+
+    t1 = tmp_path / "t1" / "city"
+    loc = load_localizer(t1 / "build", LocalizerConfig(mode="go", prune_regions=0))
+    f = Sequence.load(t1 / "rec" / "query")[al["frames"][0]]
+    post, c = loc.localize(f).posterior, loc.candidates
+    d = np.hypot(c[:, 0] - f.pose.x, c[:, 1] - f.pose.y)
+    near = (d <= NEAR_M) & (np.abs(np.angle(np.exp(1j * (c[:, 2] - f.pose.yaw)))) <= np.radians(NEAR_YAW_DEG))
+    assert al["margins"]["go"][0] == pytest.approx(np.log(post[near].max() / post[d > FAR_M].max()), abs=1e-3)
+    # the ground view's bird's-eye correlation puts the truth first on every query of this section
+    assert al["cues"]["bev"]["far_wins"] == 0
+    assert (tmp_path / "t1" / "city" / "aliasing.png").stat().st_size > 5000
