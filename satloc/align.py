@@ -108,6 +108,8 @@ class BevAligner:
         self._crop_x, self._crop_y = np.meshgrid(self.x0 + self.res * np.arange(-self.margin, nx + self.margin),
                                                  self.y0 + self.res * np.arange(-self.margin, ny + self.margin),
                                                  indexing="ij")
+        self._scan_key: tuple | None = None     # the candidate set whose scan plan is cached
+        self._scan_groups: list = []
 
     def bev(self, features: np.ndarray, depth: np.ndarray) -> tuple[list[np.ndarray], np.ndarray]:
         """The query's BEV channels and the mask (float32, 1 where the ground is seen, else 0)."""
@@ -199,7 +201,7 @@ class BevAligner:
         cand = np.asarray(candidates, np.float64)
         key = (cand.shape, hashlib.blake2b(np.ascontiguousarray(cand).tobytes(), digest_size=16).digest(),
                float(search_m), float(yaw_bin_deg))
-        if getattr(self, "_scan_key", None) != key:
+        if self._scan_key != key:
             self._scan_groups, self._scan_key = self._scan_plan(cand, search_m, yaw_bin_deg), key
         m = int(math.ceil(search_m / self.res))
         kernel = np.ones((2 * m + 1, 2 * m + 1), np.uint8)
