@@ -185,16 +185,18 @@ class BevAligner:
     def scan(self, features: np.ndarray, depth: np.ndarray, candidates: np.ndarray, search_m: float = 1.0,
              yaw_bin_deg: float = 2.0) -> np.ndarray | None:
         """Bird's-eye correlation of one query at every candidate pose: (C,) best masked NCC within
-        ``search_m`` (each axis) of each candidate's position, at its heading rounded to ``yaw_bin_deg``;
-        None where too little ground is seen.
+        ``search_m`` (each axis) of each candidate's position, at its heading rounded to a bin of
+        360 / round(360 / ``yaw_bin_deg``) degrees, the position snapped to the map's pixel lattice of its
+        group; None where too little ground is seen.
 
         A likelihood over the whole map from the ground view alone, independent of the dictionary (used to
         measure perceptual aliasing, :func:`satloc_env.experiment.aliasing`). Candidates are grouped by heading
         bin and by connected stretches of path; each group's satellite crop is resampled once per candidate
         set (cached) and slid under the BEV by one ``cv2.matchTemplate``, so the cost grows with the length of
         path, not with the number of candidates."""
-        if search_m < 0 or yaw_bin_deg <= 0:
-            raise ConfigError(f"scan: search_m >= 0 and yaw_bin_deg > 0 required, got {search_m}, {yaw_bin_deg}")
+        if search_m < 0 or not 0 < yaw_bin_deg <= 10:
+            raise ConfigError(f"scan: expected search_m >= 0 and 0 < yaw_bin_deg <= 10 (wider bins turn the view "
+                              f"too far from a candidate's heading), got {search_m}, {yaw_bin_deg}")
         chans, mask = self.bev(features, depth)
         if int(mask.sum()) < self.config.min_cells:
             return None

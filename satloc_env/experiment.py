@@ -272,9 +272,10 @@ def aliasing_scene(cfg: ExperimentConfig, out: str | Path, progress: bool = True
                "lost_by_every_cooccurrence_mode": [int(sel[i]) for i in np.flatnonzero(lost_cooc)],
                "lost_by_every_cue": [int(sel[i]) for i in np.flatnonzero(lost_all)],
                "frames": [int(i) for i in sel],
+               "measured_mask": [bool(v) for v in valid],    # every cue measured (the counts are over these)
                "margins": {c: [None if not np.isfinite(v) else round(float(v), 4) for v in margins[c]] for c in cues}}
     write_json(out / "aliasing.json", summary)
-    _plot_margins(q, sel, margins, bases, out / "aliasing.png", cfg.scene)
+    _plot_margins(q, sel[valid], {c: m[valid] for c, m in margins.items()}, bases, out / "aliasing.png", cfg.scene)
     return summary
 
 
@@ -306,7 +307,7 @@ def _plot_margins(q: Sequence, sel: np.ndarray, margins: dict, bases: list[str],
 def aliasing(out: str | Path, scenes: tuple[str, ...] = ("city", "residential"), config: dict | None = None,
              progress: bool = True, log=print) -> list[dict]:
     """Run :func:`aliasing_scene` on each scene (in ``out/<scene>``, the same stages as :func:`table1`, reused
-    when already there); write ``aliasing.csv`` (scene,cue,queries,far_wins,median_margin) and ``aliasing.md``
+    when already there); write ``aliasing.csv`` (scene,cue,measured,far_wins,median_margin) and ``aliasing.md``
     into ``out``; return the rows."""
     out = Path(out)
     rows = []
@@ -314,22 +315,22 @@ def aliasing(out: str | Path, scenes: tuple[str, ...] = ("city", "residential"),
         cfg = from_dict(ExperimentConfig, dict(config or {}, scene=scene), "experiment config")
         s = aliasing_scene(cfg, out / scene, progress, log)
         for cue, c in s["cues"].items():
-            rows.append({"scene": scene, "cue": cue, "queries": s["measured"], "far_wins": c["far_wins"],
+            rows.append({"scene": scene, "cue": cue, "measured": s["measured"], "far_wins": c["far_wins"],
                          "median_margin": round(c["median_margin"], 3) if c["median_margin"] is not None else None})
-        rows.append({"scene": scene, "cue": "every co-occurrence mode", "queries": s["measured"],
+        rows.append({"scene": scene, "cue": "every co-occurrence mode", "measured": s["measured"],
                      "far_wins": len(s["lost_by_every_cooccurrence_mode"]), "median_margin": None})
-        rows.append({"scene": scene, "cue": "every cue", "queries": s["measured"],
+        rows.append({"scene": scene, "cue": "every cue", "measured": s["measured"],
                      "far_wins": len(s["lost_by_every_cue"]), "median_margin": None})
         log(f"[{scene}] queries where every cue prefers a place > {FAR_M:.0f} m away: {s['lost_by_every_cue']}")
     with atomic_path(out / "aliasing.csv", suffix=".csv") as tmp:
         with open(tmp, "w", newline="") as f:
             w = csv.writer(f)
-            w.writerow(["scene", "cue", "queries", "far_wins", "median_margin"])
+            w.writerow(["scene", "cue", "measured", "far_wins", "median_margin"])
             for r in rows:
-                w.writerow([r["scene"], r["cue"], r["queries"], r["far_wins"],
+                w.writerow([r["scene"], r["cue"], r["measured"], r["far_wins"],
                             "" if r["median_margin"] is None else f"{r['median_margin']:.3f}"])
-    lines = ["| scene | cue | queries | a place > 10 m away wins | median margin |", "|---|---|---|---|---|"]
-    lines += [f"| {r['scene']} | {r['cue']} | {r['queries']} | {r['far_wins']} | "
+    lines = ["| scene | cue | queries measured | a place > 10 m away wins | median margin |", "|---|---|---|---|---|"]
+    lines += [f"| {r['scene']} | {r['cue']} | {r['measured']} | {r['far_wins']} | "
               f"{'' if r['median_margin'] is None else r['median_margin']} |" for r in rows]
     with atomic_path(out / "aliasing.md", suffix=".md") as tmp:
         tmp.write_text("\n".join(lines) + "\n")

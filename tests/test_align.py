@@ -90,7 +90,36 @@ def test_posterior_peaks_are_separated():
     assert posterior_peaks(cands, np.zeros(4), 3, 6.0) == []
 
 
-def test_scan_scores_every_candidate_and_peaks_at_the_truth():
+def test_scan_is_the_correlation_at_every_candidate():
+    cam = StereoCamera.kitti_half()
+    feats, mpp, origin = textured_map()
+    truth = Pose2(60.0, 55.0, math.radians(20.0))     # on a 2-degree bin centre: the scan's crop is truth's
+    img, depth = render_ground(cam, feats, mpp, origin, truth)
+    al = BevAligner(cam, feats, mpp, origin, AlignConfig(search_m=6.0))   # its crop covers the whole grid
+    # candidates on a grid of (ahead, left) offsets from the truth, at its heading
+    c, s = math.cos(truth.yaw), math.sin(truth.yaw)
+    ahead, left = (g.ravel() for g in np.meshgrid(np.arange(-4.8, 4.81, 0.4), np.arange(-3.2, 3.21, 0.4),
+                                                  indexing="ij"))
+    cands = np.stack([truth.x + ahead * c - left * s, truth.y + ahead * s + left * c, np.full_like(ahead, truth.yaw)], 1)
+    # the reference: the aligner's own correlation map around the truth (cell (margin, margin) = no offset)
+    chans, mask = al.bev(img, depth)
+    ref = sum(cv2.matchTemplate(cr, t, cv2.TM_CCOEFF_NORMED, mask=mask) for cr, t in zip(al._crop(truth), chans))
+    ref /= len(chans)
+    i = np.round(ahead / mpp).astype(int) + al.margin
+    j = np.round(left / mpp).astype(int) + al.margin
+    exact = al.scan(img, depth, cands, search_m=0.0)
+    np.testing.assert_allclose(exact, ref[i, j], atol=1e-4)
+    assert np.hypot(*(cands[int(np.argmax(exact)), :2] - [truth.x, truth.y])) < 1e-6 and exact.max() > 0.8
+    # with a search window: the best correlation within +-1 m (5 cells) of each candidate
+    m = 5
+    win = al.scan(img, depth, cands, search_m=1.0)
+    inner = (i >= m) & (i < ref.shape[0] - m) & (j >= m) & (j < ref.shape[1] - m)
+    assert inner.sum() > 100
+    np.testing.assert_allclose(win[inner], [ref[a - m:a + m + 1, b - m:b + m + 1].max()
+                                            for a, b in zip(i[inner], j[inner])], atol=1e-4)
+
+
+def test_scan_prefers_the_true_path():
     cam = StereoCamera.kitti_half()
     feats, mpp, origin = textured_map()
     truth = Pose2(60.0, 55.0, math.radians(20.0))
@@ -104,18 +133,12 @@ def test_scan_scores_every_candidate_and_peaks_at_the_truth():
     cands = np.concatenate([path2, path1])
     corr = al.scan(img, depth, cands, search_m=1.0)
     assert corr.shape == (len(cands),)
-    best = int(np.argmax(corr))      # every candidate within the search window of the truth scores its peak
-    assert np.hypot(*(cands[best, :2] - [truth.x, truth.y])) <= 1.0 + 1e-6
-    exact = al.scan(img, depth, cands, search_m=0.0)
-    assert np.hypot(*(cands[int(np.argmax(exact)), :2] - [truth.x, truth.y])) < 1e-6
-    # at the truth it is the aligner's own correlation there
-    at_truth = int(np.argmin(np.hypot(cands[:, 0] - truth.x, cands[:, 1] - truth.y)))
-    ref, _ = al.correlate(*al.bev(img, depth), truth, (0.0,))
-    assert corr[at_truth] == pytest.approx(ref, abs=0.02) and ref > 0.8
-    assert corr[: len(path2)].max() < ref - 0.3
-    # cached plan: the same answer the second time; a view without ground gives None
+    assert np.hypot(*(cands[int(np.argmax(corr)), :2] - [truth.x, truth.y])) <= 1.0 + 1e-6
+    assert corr[: len(path2)].max() < corr.max() - 0.3
+    # cached plan: the same answer the second time; a view without ground gives None; bad bins are refused
     assert np.array_equal(al.scan(img, depth, cands, search_m=1.0), corr)
     wall = np.full((cam.height, cam.width), 3.0, np.float32)
     assert al.scan(img, wall, cands) is None
-    with pytest.raises(ConfigError, match="scan"):
-        al.scan(img, depth, cands, yaw_bin_deg=0.0)
+    for bad in (0.0, 30.0):
+        with pytest.raises(ConfigError, match="yaw_bin_deg"):
+            al.scan(img, depth, cands, yaw_bin_deg=bad)
