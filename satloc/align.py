@@ -181,7 +181,6 @@ class BevAligner:
                 results[k] = (c, p)
         return Alignment(results[k][1], results[k][0], k, n)
 
-
     def scan(self, features: np.ndarray, depth: np.ndarray, candidates: np.ndarray, search_m: float = 1.0,
              yaw_bin_deg: float = 2.0) -> np.ndarray | None:
         """Bird's-eye correlation of one query at every candidate pose: (C,) best masked NCC within
@@ -227,8 +226,9 @@ class BevAligner:
         groups = []
         for b in np.unique(ybin):
             sel = np.flatnonzero(ybin == b)
-            _, comp = connected_components(cKDTree(cand[sel, :2]).sparse_distance_matrix(
-                cKDTree(cand[sel, :2]), 2.0, output_type="coo_matrix"), directed=False)
+            tree = cKDTree(cand[sel, :2])
+            _, comp = connected_components(tree.sparse_distance_matrix(tree, 2.0, output_type="coo_matrix"),
+                                           directed=False)
             th = math.radians(b * 360.0 / nbins)
             c, s = math.cos(th), math.sin(th)
             for k in np.unique(comp):

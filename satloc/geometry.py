@@ -27,6 +27,12 @@ def wrap_angle(a):
     return float(w) if np.ndim(w) == 0 else w
 
 
+def arc_length(points: np.ndarray) -> np.ndarray:
+    """Distance along the polyline ``points`` (N, >=2; the first two columns) to each of its points, from 0."""
+    p = np.asarray(points, dtype=np.float64)[:, :2]
+    return np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(p, axis=0), axis=1))])
+
+
 @dataclass(frozen=True)
 class Pose2:
     """SE(2) pose on the map plane: position (x, y) in metres, heading ``yaw`` in radians."""

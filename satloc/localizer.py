@@ -41,7 +41,7 @@ from .dictionary import Dictionary, FrameDepth, SatelliteFeatures, ground_featur
 from .errors import ConfigError, FormatError
 from .persist import load_npz, save_npz
 from .features import FeatureExtractor
-from .geometry import Pose2, StereoCamera
+from .geometry import Pose2, StereoCamera, arc_length
 from .nn import NNIndex
 from .projection import Projections
 from ._threads import _END, overlapped, single_threaded_blas
@@ -99,9 +99,8 @@ def _spread(x: np.ndarray, n: int = 4000) -> float:
 def _path_positions(db_poses: np.ndarray, cands: np.ndarray) -> np.ndarray:
     """Arc length along the database path of every candidate (that of its nearest database frame)."""
     p = np.nan_to_num(db_poses[:, :2])
-    s = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(p, axis=0), axis=1))])
     _, nearest = cKDTree(p).query(cands[:, :2])
-    return s[nearest]
+    return arc_length(p)[nearest]
 
 
 def candidate_poses(db_poses: np.ndarray, spacing: float, lateral: tuple[float, ...]) -> np.ndarray:
@@ -113,7 +112,7 @@ def candidate_poses(db_poses: np.ndarray, spacing: float, lateral: tuple[float, 
     seg = np.linalg.norm(np.diff(p[:, :2], axis=0), axis=1)
     keep = np.concatenate([[True], seg > 1e-6])
     p = p[keep]
-    cum = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(p[:, :2], axis=0), axis=1))])
+    cum = arc_length(p)
     s = np.arange(0.0, cum[-1] + 1e-9, spacing)
     x, y = np.interp(s, cum, p[:, 0]), np.interp(s, cum, p[:, 1])
     # yaw from the path: direction of the local tangent (central differences over about 1 m)

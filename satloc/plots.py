@@ -5,7 +5,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .geometry import Pose2
+from .geometry import Pose2, arc_length
 from .localizer import Localization
 from .persist import atomic_path, load_npz
 from .satmap import SatelliteMap
@@ -72,8 +72,7 @@ def plot_errors_along_route(results_dir: str | Path, queries: Sequence, frames: 
     """Localization error of each mode (``localization_<mode>.npz`` in ``results_dir``) against the query's
     distance along its pass."""
     plt = _pyplot()
-    p = np.nan_to_num(queries.poses[:, :2])
-    s = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(p, axis=0), axis=1))])
+    s = arc_length(np.nan_to_num(queries.poses))
     fig, ax = plt.subplots(figsize=(10, 4))
     for mode in modes:
         a, _ = load_npz(Path(results_dir) / f"localization_{mode}.npz", "localization")
@@ -84,5 +83,30 @@ def plot_errors_along_route(results_dir: str | Path, queries: Sequence, frames: 
     ax.set_ylabel("error (m)")
     ax.legend(fontsize=8)
     ax.grid(True, which="both", alpha=0.3)
+    _save(fig, Path(path))
+    plt.close(fig)
+
+
+def plot_margins_along_route(queries: Sequence, frames: np.ndarray, margins: dict[str, np.ndarray],
+                             far_m: float, path: str | Path, title: str = "") -> None:
+    """Single-image margins of the truth over the best place more than ``far_m`` away, per cue, against the
+    query's distance along its pass: co-occurrence cues (log-probability ratios) above, ``bev`` (a
+    correlation difference) below; under the red line a look-alike wins."""
+    plt = _pyplot()
+    s = arc_length(np.nan_to_num(queries.poses))[frames]
+    fig, axes = plt.subplots(2, 1, figsize=(10, 6), sharex=True)
+    for cue, m in margins.items():
+        ax = axes[1] if cue == "bev" else axes[0]
+        ax.plot(s, m, ".-", lw=0.8, ms=4, color="tab:purple" if cue == "bev" else None,
+                label=f"{cue}: far place wins {int((m <= 0).sum())}x")
+    axes[0].set_ylabel(f"log P(near truth) - log P(> {far_m:g} m)")
+    axes[1].set_ylabel(f"NCC(near truth) - NCC(> {far_m:g} m)")
+    axes[1].set_xlabel("query position along the pass (m)")
+    for ax in axes:
+        ax.axhline(0.0, color="red", lw=0.8)
+        ax.grid(True, alpha=0.3)
+        ax.legend(fontsize=8, loc="upper right")
+    fig.suptitle(f"{title}single-image margin of the truth over the best place more than {far_m:g} m away "
+                 "(below the red line: a look-alike wins)")
     _save(fig, Path(path))
     plt.close(fig)

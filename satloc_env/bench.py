@@ -59,6 +59,7 @@ def bench_localize(sizes_km=(0.25, 1.0, 4.0), work=None, scene: str = "loop", qu
     import tempfile
     from pathlib import Path
 
+    from satloc.geometry import arc_length
     from satloc.localizer import LocalizerConfig
     from satloc.pipeline import BuildConfig, build, load_localizer, train_projection
     from satloc.sequence import Sequence
@@ -75,7 +76,7 @@ def bench_localize(sizes_km=(0.25, 1.0, 4.0), work=None, scene: str = "loop", qu
                                    query=PassConfig(lane_offset_m=-0.75, spacing_m=5.0, occlusion=0.3,
                                                     appearance=0.5, seed=1, max_frames=250)), rec, progress)
     db_all, q = Sequence.load(rec / "database"), Sequence.load(rec / "query")
-    s = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(db_all.poses[:, :2], axis=0), axis=1))])
+    s = arc_length(db_all.poses)
     for km in sizes_km:
         n = int(np.searchsorted(s, km * 1000.0)) + 1
         db = db_all.head(n)

@@ -23,6 +23,7 @@ import numpy as np
 from satloc.config import from_dict, to_dict
 from satloc.context import ContextConfig
 from satloc.errors import ConfigError
+from satloc.geometry import wrap_angle
 from satloc.localizer import Localization, LocalizerConfig
 from satloc.persist import atomic_path, read_json, write_json
 from satloc.pipeline import BuildConfig, build, load_localizer, localize, train_projection
@@ -226,8 +227,9 @@ def aliasing_scene(cfg: ExperimentConfig, out: str | Path, progress: bool = True
     * ``bev``: bird's-eye correlation of the query's ground view with the satellite image at every candidate
       (:meth:`satloc.align.BevAligner.scan`), NCC(near) - NCC(far).
 
-    A margin <= 0 means that cue, alone, prefers a place more than ``FAR_M`` m away: a gross failure no
-    refinement of that cue can undo. Writes ``aliasing.json`` (per-query margins) and ``aliasing.png`` into
+    A margin <= 0 means that cue, alone, prefers a place more than ``FAR_M`` m away: a gross failure of that
+    cue (the bird's-eye refinement can still rescue it where the truth is among the posterior's few strongest
+    peaks). Writes ``aliasing.json`` (per-query margins) and ``aliasing.png`` into
     ``out``; returns the summary."""
     out = Path(out)
     db, q, bdir, _ = _stages(cfg, out, progress, log)
@@ -246,7 +248,7 @@ def aliasing_scene(cfg: ExperimentConfig, out: str | Path, progress: bool = True
     for n, qi in enumerate(tqdm(sel, desc=f"{cfg.scene} aliasing", unit="query", disable=not progress, leave=False)):
         f = q[int(qi)]
         d = np.hypot(cands[:, 0] - f.pose.x, cands[:, 1] - f.pose.y)
-        dyaw = np.abs((cands[:, 2] - f.pose.yaw + np.pi) % (2 * np.pi) - np.pi)
+        dyaw = np.abs(wrap_angle(cands[:, 2] - f.pose.yaw))
         near, far = (d <= NEAR_M) & (dyaw <= np.radians(NEAR_YAW_DEG)), d > FAR_M
         if not near.any() or not far.any():
             continue
@@ -275,33 +277,11 @@ def aliasing_scene(cfg: ExperimentConfig, out: str | Path, progress: bool = True
                "measured_mask": [bool(v) for v in valid],    # every cue measured (the counts are over these)
                "margins": {c: [None if not np.isfinite(v) else round(float(v), 4) for v in margins[c]] for c in cues}}
     write_json(out / "aliasing.json", summary)
-    _plot_margins(q, sel[valid], {c: m[valid] for c, m in margins.items()}, bases, out / "aliasing.png", cfg.scene)
+    from satloc.plots import plot_margins_along_route
+
+    plot_margins_along_route(q, sel[valid], {c: m[valid] for c, m in margins.items()}, FAR_M, out / "aliasing.png",
+                             f"{cfg.scene}: ")
     return summary
-
-
-def _plot_margins(q: Sequence, sel: np.ndarray, margins: dict, bases: list[str], path: Path, scene: str) -> None:
-    from satloc.plots import _pyplot, _save
-
-    plt = _pyplot()
-    p = np.nan_to_num(q.poses[:, :2])
-    s = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(p, axis=0), axis=1))])[sel]
-    fig, axes = plt.subplots(2, 1, figsize=(10, 6), sharex=True)
-    for b in bases:
-        m = margins[b]
-        axes[0].plot(s, m, ".-", lw=0.8, ms=4, label=f"{b}: far place wins {int((m <= 0).sum())}x")
-    m = margins["bev"]
-    axes[1].plot(s, m, ".-", lw=0.8, ms=4, color="tab:purple", label=f"bev: far place wins {int((m <= 0).sum())}x")
-    axes[0].set_ylabel("log P(near truth) - log P(> 10 m)")
-    axes[1].set_ylabel("NCC(near truth) - NCC(> 10 m)")
-    axes[1].set_xlabel("query position along the pass (m)")
-    for ax in axes:
-        ax.axhline(0.0, color="red", lw=0.8)
-        ax.grid(True, alpha=0.3)
-        ax.legend(fontsize=8, loc="upper right")
-    fig.suptitle(f"{scene}: single-image margin of the truth over the best place more than {FAR_M:.0f} m away "
-                 "(below the red line: a look-alike wins)")
-    _save(fig, path)
-    plt.close(fig)
 
 
 def aliasing(out: str | Path, scenes: tuple[str, ...] = ("city", "residential"), config: dict | None = None,
