@@ -18,7 +18,7 @@ from __future__ import annotations
 import os
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Iterator, Sequence as Seq
+from typing import Callable, Iterator, Sequence as Seq
 
 import cv2
 import numpy as np
@@ -155,6 +155,7 @@ class Sequence:
         self.meta = dict(meta or {})
         self._frames = list(frames) if frames is not None else []
         self._dir: Path | None = None
+        self._read: Callable[[int], Frame] | None = None  # lazy frame source (dataset readers)
         self._channels: list[str] = []
         for i, f in enumerate(self._frames):
             f.check(camera, where=f"sequence {name!r} frame {i}")
@@ -171,6 +172,10 @@ class Sequence:
         if not -n <= i < n:
             raise IndexError(f"frame {i} out of range for a sequence of {n}")
         i %= n
+        if self._read is not None:
+            f = self._read(i)
+            f.check(self.camera, where=f"sequence {self.name!r} frame {i}")
+            return f
         if self._dir is None:
             return self._frames[i]
         return self._read_frame(i)
@@ -178,6 +183,22 @@ class Sequence:
     def __iter__(self) -> Iterator[Frame]:
         for i in range(len(self)):
             yield self[i]
+
+    @staticmethod
+    def lazy(camera: StereoCamera, poses: np.ndarray, timestamps: np.ndarray, read: Callable[[int], Frame],
+             name: str = "", meta: dict | None = None) -> "Sequence":
+        """A sequence whose frames are read on demand by ``read(i)`` (e.g. from a dataset's own layout).
+
+        ``poses`` (N, 3) with NaN rows where a frame has no pose, ``timestamps`` (N,). Each frame read is
+        checked against ``camera``; its ``pose`` and ``timestamp`` should be those given here."""
+        poses = np.asarray(poses, np.float64)
+        stamps = np.asarray(timestamps, np.float64)
+        if poses.ndim != 2 or poses.shape[1] != 3 or stamps.shape != (len(poses),):
+            raise FormatError(f"sequence {name!r}: expected poses (N, 3) and timestamps (N,), got "
+                              f"{poses.shape} and {stamps.shape}")
+        seq = Sequence(camera, None, name, meta)
+        seq._poses, seq._stamps, seq._read = poses, stamps, read
+        return seq
 
     @property
     def poses(self) -> np.ndarray:
