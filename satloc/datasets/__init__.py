@@ -1,0 +1,2 @@
+"""Readers of real datasets in their original layouts, each producing the shared data model
+(:class:`satloc.sequence.Sequence` with its :class:`satloc.geometry.StereoCamera`), one module per dataset."""
