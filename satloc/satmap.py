@@ -3,6 +3,11 @@
 Georeference: ``origin`` is the map-frame position (metres) of the *top-left corner* of pixel (0, 0);
 ``meters_per_pixel`` is the ground sampling distance. Image columns grow east (+x), rows grow south (-y).
 Pixel (u, v) has its centre at map point ``(origin_x + (u + 0.5) * mpp, origin_y - (v + 0.5) * mpp)``.
+
+``frame`` places the map plane on Earth: a :class:`~satloc.geoframe.GeoFrame` for maps of real places (loaded
+by :func:`satloc.georef.load_map`), ``None`` for the local frame of a synthetic scene, which has no place on
+Earth. ``map.json`` records it as ``"geo_frame"`` (the frame's ``to_dict()``, or null); a ``map.json`` written
+before the key existed loads with no frame.
 """
 from __future__ import annotations
 
@@ -14,6 +19,7 @@ import cv2
 import numpy as np
 
 from .errors import ConfigError, FormatError
+from .geoframe import GeoFrame
 from .persist import atomic_path, read_json, header, write_json
 
 
@@ -23,6 +29,7 @@ class SatelliteMap:
     meters_per_pixel: float
     origin: tuple[float, float] = (0.0, 0.0)
     labels: np.ndarray | None = field(default=None, repr=False)  # optional (H, W) uint8 semantic classes
+    frame: GeoFrame | None = None  # where the map plane lies on Earth; None: a synthetic local frame
 
     def __post_init__(self):
         img = np.asarray(self.image)
@@ -32,6 +39,8 @@ class SatelliteMap:
             raise ConfigError(f"SatelliteMap.meters_per_pixel: expected > 0, got {self.meters_per_pixel}")
         if self.labels is not None and self.labels.shape != img.shape[:2]:
             raise ConfigError(f"SatelliteMap.labels: expected shape {img.shape[:2]}, got {self.labels.shape}")
+        if self.frame is not None and not isinstance(self.frame, GeoFrame):
+            raise ConfigError(f"SatelliteMap.frame: expected a GeoFrame or None, got {type(self.frame).__name__}")
         self.origin = (float(self.origin[0]), float(self.origin[1]))
 
     @property
@@ -57,6 +66,47 @@ class SatelliteMap:
         x = self.origin[0] + (uv[..., 0] + 0.5) * self.meters_per_pixel
         y = self.origin[1] - (uv[..., 1] + 0.5) * self.meters_per_pixel
         return np.stack([x, y], axis=-1)
+
+    def _geo(self, what: str) -> GeoFrame:
+        if self.frame is None:
+            raise ConfigError(f"SatelliteMap.{what}: this map has no geo frame (a synthetic local frame); "
+                              f"load a georeferenced image with satloc.georef.load_map")
+        return self.frame
+
+    def lonlat_to_pixel(self, lonlat) -> np.ndarray:
+        """Continuous pixel coordinates (u, v) (..., 2) of WGS84 (lon, lat) degrees (..., 2)."""
+        return self.world_to_pixel(self._geo("lonlat_to_pixel").to_map(lonlat))
+
+    def pixel_to_lonlat(self, uv) -> np.ndarray:
+        """WGS84 (lon, lat) degrees (..., 2) of pixel coordinates (u, v) (..., 2)."""
+        return self._geo("pixel_to_lonlat").to_lonlat(self.pixel_to_world(uv))
+
+    def check_covers(self, xy, where: str, margin_m: float = 0.0) -> None:
+        """Raise :class:`ConfigError` unless every map point of ``xy`` (..., 2) lies ``margin_m`` inside the map.
+
+        ``where`` names the points in the message (e.g. ``"sequence 'kitti_0023' poses"``); the message gives
+        the first index outside, how many are, the points' extent and the map's.
+        """
+        pts = np.asarray(xy, dtype=np.float64)
+        if pts.ndim == 0 or pts.shape[-1] != 2:
+            raise ConfigError(f"{where}: expected (..., 2) map points, got shape {pts.shape}")
+        pts = pts.reshape(-1, 2)
+        if len(pts) == 0:
+            return
+        inside = self.contains(pts, margin_m)
+        if inside.all():
+            return
+        bad = np.flatnonzero(~inside)
+        i = int(bad[0])
+        finite = np.isfinite(pts).all(axis=1)
+        x0, x1, y0, y1 = self.extent
+        span = (f"x [{pts[finite, 0].min():.1f}, {pts[finite, 0].max():.1f}] y [{pts[finite, 1].min():.1f}, "
+                f"{pts[finite, 1].max():.1f}] m" if finite.any() else "no finite points")
+        raise ConfigError(
+            f"{where}: {len(bad)} of {len(pts)} points lie outside the satellite map"
+            f"{f' (with a {margin_m:g} m margin)' if margin_m else ''}, the first is #{i} at "
+            f"({pts[i, 0]:.1f}, {pts[i, 1]:.1f}); the points span {span}, the map covers "
+            f"x [{x0:.1f}, {x1:.1f}] y [{y0:.1f}, {y1:.1f}] m")
 
     def contains(self, xy: np.ndarray, margin_m: float = 0.0) -> np.ndarray:
         xy = np.asarray(xy, dtype=np.float64)
@@ -92,7 +142,8 @@ class SatelliteMap:
         meta = header("satellite_map")
         meta.update(meters_per_pixel=self.meters_per_pixel, origin=list(self.origin),
                     image="map.png", labels="labels.png" if self.labels is not None else None,
-                    width=int(self.shape[1]), height=int(self.shape[0]))
+                    width=int(self.shape[1]), height=int(self.shape[0]),
+                    geo_frame=self.frame.to_dict() if self.frame is not None else None)
         write_json(d / "map.json", meta)
 
     @staticmethod
@@ -108,7 +159,13 @@ class SatelliteMap:
         labels = None
         if meta.get("labels"):
             labels = read_image(d / meta["labels"], grayscale=True)
-        return SatelliteMap(img, float(meta["meters_per_pixel"]), tuple(meta["origin"]), labels)
+        frame = None
+        if meta.get("geo_frame") is not None:  # absent in map.json written before maps had a geo frame
+            try:
+                frame = GeoFrame.from_dict(meta["geo_frame"], where="geo_frame")
+            except ConfigError as e:
+                raise FormatError(f"{d / 'map.json'}: {e}") from e
+        return SatelliteMap(img, float(meta["meters_per_pixel"]), tuple(meta["origin"]), labels, frame)
 
 
 def read_image(path: str | Path, grayscale: bool = False) -> np.ndarray:

@@ -1,0 +1,588 @@
+"""Georeferenced satellite input: GeoTIFFs, images with world files and XYZ tile folders as a :class:`SatelliteMap`.
+
+:func:`load_map` reads any of
+
+* a **GeoTIFF** (``.tif``/``.tiff``) in any CRS that rasterio reads (EPSG:4326, EPSG:3857, UTM, ...);
+* a **plain image** (``.png``, ``.jpg``/``.jpeg``, or a ``.tif`` without an internal georeference) with a
+  **world file** beside it: ``<stem>.pgw``/``.jgw``/``.tfw`` (first and last letter of the extension plus
+  ``w``), ``<name>.<ext>w`` (``a.pngw``) or ``<stem>.wld``. The world file holds six numbers, one a line:
+  A (x size of a pixel), D and B (rotation terms), E (y size, negative for north up), C and F (the
+  coordinates of the *centre* of the top-left pixel). Its CRS comes from a ``<stem>.prj`` sidecar (WKT,
+  ESRI WKT included) or the ``crs=`` argument (which wins over the sidecar);
+* a **folder of Web-Mercator XYZ tiles** ``<folder>/<z>/<x>/<y>.png`` (or ``.jpg``/``.jpeg``; y counted
+  from the north, as OpenStreetMap and most tile servers do, not TMS), mosaicked at one zoom: the highest
+  present or ``zoom=``. The tiles are georeferenced in EPSG:3857 from their indices. A tile missing inside
+  the area to load is an error naming it (never silently black): pass a ``region`` to load a part of an
+  incompletely downloaded folder.
+
+and reprojects the image with ``rasterio.warp.reproject`` (bilinear, or area averaging when the output is
+coarser than the source) into a :class:`~satloc.geoframe.GeoFrame` at ``mpp`` metres per pixel, north up,
+as an RGB uint8 map whose ``frame`` is set. rasterio and pyproj do every CRS conversion.
+
+Output grid: pixel edges lie on multiples of ``mpp`` from the frame's origin, so maps loaded in one frame
+at one resolution share their pixel lattice (a region's map is a crop of the whole map). Without a
+``region`` the map is the largest north-up rectangle inside the image's footprint (no black wedges where
+a UTM or rotated image does not reach); a ``region`` is widened outwards to the lattice and must lie in the
+image (within half an output pixel).
+
+Band handling: grey (1 band) becomes three equal channels; grey + alpha and RGBA are composited over
+black (a transparent pixel is black); a palette image is expanded through its colour table; more than four
+bands take the red, green and blue bands (or the first three). 16-bit bands are scaled by 1/257; other
+sample types are rejected.
+
+:func:`write_geotiff`, :func:`save_geotiff` and :func:`write_world_file` write these formats (atomically)
+for tests and scenes.
+"""
+from __future__ import annotations
+
+import math
+import os
+import warnings
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+
+from .errors import ConfigError, FormatError
+from .geoframe import GeoFrame
+from .persist import atomic_path
+from .satmap import SatelliteMap
+
+IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".tif", ".tiff")
+TILE_SUFFIXES = (".png", ".jpg", ".jpeg")
+_AVERAGE_ABOVE = 1.25  # output pixels this much coarser than the source's: area averaging instead of bilinear
+
+
+# --- public API ------------------------------------------------------------------------------------------
+def load_map(path: str | os.PathLike, mpp: float | None = None, frame: GeoFrame | None = None,
+             region: tuple[float, float, float, float] | None = None, crs=None,
+             zoom: int | None = None) -> SatelliteMap:
+    """Load a georeferenced image (GeoTIFF, image + world file, XYZ tile folder) as a :class:`SatelliteMap`.
+
+    ``mpp``: output metres per pixel (default: the image's ground resolution at its centre, rounded to two
+    significant digits). ``frame``: the map frame (default: a :class:`GeoFrame` at the image's centre).
+    ``region``: ``(x_min, y_min, x_max, y_max)`` in the frame's metres to load (default: the whole image).
+    ``crs``: the CRS of a file that carries none (anything pyproj reads: ``"EPSG:32632"``, WKT, PROJ).
+    ``zoom``: the zoom level of a tile folder (default: the highest present).
+
+    Raises :class:`FormatError` for missing, unreadable or ungeoreferenced input (naming the file and, for a
+    world file, the line) and :class:`ConfigError` for bad arguments or a region the image does not cover.
+    """
+    from affine import Affine
+    from rasterio.crs import CRS
+    from rasterio.enums import Resampling
+    from rasterio.warp import reproject
+
+    path = Path(path)
+    mpp = _check_args(mpp, frame, region, zoom)
+    user_crs = _parse_crs(crs) if crs is not None else None
+    if path.is_dir():
+        if user_crs is not None:
+            raise ConfigError(f"crs: a tile folder ({path}) is always in EPSG:3857; do not pass crs=")
+        src = _tile_source(path, zoom)
+    elif path.is_file():
+        if zoom is not None:
+            raise ConfigError(f"zoom: only a tile folder has zoom levels; {path} is a file")
+        src = _file_source(path, user_crs)
+    else:
+        raise FormatError(f"{path}: file or tile folder not found")
+
+    if frame is None:
+        centre = _apply(src.transform, src.width / 2, src.height / 2)
+        lon, lat = _transform_points(src.crs, CRS.from_epsg(4326), *centre)
+        try:
+            frame = GeoFrame(float(lon[0]), float(lat[0]))
+        except ConfigError as e:
+            raise FormatError(f"{src.path}: the image centre is not a valid map origin ({e})") from e
+    frame_crs = CRS.from_proj4(frame.proj4)
+    src_gsd = _ground_resolution(src, frame_crs)
+    if mpp is None:
+        mpp = _round_mpp(src_gsd)
+
+    x0, y0, x1, y1 = _output_bounds(src, frame_crs, mpp, region, src_gsd)
+    width, height = int(round((x1 - x0) / mpp)), int(round((y1 - y0) / mpp))
+    if width < 1 or height < 1:
+        raise ConfigError(f"{src.path}: the image covers less than one {mpp:g} m pixel of the frame")
+    if width * height > 20000 * 20000:
+        raise ConfigError(f"{src.path}: a {width}x{height} px map at {mpp:g} m/px is too large; "
+                          f"pass a larger mpp or a region")
+    dst_transform = Affine(mpp, 0.0, x0, 0.0, -mpp, y1)
+    src_rgb, src_transform = src.read_for(_src_window(src, frame_crs, (x0, y0, x1, y1), mpp / src_gsd))
+    out = np.zeros((3, height, width), np.uint8)
+    resampling = Resampling.average if mpp > _AVERAGE_ABOVE * src_gsd else Resampling.bilinear
+    reproject(src_rgb, out, src_transform=src_transform, src_crs=src.crs, src_nodata=None,
+              dst_transform=dst_transform, dst_crs=frame_crs, dst_nodata=None, resampling=resampling,
+              num_threads=1)
+    return SatelliteMap(np.ascontiguousarray(out.transpose(1, 2, 0)), float(mpp), (x0, y1), None, frame)
+
+
+def write_geotiff(path: str | os.PathLike, image: np.ndarray, transform, crs=None) -> None:
+    """Write a uint8 image (H, W), (H, W, 3) or (H, W, 4 = RGBA) as a tiled, deflated GeoTIFF, atomically.
+
+    ``transform``: the pixel-corner -> CRS affine transform (an ``affine.Affine`` or its six coefficients
+    a, b, c, d, e, f). ``crs``: anything pyproj reads, or None for a GeoTIFF without a CRS.
+    """
+    import rasterio
+    from affine import Affine
+    from rasterio.enums import ColorInterp
+
+    img = np.asarray(image)
+    if img.dtype != np.uint8 or not (img.ndim == 2 or (img.ndim == 3 and img.shape[2] in (3, 4))):
+        raise ConfigError(f"write_geotiff: expected an (H, W), (H, W, 3) or (H, W, 4) uint8 image, got "
+                          f"{img.dtype} {img.shape}")
+    bands = img[None] if img.ndim == 2 else img.transpose(2, 0, 1)
+    tr = transform if isinstance(transform, Affine) else Affine(*transform)
+    rcrs = _parse_crs(crs) if crs is not None else None
+    path = Path(path)
+    profile = dict(driver="GTiff", width=img.shape[1], height=img.shape[0], count=bands.shape[0],
+                   dtype="uint8", transform=tr, compress="deflate")
+    if img.shape[0] >= 256 and img.shape[1] >= 256:
+        profile.update(tiled=True, blockxsize=256, blockysize=256)
+    if rcrs is not None:
+        profile["crs"] = rcrs
+    if bands.shape[0] >= 3:
+        profile["photometric"] = "RGB"
+    if bands.shape[0] == 4:
+        profile["alpha"] = "UNASSOCIATED"
+    with atomic_path(path, suffix=path.suffix or ".tif") as tmp, _quiet(), rasterio.Env(GDAL_PAM_ENABLED="NO"):
+        with rasterio.open(tmp, "w", **profile) as dst:
+            dst.write(bands)
+            if bands.shape[0] == 4:
+                dst.colorinterp = [ColorInterp.red, ColorInterp.green, ColorInterp.blue, ColorInterp.alpha]
+
+
+def save_geotiff(satmap: SatelliteMap, path: str | os.PathLike) -> None:
+    """Write a map with a geo frame as an RGB GeoTIFF in its frame's CRS (``load_map`` reads it back)."""
+    if satmap.frame is None:
+        raise ConfigError("save_geotiff: the map has no geo frame (a synthetic local frame); it has no place "
+                          "on Earth to write")
+    from affine import Affine
+
+    mpp = satmap.meters_per_pixel
+    write_geotiff(path, satmap.image, Affine(mpp, 0.0, satmap.origin[0], 0.0, -mpp, satmap.origin[1]),
+                  satmap.frame.crs)
+
+
+def write_world_file(path: str | os.PathLike, transform) -> None:
+    """Write the six lines of a world file (A, D, B, E, C, F; C, F at the top-left pixel's centre), atomically."""
+    from affine import Affine
+
+    tr = transform if isinstance(transform, Affine) else Affine(*transform)
+    cx, cy = _apply(tr, 0.5, 0.5)
+    with atomic_path(path) as tmp:
+        tmp.write_text("".join(f"{v!r}\n" for v in (tr.a, tr.d, tr.b, tr.e, float(cx), float(cy))))
+
+
+def read_world_file(path: str | os.PathLike):
+    """The pixel-corner affine transform of a world file; :class:`FormatError` naming the line at fault."""
+    from affine import Affine
+
+    path = Path(path)
+    try:
+        text = path.read_text()
+    except (OSError, UnicodeDecodeError) as e:
+        raise FormatError(f"{path}: unreadable world file ({e})") from e
+    lines = text.splitlines()
+    while lines and not lines[-1].strip():
+        lines.pop()
+    if len(lines) != 6:
+        raise FormatError(f"{path}: a world file has 6 lines (A, D, B, E, C, F), found {len(lines)}")
+    names = ("A (pixel x size)", "D (rotation)", "B (rotation)", "E (pixel y size)", "C (x of the top-left "
+             "pixel centre)", "F (y of the top-left pixel centre)")
+    vals = []
+    for i, (line, name) in enumerate(zip(lines, names)):
+        try:
+            v = float(line.strip())
+        except ValueError:
+            v = math.nan
+        if not math.isfinite(v):
+            raise FormatError(f"{path}: line {i + 1}: expected a number for {name}, got {line.strip()!r}")
+        vals.append(v)
+    a, d, b, e, c, f = vals
+    if abs(a * e - b * d) == 0.0:
+        raise FormatError(f"{path}: degenerate world file (A*E - B*D = 0: pixels have no area)")
+    return _compose(Affine(a, b, c, d, e, f), Affine.translation(-0.5, -0.5))
+
+
+def world_file_candidates(image: str | os.PathLike) -> list[Path]:
+    """Where a world file of ``image`` may lie: ``a.pgw``, ``a.pngw``, ``a.wld`` (and upper-case forms)."""
+    p = Path(image)
+    ext = p.suffix[1:]
+    names = []
+    if len(ext) >= 2:
+        names.append(p.stem + "." + ext[0] + ext[-1] + "w")
+    names += [p.name + "w", p.stem + ".wld"]
+    out = []
+    for n in names:
+        for cand in (p.with_name(n), p.with_name(Path(n).stem + Path(n).suffix.upper())):
+            if cand not in out:
+                out.append(cand)
+    return out
+
+
+# --- sources ---------------------------------------------------------------------------------------------
+@dataclass
+class _Source:
+    """A raster to reproject: its CRS, pixel-corner transform and size, and a reader of pixel windows."""
+
+    path: Path
+    crs: object  # rasterio CRS
+    transform: object  # affine.Affine
+    width: int
+    height: int
+    read: Callable[[int, int, int, int], np.ndarray]  # (col0, row0, cols, rows) -> (3, rows, cols) uint8 RGB
+
+    def read_for(self, window: tuple[int, int, int, int]):
+        from affine import Affine
+
+        c0, r0, w, h = window
+        return self.read(c0, r0, w, h), _compose(self.transform, Affine.translation(c0, r0))
+
+
+def _file_source(path: Path, user_crs) -> _Source:
+    import rasterio
+    from rasterio.errors import RasterioIOError
+
+    suffix = path.suffix.lower()
+    if suffix not in IMAGE_SUFFIXES:
+        raise FormatError(f"{path}: expected a GeoTIFF (.tif, .tiff), an image with a world file "
+                          f"({', '.join(IMAGE_SUFFIXES)}) or a folder of XYZ tiles")
+    try:
+        with _quiet(), rasterio.Env(GDAL_GEOREF_SOURCES="PAM,INTERNAL"):  # world files: read here, with line errors
+            with rasterio.open(path) as ds:
+                width, height, driver = ds.width, ds.height, ds.driver
+                own_transform = None if ds.transform.is_identity else ds.transform
+                own_crs = ds.crs
+                info = _band_info(ds, path)
+    except RasterioIOError as e:
+        raise FormatError(f"{path}: not a readable image ({e})") from e
+    if own_transform is None or driver != "GTiff":  # PNG/JPEG: GDAL would apply a world file; we read it
+        world = next((c for c in world_file_candidates(path) if c.is_file()), None)
+        if world is None:
+            if own_transform is None:
+                raise FormatError(
+                    f"{path}: not georeferenced: no geotransform in the file and no world file beside it "
+                    f"(looked for {', '.join(c.name for c in world_file_candidates(path)[::2])})")
+        else:
+            own_transform = read_world_file(world)
+    src_crs = _resolve_crs(path, own_crs, user_crs)
+
+    def read(c0, r0, w, h):
+        from rasterio.windows import Window
+
+        try:
+            with _quiet(), rasterio.Env(GDAL_GEOREF_SOURCES="NONE"), rasterio.open(path) as ds:
+                arr = ds.read(window=Window(c0, r0, w, h))
+        except RasterioIOError as e:
+            raise FormatError(f"{path}: not a readable image ({e})") from e
+        return _to_rgb(arr, info, path)
+
+    return _Source(path, src_crs, own_transform, width, height, read)
+
+
+def _tile_source(root: Path, zoom: int | None) -> _Source:
+    import rasterio
+    from affine import Affine
+    from rasterio.crs import CRS
+    from rasterio.errors import RasterioIOError
+
+    tiles: dict[int, dict[tuple[int, int], Path]] = {}
+    for zdir in root.iterdir():
+        if not (zdir.is_dir() and zdir.name.isdigit()):
+            continue
+        z = int(zdir.name)
+        for xdir in zdir.iterdir():
+            if not (xdir.is_dir() and xdir.name.isdigit()):
+                continue
+            for f in xdir.iterdir():
+                if f.is_file() and f.suffix.lower() in TILE_SUFFIXES and f.stem.isdigit():
+                    tiles.setdefault(z, {})[(int(xdir.name), int(f.stem))] = f
+    if not tiles:
+        raise FormatError(f"{root}: no XYZ tiles (expected <zoom>/<x>/<y>.png or .jpg under the folder)")
+    if zoom is None:
+        zoom = max(tiles)
+    elif zoom not in tiles:
+        raise ConfigError(f"zoom: {root} has no tiles at zoom {zoom}; it has zoom {sorted(tiles)}")
+    level = tiles[zoom]
+    n = 2 ** zoom
+    for (x, y), f in level.items():
+        if x >= n or y >= n:
+            raise FormatError(f"{f}: tile index out of range for zoom {zoom} (x and y below {n})")
+    xs = [x for x, _ in level]
+    ys = [y for _, y in level]
+    tx0, ty0 = min(xs), min(ys)
+    nx, ny = max(xs) - tx0 + 1, max(ys) - ty0 + 1
+    first = level[(xs[0], ys[0])]
+    try:
+        with _quiet(), rasterio.open(first) as ds:
+            size = ds.width
+            square = ds.width == ds.height
+    except RasterioIOError as e:
+        raise FormatError(f"{first}: not a readable tile image ({e})") from e
+    if not square:
+        raise FormatError(f"{first}: expected a square tile, got a non-square image")
+    half = _web_mercator_half_extent()
+    tile_m = 2.0 * half / n
+    res = tile_m / size
+    transform = Affine(res, 0.0, -half + tx0 * tile_m, 0.0, -res, half - ty0 * tile_m)
+
+    def read(c0, r0, w, h):
+        out = np.zeros((3, h, w), np.uint8)
+        for ty in range(r0 // size, (r0 + h - 1) // size + 1):
+            for tx in range(c0 // size, (c0 + w - 1) // size + 1):
+                key = (tx0 + tx, ty0 + ty)
+                f = level.get(key)
+                if f is None:
+                    raise FormatError(
+                        f"{root}: tile {zoom}/{key[0]}/{key[1]} is missing inside the area to load (tiles x "
+                        f"{tx0 + c0 // size}..{tx0 + (c0 + w - 1) // size}, y {ty0 + r0 // size}.."
+                        f"{ty0 + (r0 + h - 1) // size} at zoom {zoom}); download it or pass a smaller region")
+                try:
+                    with _quiet(), rasterio.Env(GDAL_GEOREF_SOURCES="NONE"), rasterio.open(f) as ds:
+                        if (ds.width, ds.height) != (size, size):
+                            raise FormatError(f"{f}: tile of {ds.width}x{ds.height} px; the folder's tiles "
+                                              f"are {size}x{size}")
+                        rgb = _to_rgb(ds.read(), _band_info(ds, f), f)
+                except RasterioIOError as e:
+                    raise FormatError(f"{f}: not a readable tile image ({e})") from e
+                # the part of this tile inside the window
+                a0, b0 = max(c0, tx * size), max(r0, ty * size)
+                a1, b1 = min(c0 + w, (tx + 1) * size), min(r0 + h, (ty + 1) * size)
+                out[:, b0 - r0:b1 - r0, a0 - c0:a1 - c0] = rgb[:, b0 - ty * size:b1 - ty * size,
+                                                              a0 - tx * size:a1 - tx * size]
+        return out
+
+    return _Source(root, CRS.from_epsg(3857), transform, nx * size, ny * size, read)
+
+
+# --- helpers ---------------------------------------------------------------------------------------------
+def _check_args(mpp, frame, region, zoom):
+    if mpp is not None:
+        if isinstance(mpp, bool) or not isinstance(mpp, (int, float)) or not (math.isfinite(mpp) and mpp > 0):
+            raise ConfigError(f"mpp: expected metres per pixel > 0, got {mpp!r}")
+        mpp = float(mpp)
+    if frame is not None and not isinstance(frame, GeoFrame):
+        raise ConfigError(f"frame: expected a satloc.geoframe.GeoFrame, got {type(frame).__name__}")
+    if region is not None:
+        try:
+            r = [float(v) for v in region]
+        except (TypeError, ValueError):
+            r = []
+        if len(r) != 4 or not all(map(math.isfinite, r)) or not (r[0] < r[2] and r[1] < r[3]):
+            raise ConfigError(f"region: expected (x_min, y_min, x_max, y_max) in metres with x_min < x_max "
+                              f"and y_min < y_max, got {region!r}")
+    if zoom is not None and (isinstance(zoom, bool) or not isinstance(zoom, int) or not 0 <= zoom <= 30):
+        raise ConfigError(f"zoom: expected an integer zoom level in [0, 30], got {zoom!r}")
+    return mpp
+
+
+def _parse_crs(crs):
+    import pyproj
+    from rasterio.crs import CRS
+
+    try:
+        c = pyproj.CRS.from_user_input(crs)
+    except (pyproj.exceptions.CRSError, TypeError, ValueError) as e:
+        raise ConfigError(f"crs: expected a coordinate reference system (e.g. 'EPSG:32632'), got {crs!r} ({e})") from e
+    if c.is_geographic or c.is_projected or c.is_bound:
+        return CRS.from_wkt(c.to_wkt())
+    raise ConfigError(f"crs: expected a geographic or projected CRS, got {c.name!r}")
+
+
+def _resolve_crs(path: Path, own, user):
+    """The file's own CRS, else ``crs=``, else a ``.prj`` sidecar; error when none or when they conflict."""
+    import pyproj
+    from rasterio.crs import CRS
+
+    if own is not None:
+        if user is not None and not pyproj.CRS.from_wkt(own.to_wkt()).equals(
+                pyproj.CRS.from_wkt(user.to_wkt()), ignore_axis_order=True):
+            raise ConfigError(f"crs: {path} carries its own CRS ({own.to_string()}), which differs from "
+                              f"crs={user.to_string()!r}")
+        return own
+    if user is not None:
+        return user
+    prj = path.with_suffix(".prj")
+    if prj.is_file():
+        try:
+            text = prj.read_text().strip()
+            return CRS.from_wkt(pyproj.CRS.from_user_input(text).to_wkt())
+        except (OSError, UnicodeDecodeError, pyproj.exceptions.CRSError) as e:
+            raise FormatError(f"{prj}: not a readable CRS (expected WKT) ({e})") from e
+    raise FormatError(f"{path}: has no CRS (no coordinate reference system in the file and no {prj.name} "
+                      f"beside it); pass crs=, e.g. 'EPSG:32632'")
+
+
+def _band_info(ds, path: Path) -> dict:
+    from rasterio.enums import ColorInterp
+
+    dtypes = set(ds.dtypes)
+    if not dtypes <= {"uint8", "uint16"}:
+        raise FormatError(f"{path}: expected 8- or 16-bit unsigned bands, got {sorted(dtypes)}")
+    ci = list(ds.colorinterp)
+    cmap = None
+    if ds.count == 1 and ci[0] == ColorInterp.palette:
+        try:
+            cmap = ds.colormap(1)
+        except ValueError:
+            cmap = None
+    return {"count": ds.count, "colorinterp": ci, "colormap": cmap}
+
+
+def _to_rgb(arr: np.ndarray, info: dict, path: Path) -> np.ndarray:
+    """(bands, h, w) samples -> (3, h, w) uint8 RGB: grey, grey+alpha, palette, RGB, RGBA, multi-band."""
+    from rasterio.enums import ColorInterp
+
+    if arr.dtype == np.uint16:
+        arr = (arr.astype(np.uint32) * 255 + 32767) // 65535
+    arr = arr.astype(np.uint8, copy=False)
+    ci = info["colorinterp"]
+    count = arr.shape[0]
+    alpha = None
+    if info["colormap"] is not None:
+        lut = np.zeros((256, 4), np.uint8)
+        for k, v in info["colormap"].items():
+            if 0 <= k < 256:
+                lut[k] = v
+        rgba = lut[arr[0]]
+        rgb, alpha = rgba[..., :3].transpose(2, 0, 1), rgba[..., 3]
+    elif count == 1:
+        rgb = np.repeat(arr, 3, axis=0)
+    elif count == 2:
+        rgb, alpha = np.repeat(arr[:1], 3, axis=0), arr[1]
+    elif count in (3, 4) or not {ColorInterp.red, ColorInterp.green, ColorInterp.blue} <= set(ci):
+        rgb = arr[:3]
+        if count == 4:
+            alpha = arr[3]
+    else:
+        rgb = np.stack([arr[ci.index(c)] for c in (ColorInterp.red, ColorInterp.green, ColorInterp.blue)])
+        if ColorInterp.alpha in ci:
+            alpha = arr[ci.index(ColorInterp.alpha)]
+    if alpha is not None:
+        rgb = ((rgb.astype(np.uint16) * alpha[None] + 127) // 255).astype(np.uint8)
+    return np.ascontiguousarray(rgb)
+
+
+def _transform_points(src_crs, dst_crs, xs, ys):
+    from rasterio.warp import transform
+
+    xs, ys = np.atleast_1d(np.asarray(xs, np.float64)), np.atleast_1d(np.asarray(ys, np.float64))
+    ox, oy = transform(src_crs, dst_crs, xs.ravel(), ys.ravel())
+    return np.asarray(ox, np.float64).reshape(xs.shape), np.asarray(oy, np.float64).reshape(ys.shape)
+
+
+def _ground_resolution(src: _Source, frame_crs) -> float:
+    """Frame metres per source pixel at the image centre: sqrt of the area of one pixel."""
+    cu, cv = src.width / 2, src.height / 2
+    corners = _apply(src.transform, np.array([cu, cu + 1, cu]), np.array([cv, cv, cv + 1]))
+    x, y = _transform_points(src.crs, frame_crs, *corners)
+    if not np.isfinite(x).all() or not np.isfinite(y).all():
+        raise FormatError(f"{src.path}: the image centre does not project into the map frame")
+    area = abs((x[1] - x[0]) * (y[2] - y[0]) - (x[2] - x[0]) * (y[1] - y[0]))
+    if not area > 0:
+        raise FormatError(f"{src.path}: degenerate georeference (pixels have no area on the ground)")
+    return math.sqrt(area)
+
+
+def _round_mpp(gsd: float) -> float:
+    """Two significant digits: 0.1963 -> 0.2, 0.2986 -> 0.3, 0.149 -> 0.15."""
+    e = math.floor(math.log10(gsd)) - 1
+    return round(round(gsd / 10.0 ** e) * 10.0 ** e, 12)
+
+
+def _edge_samples(width: float, height: float, n: int = 33) -> np.ndarray:
+    """Points along the border of a (width x height) pixel rectangle, clockwise from the top-left corner."""
+    t = np.linspace(0.0, 1.0, n)
+    return {
+        "top": np.c_[t * width, np.zeros(n)], "right": np.c_[np.full(n, width), t * height],
+        "bottom": np.c_[t * width, np.full(n, height)], "left": np.c_[np.zeros(n), t * height],
+    }
+
+
+def _output_bounds(src: _Source, frame_crs, mpp: float, region, src_gsd: float):
+    """(x0, y0, x1, y1) of the output grid on the mpp lattice of the frame."""
+    if region is None:
+        # the largest north-up box inside the footprint: innermost of each edge's extreme
+        edges = {}
+        for name, uv in _edge_samples(src.width, src.height).items():
+            edges[name] = _transform_points(src.crs, frame_crs, *_apply(src.transform, uv[:, 0], uv[:, 1]))
+        if not all(np.isfinite(np.concatenate(v)).all() for v in edges.values()):
+            raise FormatError(f"{src.path}: the image does not project into the map frame")
+        # which image edge faces which way in the frame (the transform may flip or rotate the image)
+        by_x = sorted(edges, key=lambda k: np.mean(edges[k][0]))
+        by_y = sorted(edges, key=lambda k: np.mean(edges[k][1]))
+        west, east, south, north = by_x[0], by_x[-1], by_y[0], by_y[-1]
+        bx0, bx1 = np.max(edges[west][0]), np.min(edges[east][0])
+        by0, by1 = np.max(edges[south][1]), np.min(edges[north][1])
+        x0, x1 = math.ceil(bx0 / mpp - 1e-6) * mpp, math.floor(bx1 / mpp + 1e-6) * mpp
+        y0, y1 = math.ceil(by0 / mpp - 1e-6) * mpp, math.floor(by1 / mpp + 1e-6) * mpp
+        if not (x0 < x1 and y0 < y1):
+            raise ConfigError(f"{src.path}: the image covers less than one {mpp:g} m pixel of the frame")
+        return x0, y0, x1, y1
+    r = [float(v) for v in region]
+    x0, x1 = math.floor(r[0] / mpp + 1e-6) * mpp, math.ceil(r[2] / mpp - 1e-6) * mpp
+    y0, y1 = math.floor(r[1] / mpp + 1e-6) * mpp, math.ceil(r[3] / mpp - 1e-6) * mpp
+    # every output pixel centre must fall in the image (within half an output pixel of the region)
+    h = 0.5 * mpp
+    box = np.concatenate([v for v in _edge_samples(x1 - x0 - 2 * h, y1 - y0 - 2 * h).values()])
+    fx, fy = x0 + h + box[:, 0], y0 + h + box[:, 1]
+    sx, sy = _transform_points(frame_crs, src.crs, fx, fy)
+    cu, cv = _apply(~src.transform, sx, sy)
+    tol = h / src_gsd + 1e-6  # source pixels
+    ok = (np.isfinite(cu) & np.isfinite(cv) & (cu >= -tol) & (cu <= src.width + tol)
+          & (cv >= -tol) & (cv <= src.height + tol))
+    if not ok.all():
+        cover = _output_bounds(src, frame_crs, mpp, None, src_gsd)
+        raise ConfigError(
+            f"region: ({r[0]:.1f}, {r[1]:.1f}, {r[2]:.1f}, {r[3]:.1f}) m is not covered by {src.path}, which "
+            f"covers x [{cover[0]:.1f}, {cover[2]:.1f}] y [{cover[1]:.1f}, {cover[3]:.1f}] m of the frame")
+    return x0, y0, x1, y1
+
+
+def _src_window(src: _Source, frame_crs, bounds, ratio: float) -> tuple[int, int, int, int]:
+    """(col0, row0, cols, rows) of the source pixels that the output grid ``bounds`` needs, with a margin."""
+    x0, y0, x1, y1 = bounds
+    pts = np.concatenate(list(_edge_samples(x1 - x0, y1 - y0).values()))
+    sx, sy = _transform_points(frame_crs, src.crs, x0 + pts[:, 0], y0 + pts[:, 1])
+    cu, cv = _apply(~src.transform, sx, sy)
+    pad = 2 + int(math.ceil(max(ratio, 1.0)))
+    c0 = max(0, int(math.floor(np.nanmin(cu))) - pad)
+    r0 = max(0, int(math.floor(np.nanmin(cv))) - pad)
+    c1 = min(src.width, int(math.ceil(np.nanmax(cu))) + pad)
+    r1 = min(src.height, int(math.ceil(np.nanmax(cv))) + pad)
+    if c1 <= c0 or r1 <= r0:
+        raise ConfigError(f"{src.path}: the area to load lies outside the image")
+    return c0, r0, c1 - c0, r1 - r0
+
+
+def _apply(tr, x, y):
+    """An affine transform applied to coordinates (scalars or arrays), whatever the ``affine`` version."""
+    return tr.a * x + tr.b * y + tr.c, tr.d * x + tr.e * y + tr.f
+
+
+def _compose(first, second):
+    """``first`` after ``second`` (the matrix product first @ second)."""
+    from affine import Affine
+
+    m = np.asarray(tuple(first), np.float64).reshape(3, 3) @ np.asarray(tuple(second), np.float64).reshape(3, 3)
+    return Affine(*m.ravel()[:6])
+
+
+def _web_mercator_half_extent() -> float:
+    """Half the width of the EPSG:3857 world (x of longitude 180), from pyproj."""
+    import pyproj
+
+    x, _ = pyproj.Transformer.from_crs("EPSG:4326", "EPSG:3857", always_xy=True).transform(180.0, 0.0)
+    return float(x)
+
+
+class _quiet(warnings.catch_warnings):
+    """Silence rasterio's NotGeoreferencedWarning (a plain image is read for its pixels only)."""
+
+    def __enter__(self):
+        super().__enter__()
+        from rasterio.errors import NotGeoreferencedWarning
+
+        warnings.simplefilter("ignore", NotGeoreferencedWarning)
+        return self
