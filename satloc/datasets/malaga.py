@@ -21,7 +21,8 @@ reader is written against these sources, and the test fixture ``tests/malagafixt
   Geocen X/Y/Z, GPS X/Y/Z, GPS VX/VY/VZ, Local VX/VY/VZ, Satellite time: 25 columns. MRPT's exporter that
   writes this file (``apps/rawlog-edit/rawlog-edit_gps.cpp``, ``op_export_gps_txt``) confirms the order,
   the count, the header line starting with ``%`` and the radians (``DEG2RAD(latitude_degrees)``); it prints
-  Time with ``%14.4f``. RTAB-Map's importer of this "Malaga Urban format" also checks for 25 values.
+  Time with ``%14.4f``. A C++ pose importer seen in the code corpus (RTAB-Map style, its "Malaga Urban
+  format") also expects 25 values and skips the header line.
   *Where the sources disagree*: the README gives speed in knots and dir (heading) in degrees, while MRPT's
   exporter writes ``DEG2RAD(speed_knots)`` and ``DEG2RAD(direction_degrees)``. This reader uses neither.
 * **Images**: ``img_CAMERA1_<unix time>_left.jpg`` / ``_right.jpg``, time with 6 decimals (e.g.
@@ -37,27 +38,33 @@ reader is written against these sources, and the test fixture ``tests/malagafixt
   camera's pose in the left one, whose x is the baseline in metres (VSLAM-LAB and srrg2 read it so;
   srrg2 also reads cx, cy, fx, fy from lines 7-10 and 18-21 and the pose from line 28). For extract 07 at
   800x600, VO course code uses K = [621.18428 0 404.0076; 0 621.18428 309.05989].
-* **Camera placement**: the dataset paper's Table 2 gives the sensors' poses in the vehicle frame on the
-  roof rack; MRPT's ``malaga-urban-dataset-playback-3d`` corrects its camera z from 0.273 (a typo) to
-  0.057 m. The height of that frame above the road, and the camera's pitch, were not found in any source
-  reachable here: ``mount_height`` defaults to :data:`MALAGA_MOUNT_HEIGHT_M` (1.6 m, an estimate: a Citroën
-  C4's roof with a rack plus the camera's 0.057 m) and ``pitch`` to 0. Both are configuration fields.
+* **Camera placement**: the dataset paper's Table 2 gives the sensors' poses in the vehicle's reference
+  frame; MRPT's ``malaga-urban-dataset-playback-3d`` (``project-lidar-into-image``) corrects the camera's z
+  there from 0.273 (a typo) to 0.057 m. The height of that reference frame above the road, and the
+  camera's pitch, were not found in any source reachable here: ``mount_height`` defaults to
+  :data:`MALAGA_MOUNT_HEIGHT_M` = 1.6 m, an *estimate* for a camera on a car's roof rack, not a documented
+  figure, and ``pitch`` to 0. Both are configuration fields; set them when the paper's values are at hand.
 
 Choices made here:
 
 * **Poses**: GPS fixes with fix = 0 (signal lost) are dropped; the rest are projected into the frame and
   interpolated linearly in time to each image time (positions equal the linearly interpolated lat/lon).
   The pose is that of the GPS antenna; its lever arm to the left camera is not documented and is ignored.
-* **Yaw** is the direction of travel: a cubic Hermite curve by arc length through the fixes (after dropping
-  fixes within ``min_step_m`` of the previous kept one, so GPS jitter while standing still adds no
-  wiggles), read as the chord over ``heading_window_m`` centred on the image's place along the track.
-  Standing still, the image keeps the heading of the track through the place where the vehicle stands.
+* **Yaw** is the direction of travel: a cubic Hermite curve by arc length through the fixes (each run of
+  fixes within ``min_step_m`` of its first replaced by its mean, so GPS jitter while standing still adds
+  no wiggles), read as the chord over ``heading_window_m`` (3 m) centred on the image's place along the
+  track. Standing still, the image keeps the heading of the track through the place where the vehicle
+  stands. The window trades GPS noise against turns entered without a transition curve, where the chord
+  errs by up to about window / (8 R) radians (0.7 degrees for 3 m at R = 30 m). With fixes far apart on a
+  tight turn the curve cannot know where the turn starts: on a 15 m radius turn entered from a straight,
+  fixes 7 m apart (1 Hz at 25 km/h) gave up to 5.3 degrees near the turn's ends (1.3 degrees at 5 Hz).
 * **Frames without a pose**: frames before the first fix, after the last, in a gap between fixes longer
   than ``max_gap_s``, or on a track too short to give a heading are kept with a NaN pose row
   (``Frame.pose`` None), so frame i is always the i-th stereo pair of the folder.
 * **Unpaired images**: a left image without its right (or the reverse) is skipped; their names are in
   ``meta["unpaired_skipped"]``.
-* Timestamps are the image file names' UNIX times (seconds).
+* **Timestamps** are seconds from the first pair, from the image file names' UNIX times; the first pair's
+  time as its file name spells it is ``meta["time_origin"]`` (as :mod:`satloc.datasets.kitti` does).
 """
 from __future__ import annotations
 
@@ -67,7 +74,6 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Mapping
 
-import cv2
 import numpy as np
 
 from ..config import from_dict
@@ -77,7 +83,7 @@ from ..geometry import Pose2, StereoCamera
 from ..satmap import read_image
 from ..sequence import Frame, Sequence
 
-MALAGA_MOUNT_HEIGHT_M = 1.6  # estimate, see the module docstring: the height above the road is undocumented
+MALAGA_MOUNT_HEIGHT_M = 1.6  # an estimate, see the module docstring: no source gave the height above the road
 
 GPS_COLUMNS = (
     "Time", "Lat", "Lon", "Alt", "fix", "#sats", "speed", "dir", "Local X", "Local Y", "Local Z", "rawlog ID",
@@ -100,8 +106,8 @@ class MalagaConfig:
     resolution: str | None = None  # "800x600" or "1024x768"; None: the largest rectified folder present
     mount_height: float = MALAGA_MOUNT_HEIGHT_M  # left camera above the road, metres (estimate)
     pitch: float = 0.0  # camera pitch down, radians (undocumented)
-    heading_window_m: float = 4.0  # yaw: direction of the track over this length
-    min_step_m: float = 1.0  # yaw: fixes closer than this to the previous kept one are jitter
+    heading_window_m: float = 3.0  # yaw: direction of the track over this length
+    min_step_m: float = 1.0  # yaw: a run of fixes within this of its first is one place (jitter)
     max_gap_s: float | None = 5.0  # no pose between fixes further apart in time than this
 
     def __post_init__(self):
@@ -133,7 +139,8 @@ class GpsLog:
 class StereoPairs:
     """The stereo pairs of an image folder, sorted by time, and the images left without their other side."""
 
-    times: np.ndarray
+    times: np.ndarray  # UNIX seconds
+    stamps: list[str]  # the times as the file names spell them
     left: list[Path]
     right: list[Path]
     unpaired: list[str]
@@ -305,7 +312,47 @@ def list_stereo_pairs(image_dir: str | Path) -> StereoPairs:
     if np.any(np.diff(times) <= 0):
         i = int(np.argmax(np.diff(times) <= 0))
         raise FormatError(f"{image_dir}: images {stamps[i]!r} and {stamps[i + 1]!r} have the same time")
-    return StereoPairs(times, [sides["left"][t] for t in stamps], [sides["right"][t] for t in stamps], unpaired)
+    return StereoPairs(times, stamps, [sides["left"][t] for t in stamps], [sides["right"][t] for t in stamps],
+                       unpaired)
+
+
+_JPEG_SOF = {0xC0, 0xC1, 0xC2, 0xC3, 0xC5, 0xC6, 0xC7, 0xC9, 0xCA, 0xCB, 0xCD, 0xCE, 0xCF}
+
+
+def jpeg_size(path: str | Path) -> tuple[int, int]:
+    """(width, height) from a JPEG file's frame header (SOF segment), without decoding the image."""
+    path = Path(path)
+    try:
+        with open(path, "rb") as f:
+            if f.read(2) != b"\xff\xd8":
+                raise FormatError(f"{path}: not a JPEG image")
+            while True:
+                b = f.read(1)
+                if b != b"\xff":  # every segment starts with a marker
+                    break
+                while b == b"\xff":  # fill bytes before the marker's code
+                    b = f.read(1)
+                if not b:
+                    break
+                marker = b[0]
+                if marker == 0x01 or 0xD0 <= marker <= 0xD7:
+                    continue
+                seg = f.read(2)
+                if len(seg) < 2:
+                    break
+                length = int.from_bytes(seg, "big")
+                if marker in _JPEG_SOF:
+                    body = f.read(5)
+                    if len(body) < 5:
+                        break
+                    h, w = int.from_bytes(body[1:3], "big"), int.from_bytes(body[3:5], "big")
+                    return w, h
+                if marker in (0xD9, 0xDA) or length < 2:  # end of image or scan data before any frame header
+                    break
+                f.seek(length - 2, 1)
+    except OSError as e:
+        raise FormatError(f"{path}: image file not readable ({e})") from e
+    raise FormatError(f"{path}: not a JPEG image (no frame header)")
 
 
 def _read_pair(left: Path, right: Path) -> tuple[np.ndarray, np.ndarray]:
@@ -340,8 +387,25 @@ def _hermite_track(v: np.ndarray):
     return u, curve
 
 
+def _track_vertices(ft: np.ndarray, fxy: np.ndarray, min_step_m: float) -> tuple[np.ndarray, np.ndarray]:
+    """Times and positions of the track's vertices: each run of consecutive fixes within ``min_step_m`` of
+    the run's first fix becomes one vertex, the run's mean time and position."""
+    times, points = [], []
+    i = 0
+    while i < len(ft):
+        j = i + 1
+        while j < len(ft) and np.hypot(*(fxy[j] - fxy[i])) < min_step_m:
+            j += 1
+        p = fxy[i:j].mean(axis=0)
+        if not points or np.hypot(*(p - points[-1])) >= 0.25 * min_step_m:
+            times.append(ft[i:j].mean())
+            points.append(p)
+        i = j
+    return np.array(times), np.array(points).reshape(-1, 2)
+
+
 def track_poses(fix_times: np.ndarray, fix_xy: np.ndarray, times: np.ndarray,
-                heading_window_m: float = 4.0, min_step_m: float = 1.0,
+                heading_window_m: float = 3.0, min_step_m: float = 1.0,
                 max_gap_s: float | None = 5.0) -> np.ndarray:
     """Poses (N, 3) [x, y, yaw] at ``times`` from a track of fixes (``fix_times`` increasing, ``fix_xy`` in
     metres); NaN rows where there is none (outside the track, in a gap, no heading). See the module
@@ -358,14 +422,12 @@ def track_poses(fix_times: np.ndarray, fix_xy: np.ndarray, times: np.ndarray,
         return out
     out[:, 0] = np.interp(t, ft, fxy[:, 0])
     out[:, 1] = np.interp(t, ft, fxy[:, 1])
-    # heading: a curve by arc length through the fixes, after dropping jitter within min_step_m
-    kept = [0]
-    for i in range(1, len(ft)):
-        if np.hypot(*(fxy[i] - fxy[kept[-1]])) >= min_step_m:
-            kept.append(i)
-    if len(kept) >= 2:
-        u, curve = _hermite_track(fxy[kept])
-        q = np.interp(t, ft[kept], u)
+    # heading: a curve by arc length through the fixes, each run of fixes within min_step_m of its first
+    # (standing still, GPS jitter) replaced by its mean
+    vt, vxy = _track_vertices(ft, fxy, min_step_m)
+    if len(vt) >= 2:
+        u, curve = _hermite_track(vxy)
+        q = np.interp(t, vt, u)
         total = u[-1]
         a = np.clip(q - heading_window_m / 2, 0.0, max(total - heading_window_m, 0.0))
         b = np.minimum(a + heading_window_m, total)
@@ -425,11 +487,14 @@ def _find_gps_file(root: Path) -> Path:
 
 
 def load_malaga(extract_dir: str | Path, frame: GeoFrame | None = None,
-                config: MalagaConfig | Mapping | None = None) -> Sequence:
+                config: MalagaConfig | Mapping | None = None, *, name: str | None = None) -> Sequence:
     """A lazy :class:`Sequence` of a Malaga Urban extract directory (see the module docstring).
 
     ``frame``: the map frame; default a :class:`GeoFrame` at the first GPS fix used (the log's first row
-    with fix != 0). ``config``: a :class:`MalagaConfig` or a dict of its fields."""
+    with fix != 0). ``config``: a :class:`MalagaConfig` or a dict of its fields. Every pair's image size is
+    checked here (from the JPEG headers); images are decoded when a frame is accessed."""
+    if frame is not None and not isinstance(frame, GeoFrame):
+        raise ConfigError(f"malaga frame: expected a satloc.geoframe.GeoFrame or None, got {type(frame).__name__}")
     if config is None:
         cfg = MalagaConfig()
     elif isinstance(config, MalagaConfig):
@@ -446,10 +511,14 @@ def load_malaga(extract_dir: str | Path, frame: GeoFrame | None = None,
         raise FormatError(f"{camera_file}: resolution {camera.width}x{camera.height} does not match the "
                           f"{w}x{h} of {image_dir.name}")
     pairs = list_stereo_pairs(image_dir)
-    first_left, first_right = _read_pair(pairs.left[0], pairs.right[0])
-    if first_left.shape[:2] != (h, w):
-        raise FormatError(f"{pairs.left[0]}: image is {first_left.shape[1]}x{first_left.shape[0]}, expected "
-                          f"{w}x{h} (the folder name and {camera_file.name})")
+    for lf, rf in zip(pairs.left, pairs.right):
+        ls, rs = jpeg_size(lf), jpeg_size(rf)
+        if ls != rs:
+            raise FormatError(f"{lf} is {ls[0]}x{ls[1]} but {rf} is {rs[0]}x{rs[1]}; expected a stereo pair "
+                              f"of one size")
+        if ls != (w, h):
+            raise FormatError(f"{lf}: image is {ls[0]}x{ls[1]}, expected {w}x{h} (the folder name and "
+                              f"{camera_file.name})")
     gps_file = _find_gps_file(root)
     gps = read_gps_log(gps_file)
     if frame is None:
@@ -457,7 +526,8 @@ def load_malaga(extract_dir: str | Path, frame: GeoFrame | None = None,
     fix_xy = frame.to_map(np.stack([gps.lon, gps.lat], axis=-1))
     poses = track_poses(gps.times, fix_xy, pairs.times, cfg.heading_window_m, cfg.min_step_m, cfg.max_gap_s)
 
-    left_paths, right_paths, stamps = pairs.left, pairs.right, pairs.times
+    left_paths, right_paths = pairs.left, pairs.right
+    stamps = pairs.times - pairs.times[0]
 
     def read(i: int) -> Frame:
         a, b = _read_pair(left_paths[i], right_paths[i])
@@ -468,11 +538,12 @@ def load_malaga(extract_dir: str | Path, frame: GeoFrame | None = None,
         "source": "malaga_urban",
         "geo_frame": frame.to_dict(),
         "extract": root.name,
+        "extract_dir": str(root.resolve()),
         "image_dir": image_dir.name,
         "camera_file": camera_file.name,
         "gps_file": gps_file.name,
         "resolution": [w, h],
-        "timestamps": "unix seconds, from the image file names",
+        "time_origin": pairs.stamps[0],
         "unpaired_skipped": pairs.unpaired,
         "frames_without_pose": int(np.isnan(poses).any(axis=1).sum()),
         "gps_fixes_used": int(len(gps.times)),
@@ -480,4 +551,4 @@ def load_malaga(extract_dir: str | Path, frame: GeoFrame | None = None,
         "heading_window_m": cfg.heading_window_m,
         "mount_height_note": "estimate (undocumented height of the roof frame above the road)",
     }
-    return Sequence.lazy(camera, poses, stamps, read, name=root.name, meta=meta)
+    return Sequence.lazy(camera, poses, stamps, read, name=name or root.name, meta=meta)
