@@ -1,18 +1,25 @@
 """satloc_env: a Gymnasium simulator for satellite-image localization, built on :mod:`satloc`.
 
-Importing it registers ``satloc/SatLoc-v0``::
+Importing it registers ``satloc/SatLoc-v0`` (drive a simulated scene) and ``satloc/SatLocReplay-v0`` (replay a
+recorded sequence, :mod:`satloc_env.replay`)::
 
     import gymnasium as gym, satloc_env
     env = gym.make("satloc/SatLoc-v0", scene="city", render_mode="rgb_array")
+    replay = gym.make("satloc/SatLocReplay-v0", sequence="rec/query", map="rec/map", localizer="rec/build")
 """
 from gymnasium.envs.registration import register, registry
 
 ENV_ID = "satloc/SatLoc-v0"
+REPLAY_ID = "satloc/SatLocReplay-v0"
 
 if ENV_ID not in registry:
     register(id=ENV_ID, entry_point="satloc_env.env:SatLocEnv", max_episode_steps=None)
+if REPLAY_ID not in registry:
+    register(id=REPLAY_ID, entry_point="satloc_env.replay:SatLocReplayEnv", max_episode_steps=None)
 
 from .env import EnvConfig, SatLocEnv  # noqa: E402
+from .replay import ReplayConfig, SatLocReplayEnv  # noqa: E402
 from .scene import Scene, available_scenes, load_scene  # noqa: E402
 
-__all__ = ["ENV_ID", "EnvConfig", "SatLocEnv", "Scene", "available_scenes", "load_scene"]
+__all__ = ["ENV_ID", "REPLAY_ID", "EnvConfig", "ReplayConfig", "SatLocEnv", "SatLocReplayEnv", "Scene",
+           "available_scenes", "load_scene"]

@@ -27,6 +27,7 @@ from satloc.config import from_dict, override, to_dict
 from satloc.errors import ConfigError
 from satloc.geometry import Pose2, StereoCamera
 from satloc.labels import NUM_CLASSES
+from satloc.satmap import SatelliteMap
 from satloc.sequence import Frame
 from satloc.track import compose_motion
 
@@ -76,7 +77,223 @@ EPISODE_KEYS = frozenset({
 })
 
 
-class SatLocEnv(gym.Env):
+# --- shared by SatLoc-v0 and SatLocReplay-v0 (satloc_env.replay) ----------------------------------------------
+class _Shared:
+    """Holds an object given to ``gym.make`` (a Localizer, a Sequence, a SatelliteMap) in ``env.spec.kwargs``;
+    copies share it (see :class:`SharedSpecMixin`)."""
+
+    __slots__ = ("obj",)
+
+    def __init__(self, obj):
+        self.obj = obj
+
+    def __copy__(self):
+        return self
+
+    def __deepcopy__(self, memo):
+        return self
+
+    def __repr__(self) -> str:
+        return f"<shared {type(self.obj).__name__}>"
+
+
+def unshare(value: Any) -> Any:
+    """The object a :class:`_Shared` holder holds (anything else unchanged)."""
+    return value.obj if isinstance(value, _Shared) else value
+
+
+class SharedSpecMixin:
+    """An object given to ``gym.make`` as one of the keywords in ``_SHARED_KWARGS`` ends up in
+    ``env.spec.kwargs``, which gymnasium deep-copies (wrappers' spec, ``spec.make()``); it is wrapped in a
+    holder that those copies share (a Localizer holds OpenCV/faiss objects; a lazy Sequence a reader)."""
+
+    _SHARED_KWARGS: tuple[str, ...] = ("localizer",)
+    _spec = None
+
+    @property
+    def spec(self):
+        return self._spec
+
+    @spec.setter
+    def spec(self, value):
+        if value is not None:
+            wrap = {k: _Shared(v) for k, v in value.kwargs.items() if k in self._SHARED_KWARGS
+                    and v is not None and not isinstance(v, (str, os.PathLike, _Shared))}
+            if wrap:
+                value = dataclasses.replace(value, kwargs={**value.kwargs, **wrap})
+        self._spec = value
+
+
+def _split_localizer(config: dict, owner: str = "SatLocEnv", allow_auto: bool = True) -> tuple[dict, Any]:
+    """Config with a Localizer instance (the ``localizer`` keyword) replaced by its marker, and the instance."""
+    config = dict(config)
+    if "localizer" not in config:
+        return config, None
+    value = config["localizer"] = unshare(config["localizer"])
+    if value is None or isinstance(value, str):
+        return config, None
+    if isinstance(value, os.PathLike):
+        config["localizer"] = os.fspath(value)
+        return config, None
+    from satloc.localizer import Localizer
+
+    if not isinstance(value, Localizer):
+        auto = " 'auto'," if allow_auto else ""
+        raise ConfigError(f"{owner} config.localizer: expected None, 'none',{auto} a build directory or a "
+                          f"satloc.localizer.Localizer, got {type(value).__name__} {value!r}")
+    config["localizer"] = LOCALIZER_INSTANCE
+    return config, value
+
+
+def check_localizer_config(cfg, have_instance: bool, allow_auto: bool = True):
+    """``cfg`` (an env config dataclass with the fields ``localizer``, ``localizer_track``, ``localize_every`` and
+    ``reward``) with ``localizer`` normalised ("none" -> None, a build directory -> its path); raises
+    :class:`ConfigError` for a bad combination."""
+    loc = cfg.localizer
+    if loc is not None and loc.strip().lower() == "none":
+        cfg = dataclasses.replace(cfg, localizer=None)
+        loc = None
+    if loc == LOCALIZER_INSTANCE and not have_instance:
+        raise ConfigError(f"localizer: {LOCALIZER_INSTANCE!r} stands for a Localizer instance passed as the "
+                          "localizer keyword; pass the instance itself")
+    if loc == "auto" and not allow_auto:
+        raise ConfigError("localizer: 'auto' builds a localizer from a simulated scene's database pass, which a "
+                          "replay has not; expected None, 'none', a build directory or a satloc.localizer.Localizer")
+    if loc not in (None, "auto", LOCALIZER_INSTANCE):
+        p = Path(loc).expanduser()
+        if not (p / "build.json").is_file():
+            auto = " 'auto'," if allow_auto else ""
+            raise ConfigError(f"localizer: {loc!r} is not a build directory (no build.json); expected None, "
+                              f"'none',{auto} a directory written by `satloc build` or a satloc.localizer.Localizer")
+        cfg = dataclasses.replace(cfg, localizer=str(p))
+    if cfg.localizer_track and loc is None:
+        raise ConfigError("localizer_track: tracking needs a localizer (localizer is None)")
+    if cfg.localize_every < 1:
+        raise ConfigError(f"localize_every: expected an integer >= 1, got {cfg.localize_every}")
+    if cfg.reward == "neg_error" and loc is None:
+        raise ConfigError("reward: 'neg_error' needs a localizer (localizer is None)")
+    return cfg
+
+
+def check_localizer_map(localizer, satmap, what: str) -> None:
+    """Refuse a localizer whose satellite map (size, resolution, origin) is not ``satmap`` (the map of
+    ``what``)."""
+    sf = getattr(localizer, "satfeat", None)
+    if sf is None:
+        return
+    sm = satmap
+    same = (sf.features.shape[:2] == sm.image.shape[:2]
+            and abs(sf.meters_per_pixel - sm.meters_per_pixel) < 1e-9
+            and np.allclose(sf.origin, sm.origin, atol=1e-6))
+    if not same:
+        raise ConfigError(f"localizer: its satellite map ({sf.features.shape[1]}x{sf.features.shape[0]} px at "
+                          f"{sf.meters_per_pixel} m/px) is not the map of {what} "
+                          f"({sm.image.shape[1]}x{sm.image.shape[0]} px at {sm.meters_per_pixel} m/px)")
+
+
+class LocalizationState:
+    """The localizer in an environment loop (shared by SatLoc-v0 and SatLocReplay-v0).
+
+    :meth:`localize` localizes a frame (with ``track``: fused into a belief that the odometry given to
+    :meth:`add_odometry` since the previous localization moves first) and keeps the result as the fixed-shape
+    ``info`` arrays that :meth:`info` returns with ``error_m`` against the current true pose, and as the
+    :class:`PosteriorView` the render panels draw. A frame that cannot be localized (the localizer raises
+    :class:`ConfigError`, e.g. no grid sample with valid stereo depth) gives NaN ``estimate``, zero
+    posterior, ``inlier`` False, and its message in :attr:`error`. An unknown motion (a non-finite odometry)
+    makes the next localization start a new belief."""
+
+    def __init__(self, localizer=None, track: bool = False):
+        self.localizer = localizer
+        self.track = track
+        self.reset()
+
+    def reset(self) -> None:
+        """A new episode: no result, no belief, no odometry."""
+        self.arrays: dict | None = None     # latest result as info arrays (error_m is added by info())
+        self.view: PosteriorView | None = None
+        self.error: str | None = None       # message of the last frame that could not be localized
+        self.tracker = None                 # satloc.track.Tracker (track): made at the first localization
+        self.odo_since = np.zeros(3)        # odometry since the last localization
+        self.motion_known = True            # False: some motion since the last localization is unknown
+
+    @property
+    def localized(self) -> bool:
+        """Whether a localization was attempted this episode."""
+        return self.arrays is not None
+
+    @property
+    def needs_frame_depth(self) -> bool:
+        """A localizer configured with ``depth_source="frame"`` reads the depth stored in the frame."""
+        return self.localizer is not None and getattr(self.localizer.config, "depth_source", "stereo") == "frame"
+
+    def add_odometry(self, odometry) -> None:
+        """The odometry (dx, dy, dyaw) of one step; a non-finite one marks the motion unknown."""
+        o = np.asarray(odometry, np.float64).reshape(-1)
+        if o.shape != (3,) or not np.all(np.isfinite(o)):
+            self.motion_known = False
+        elif self.motion_known:
+            self.odo_since = compose_motion(self.odo_since, o)
+
+    def localize(self, frame: Frame, step: int) -> None:
+        loc = self.localizer
+        if loc is None:
+            return
+        k = loc.config.posterior_k
+        tracker = None
+        if self.track:
+            if self.tracker is None:
+                self.tracker = loc.tracker()
+            tracker = self.tracker
+            if self.motion_known:
+                tracker.predict(self.odo_since)   # the noisy odometry the agent observed, not the true motion
+            else:
+                tracker.reset()                   # moved by an unknown amount: start a new belief
+            self.odo_since, self.motion_known = np.zeros(3), True
+        try:
+            r = loc.localize(frame, tracker=tracker)
+        except ConfigError as e:  # no grid sample with valid depth (e.g. a wall fills the view): no result
+            self.error = str(e)
+            self.arrays = {"estimate": np.full(3, np.nan), "posterior_poses": np.zeros((k, 3)),
+                           "posterior_probs": np.zeros(k), "inlier": np.bool_(False),
+                           "inlier_score": np.float64(0.0), "localized_step": np.int64(step)}
+            self.view = None
+            return
+        self.error = None
+        poses, probs = r.top(k)
+        self.arrays = {"estimate": np.asarray(r.estimate.as_array(), np.float64),
+                       "posterior_poses": np.asarray(poses, np.float64),
+                       "posterior_probs": np.asarray(probs, np.float64),
+                       "inlier": np.bool_(r.inlier), "inlier_score": np.float64(r.inlier_score),
+                       "localized_step": np.int64(step)}
+        self.view = PosteriorView(np.asarray(r.candidates, np.float64), np.asarray(r.posterior, np.float64),
+                                  self.arrays["estimate"].copy(), bool(r.inlier))
+
+    def info(self, pose: np.ndarray) -> dict:
+        """The localization keys of ``info`` (none before the first localization); ``error_m`` is the planar
+        distance from the estimate to ``pose`` (x, y, yaw), NaN when either is unknown."""
+        if self.arrays is None:
+            return {}
+        out = {k: v.copy() for k, v in self.arrays.items()}
+        est = out["estimate"]
+        out["error_m"] = np.float64(math.hypot(est[0] - pose[0], est[1] - pose[1]))
+        return out
+
+
+def check_localizer_camera(localizer, camera: StereoCamera, what: str) -> None:
+    """Refuse a localizer built for another camera than ``camera`` (``what`` names where it comes from)."""
+    c = localizer.camera
+    if (c.width, c.height) != (camera.width, camera.height):
+        raise ConfigError(f"localizer: built for {c.width}x{c.height} images, but {what} has "
+                          f"{camera.width}x{camera.height} images")
+    diff = [f"{f.name} {getattr(c, f.name):g} vs {getattr(camera, f.name):g}"
+            for f in dataclasses.fields(StereoCamera)
+            if not math.isclose(getattr(c, f.name), getattr(camera, f.name), rel_tol=1e-6, abs_tol=1e-6)]
+    if diff:
+        raise ConfigError(f"localizer: built for another camera than that of {what} (localizer vs {what}: "
+                          + ", ".join(diff) + ")")
+
+
+class SatLocEnv(SharedSpecMixin, gym.Env):
     """Drive a stereo-camera car over a textured scene rendered from its satellite tile.
 
     Observation (Dict): ``left``, ``right`` uint8 RGB images; ``odometry`` float32 (dx, dy, dyaw) of the
@@ -130,6 +347,7 @@ class SatLocEnv(gym.Env):
             raise ConfigError(f"render_mode: expected None or 'rgb_array', got {render_mode!r}")
         self.render_mode = render_mode
         config, instance = _split_localizer(config)
+        self._loc = LocalizationState()        # the localizer in use and its latest result (see LocalizationState)
         self.config = from_dict(EnvConfig, config, "SatLocEnv config")
         self._check_localizer_config(instance is not None)
         self.camera = StereoCamera.preset(self.config.resolution)
@@ -155,11 +373,6 @@ class SatLocEnv(gym.Env):
         self.pose = Pose2()
         self._last_obs: dict | None = None
         self._last_depth: np.ndarray | None = None
-        # localization state
-        self.localizer = None                  # the satloc.localizer.Localizer in use (None: off)
-        self.localization_error: str | None = None  # message of the last frame that could not be localized
-        self._loc_info: dict | None = None     # latest result as info arrays (error_m is filled per step)
-        self._loc_view: PosteriorView | None = None
         if instance is not None:
             self.localizer = instance
             self.config = dataclasses.replace(self.config, localizer_mode=instance.config.mode,
@@ -172,6 +385,26 @@ class SatLocEnv(gym.Env):
                                                    self.config.localizer_refine)
         if self.localizer is not None:
             self._check_localizer_camera()
+        self._loc.track = self.config.localizer_track
+
+    # --- localization state (kept in self._loc, shared code with the replay environment) ----------------
+    @property
+    def localizer(self):
+        """The :class:`satloc.localizer.Localizer` in use (None: off)."""
+        return self._loc.localizer
+
+    @localizer.setter
+    def localizer(self, value) -> None:
+        self._loc.localizer = value
+
+    @property
+    def localization_error(self) -> str | None:
+        """The message of the last frame that could not be localized (None after a result)."""
+        return self._loc.error
+
+    @property
+    def _tracker(self):
+        return self._loc.tracker
 
     # --- configuration ----------------------------------------------------------------------------
     @staticmethod
@@ -179,27 +412,7 @@ class SatLocEnv(gym.Env):
         return to_dict(EnvConfig())
 
     def _check_localizer_config(self, have_instance: bool) -> None:
-        cfg = self.config
-        loc = cfg.localizer
-        if loc is not None and loc.strip().lower() == "none":
-            self.config = cfg = dataclasses.replace(cfg, localizer=None)
-            loc = None
-        if loc == LOCALIZER_INSTANCE and not have_instance:
-            raise ConfigError(f"localizer: {LOCALIZER_INSTANCE!r} stands for a Localizer instance passed as the "
-                              "localizer keyword; pass the instance itself")
-        if loc not in (None, "auto", LOCALIZER_INSTANCE):
-            p = Path(loc).expanduser()
-            if not (p / "build.json").is_file():
-                raise ConfigError(f"localizer: {loc!r} is not a build directory (no build.json); expected None, "
-                                  "'none', 'auto', a directory written by `satloc build` or a "
-                                  "satloc.localizer.Localizer")
-            self.config = cfg = dataclasses.replace(cfg, localizer=str(p))
-        if cfg.localizer_track and loc is None:
-            raise ConfigError("localizer_track: tracking needs a localizer (localizer is None)")
-        if cfg.localize_every < 1:
-            raise ConfigError(f"localize_every: expected an integer >= 1, got {cfg.localize_every}")
-        if cfg.reward == "neg_error" and loc is None:
-            raise ConfigError("reward: 'neg_error' needs a localizer (localizer is None)")
+        self.config = check_localizer_config(self.config, have_instance, allow_auto=True)
 
     def _check_localizer_camera(self) -> None:
         c, e = self.localizer.camera, self.camera
@@ -209,32 +422,7 @@ class SatLocEnv(gym.Env):
 
     def _check_localizer_map(self, scene: Scene) -> None:
         """A build directory or instance is tied to one satellite map: refuse a scene with another one."""
-        sf = getattr(self.localizer, "satfeat", None)
-        if sf is None:
-            return
-        sm = scene.satmap
-        same = (sf.features.shape[:2] == sm.image.shape[:2]
-                and abs(sf.meters_per_pixel - sm.meters_per_pixel) < 1e-9
-                and np.allclose(sf.origin, sm.origin, atol=1e-6))
-        if not same:
-            raise ConfigError(f"localizer: its satellite map ({sf.features.shape[1]}x{sf.features.shape[0]} px at "
-                              f"{sf.meters_per_pixel} m/px) is not the map of scene {scene.name!r} "
-                              f"({sm.image.shape[1]}x{sm.image.shape[0]} px at {sm.meters_per_pixel} m/px)")
-
-    # a Localizer instance given to gym.make ends up in env.spec.kwargs, which gymnasium deep-copies (wrappers'
-    # spec, spec.make()); the holder makes those copies share it (it holds OpenCV/faiss objects).
-    _spec = None
-
-    @property
-    def spec(self):
-        return self._spec
-
-    @spec.setter
-    def spec(self, value):
-        loc = None if value is None else value.kwargs.get("localizer")
-        if loc is not None and not isinstance(loc, (str, os.PathLike, _SharedLocalizer)):
-            value = dataclasses.replace(value, kwargs={**value.kwargs, "localizer": _SharedLocalizer(loc)})
-        self._spec = value
+        check_localizer_map(self.localizer, scene.satmap, f"scene {scene.name!r}")
 
     @property
     def scene(self) -> Scene:
@@ -292,9 +480,7 @@ class SatLocEnv(gym.Env):
         self._renderer.set_occluders(*sample_occluders(self.route, scene.ground_label, occ, cfg.lane_offset_m, rng))
         self.appearance = Appearance(app, rng)
         self.steps = 0
-        self._loc_info = self._loc_view = self.localization_error = None
-        self._tracker = None                   # tracking (localizer_track): a new belief each episode
-        self._odo_since = np.zeros(3)          # observed odometry since the last localization
+        self._loc.reset()                      # tracking (localizer_track): a new belief each episode
         obs = self._observe(np.zeros(3, np.float32))
         self._localize()
         return obs, self._info(np.zeros(3), off_road=False)
@@ -313,7 +499,7 @@ class SatLocEnv(gym.Env):
         noise = self.np_random.normal(0.0, 1.0, 3) * np.array(
             [cfg.odometry_noise[0] * dist, cfg.odometry_noise[0] * dist, cfg.odometry_noise[1]])
         obs = self._observe((true_odo + noise).astype(np.float32))
-        self._odo_since = compose_motion(self._odo_since, obs["odometry"].astype(np.float64))
+        self._loc.add_odometry(obs["odometry"])
         if self.steps % self.config.localize_every == 0:
             self._localize()
         off_road = not self.scene.is_drivable(self.pose.x, self.pose.y)
@@ -331,7 +517,7 @@ class SatLocEnv(gym.Env):
 
     def _frame_depth_needed(self) -> bool:
         """A localizer configured with ``depth_source="frame"`` reads the (true) depth from the frame."""
-        return self.localizer is not None and getattr(self.localizer.config, "depth_source", "stereo") == "frame"
+        return self._loc.needs_frame_depth
 
     def _observe(self, odometry: np.ndarray) -> dict:
         cfg = self.config
@@ -348,37 +534,11 @@ class SatLocEnv(gym.Env):
 
     def _localize(self) -> None:
         """Localize the last observed stereo pair; keeps the result for ``info`` and ``render``."""
-        loc = self.localizer
-        if loc is None:
+        if self.localizer is None:
             return
-        k = loc.config.posterior_k
         frame = Frame(self._last_obs["left"], self._last_obs["right"], None, self.steps * self._episode.dt,
                       self._last_depth if self._frame_depth_needed() else None)
-        tracker = None
-        if self.config.localizer_track:
-            if self._tracker is None:
-                self._tracker = loc.tracker()
-            tracker = self._tracker
-            tracker.predict(self._odo_since)   # the noisy odometry the agent observed, not the true motion
-            self._odo_since = np.zeros(3)
-        try:
-            r = loc.localize(frame, tracker=tracker)
-        except ConfigError as e:  # no grid sample with valid depth (e.g. a wall fills the view): no result
-            self.localization_error = str(e)
-            self._loc_info = {"estimate": np.full(3, np.nan), "posterior_poses": np.zeros((k, 3)),
-                              "posterior_probs": np.zeros(k), "inlier": np.bool_(False),
-                              "inlier_score": np.float64(0.0), "localized_step": np.int64(self.steps)}
-            self._loc_view = None
-            return
-        self.localization_error = None
-        poses, probs = r.top(k)
-        self._loc_info = {"estimate": np.asarray(r.estimate.as_array(), np.float64),
-                          "posterior_poses": np.asarray(poses, np.float64),
-                          "posterior_probs": np.asarray(probs, np.float64),
-                          "inlier": np.bool_(r.inlier), "inlier_score": np.float64(r.inlier_score),
-                          "localized_step": np.int64(self.steps)}
-        self._loc_view = PosteriorView(np.asarray(r.candidates, np.float64), np.asarray(r.posterior, np.float64),
-                                       self._loc_info["estimate"].copy(), bool(r.inlier))
+        self._loc.localize(frame, self.steps)
 
     def _info(self, true_odo: np.ndarray, off_road: bool) -> dict:
         info = {
@@ -389,64 +549,21 @@ class SatLocEnv(gym.Env):
             "route_complete": np.bool_(self.pilot.done),
             "step": np.int64(self.steps),
         }
-        if self._loc_info is not None:
-            li = self._loc_info
-            est = li["estimate"]
-            err = math.hypot(est[0] - self.pose.x, est[1] - self.pose.y)  # NaN when there is no result
-            info.update({k: v.copy() for k, v in li.items()})
-            info["error_m"] = np.float64(err)
+        info.update(self._loc.info(self.pose.as_array()))
         return info
 
     # --- rendering --------------------------------------------------------------------------------
     def render(self):
         if self.render_mode != "rgb_array" or self._last_obs is None:
             return None
-        return compose_view(self._last_obs["left"], self.scene, self.pose, self.route, self._loc_view,
-                            localized=self._loc_info is not None)
+        return compose_view(self._last_obs["left"], self.scene.satmap, self.pose, self.route.points,
+                            self._loc.view, localized=self._loc.localized)
 
     def close(self):
         if self._renderer is not None:
             self._renderer.close()
             self._renderer = None
         self._scene = self._scene_key = None
-
-
-class _SharedLocalizer:
-    """Holds a Localizer in ``env.spec.kwargs``; copies share it (see ``SatLocEnv.spec``)."""
-
-    __slots__ = ("localizer",)
-
-    def __init__(self, localizer):
-        self.localizer = localizer
-
-    def __copy__(self):
-        return self
-
-    def __deepcopy__(self, memo):
-        return self
-
-    def __repr__(self) -> str:
-        return f"<shared {type(self.localizer).__name__}>"
-
-
-def _split_localizer(config: dict) -> tuple[dict, Any]:
-    """Config with a Localizer instance (the ``localizer`` keyword) replaced by its marker, and the instance."""
-    config = dict(config)
-    value = config.get("localizer", None)
-    if isinstance(value, _SharedLocalizer):
-        value = value.localizer
-    if value is None or isinstance(value, str):
-        return config, None
-    if isinstance(value, os.PathLike):
-        config["localizer"] = os.fspath(value)
-        return config, None
-    from satloc.localizer import Localizer
-
-    if not isinstance(value, Localizer):
-        raise ConfigError(f"SatLocEnv config.localizer: expected None, 'none', 'auto', a build directory or a "
-                          f"satloc.localizer.Localizer, got {type(value).__name__} {value!r}")
-    config["localizer"] = LOCALIZER_INSTANCE
-    return config, value
 
 
 PANEL_PX = 360
@@ -531,62 +648,115 @@ def _text(img: np.ndarray, text: str, org: tuple[int, int]) -> None:
     cv2.putText(img, text, org, cv2.FONT_HERSHEY_SIMPLEX, 0.45, (255, 255, 255), 1, cv2.LINE_AA)
 
 
+def _route_lines(route) -> list[np.ndarray]:
+    """The polylines (each (n, 2) map metres) of ``route``: a :class:`satloc_env.route.Route`, an (N, 2+) array of
+    path points (rows with NaN split it: frames without a pose), or None."""
+    if route is None:
+        return []
+    pts = np.asarray(getattr(route, "points", route), np.float64)
+    if pts.ndim != 2 or pts.shape[1] < 2:
+        raise ValueError(f"route: expected a Route or an (N, 2) array of points, got shape {pts.shape}")
+    pts = pts[:, :2]
+    ok = np.all(np.isfinite(pts), axis=1)
+    if ok.all():
+        return [pts] if len(pts) > 1 else []
+    breaks = np.flatnonzero(np.diff(ok.astype(np.int8)) != 0) + 1
+    return [seg for seg, good in zip(np.split(pts, breaks), np.split(ok, breaks)) if good[0] and len(seg) > 1]
+
+
 def _draw_heat_and_route(img, posterior, route, to_px, px_per_m: float) -> None:
     """The posterior heatmap (if any), then the route on top, in a panel mapped by ``to_px``."""
     if posterior is not None:
         _draw_heat(img, posterior, to_px, px_per_m)
-    if route is not None:
-        pts = to_px(route.points)
-        cv2.polylines(img, [np.round(pts * 16).astype(np.int32).reshape(-1, 1, 2)], False, (80, 200, 255), 1,
-                      cv2.LINE_AA, shift=4)
+    lines = [np.round(to_px(pts) * 16).astype(np.int32).reshape(-1, 1, 2) for pts in _route_lines(route)]
+    if lines:
+        cv2.polylines(img, lines, False, (80, 200, 255), 1, cv2.LINE_AA, shift=4)
 
 
-def birdseye(scene: Scene, pose: Pose2, route=None, size_px: int = PANEL_PX, size_m: float = PANEL_M,
-             posterior: PosteriorView | None = None, localized: bool = False) -> np.ndarray:
-    """North-up crop of the satellite tile around ``pose`` with the route and the vehicle (red) drawn on it;
-    with ``posterior``, also the posterior heatmap and the estimate (green). ``localized`` without a
-    ``posterior`` marks a frame that could not be localized."""
-    sm = scene.satmap
-    img = sm.crop((pose.x, pose.y), size_m, out_px=size_px).copy()
+def _satmap(where) -> SatelliteMap:
+    """The satellite map of a panel: a :class:`SatelliteMap`, or a scene's (anything with ``.satmap``)."""
+    sm = getattr(where, "satmap", where)
+    if not isinstance(sm, SatelliteMap):
+        raise TypeError(f"expected a SatelliteMap or a Scene, got {type(where).__name__}")
+    return sm
+
+
+def _known(pose: Pose2 | None) -> bool:
+    return pose is not None and math.isfinite(pose.x) and math.isfinite(pose.y)
+
+
+def _panel_centre(sm: SatelliteMap, pose: Pose2 | None, posterior: PosteriorView | None) -> np.ndarray:
+    """Where the bird's-eye panel looks: the true pose, else the estimate, else the map's centre."""
+    if _known(pose):
+        return np.array([pose.x, pose.y])
+    if posterior is not None and np.all(np.isfinite(posterior.estimate[:2])):
+        return np.asarray(posterior.estimate[:2], np.float64)
+    x0, x1, y0, y1 = sm.extent
+    return np.array([(x0 + x1) / 2, (y0 + y1) / 2])
+
+
+def birdseye(satmap: SatelliteMap | Scene, pose: Pose2 | None, route=None, size_px: int = PANEL_PX,
+             size_m: float = PANEL_M, posterior: PosteriorView | None = None, localized: bool = False) -> np.ndarray:
+    """North-up crop of the satellite map (a :class:`SatelliteMap` or a scene's) around ``pose`` with the route
+    (a Route or an (N, 2) polyline) and the vehicle (red) drawn on it; with ``posterior``, also the posterior
+    heatmap and the estimate (green). ``localized`` without a ``posterior`` marks a frame that could not be
+    localized. ``pose`` None (or NaN: a frame without a pose) draws no vehicle and centres the crop on the
+    estimate (else the map's centre)."""
+    sm = _satmap(satmap)
+    centre = _panel_centre(sm, pose, posterior)
+    img = sm.crop(centre, size_m, out_px=size_px).copy()
     scale = size_px / size_m
 
     def to_px(xy):
-        d = np.asarray(xy, np.float64) - (pose.x, pose.y)
+        d = np.asarray(xy, np.float64) - centre
         return np.stack([size_px / 2 + d[..., 0] * scale, size_px / 2 - d[..., 1] * scale], -1)
 
     _draw_heat_and_route(img, posterior, route, to_px, scale)
-    if posterior is not None:
+    if posterior is not None and np.all(np.isfinite(posterior.estimate[:2])):
         _draw_estimate(img, posterior.estimate, to_px)
-    tri = pose.transform(np.array([[2.6, 0.0], [-1.6, 1.3], [-1.6, -1.3]]))
-    cv2.fillPoly(img, [np.round(to_px(tri) * 16).astype(np.int32).reshape(-1, 1, 2)], TRUTH_RGB, cv2.LINE_AA,
-                 shift=4)
+    if _known(pose):
+        tri = pose.transform(np.array([[2.6, 0.0], [-1.6, 1.3], [-1.6, -1.3]]))
+        cv2.fillPoly(img, [np.round(to_px(tri) * 16).astype(np.int32).reshape(-1, 1, 2)], TRUTH_RGB, cv2.LINE_AA,
+                     shift=4)
     if posterior is not None:
-        err = math.hypot(posterior.estimate[0] - pose.x, posterior.estimate[1] - pose.y)
-        _text(img, f"error {err:.1f} m" + ("" if posterior.inlier else "  (outlier)"), (6, 18))
+        tag = "" if posterior.inlier else "  (outlier)"
+        if _known(pose):
+            err = math.hypot(posterior.estimate[0] - pose.x, posterior.estimate[1] - pose.y)
+            _text(img, f"error {err:.1f} m" + tag, (6, 18))
+        else:
+            _text(img, "no true pose" + tag, (6, 18))
     elif localized:
         _text(img, "no estimate (no valid depth)", (6, 18))
     return img
 
 
-_OVERVIEW_BASE: "weakref.WeakKeyDictionary[Scene, tuple]" = weakref.WeakKeyDictionary()
+_OVERVIEW_BASE: dict[int, tuple] = {}   # id(map) -> (weakref to the map, size_px, panel, scales, offset)
 
 
-def overview(scene: Scene, pose: Pose2, route=None, size_px: int = PANEL_PX, window_m: float = PANEL_M,
-             posterior: PosteriorView | None = None) -> np.ndarray:
-    """The whole satellite tile scaled into a ``size_px`` square (letterboxed), with the route, the
-    bird's-eye window (white), the posterior heatmap, the truth (red) and the estimate (green)."""
-    sm = scene.satmap
-    cached = _OVERVIEW_BASE.get(scene)
-    if cached is None or cached[0] != size_px:
-        H, W = sm.image.shape[:2]
-        s = size_px / max(H, W)
-        bw, bh = max(1, int(round(W * s))), max(1, int(round(H * s)))
-        panel = np.full((size_px, size_px, 3), 24, np.uint8)
-        ox, oy = (size_px - bw) // 2, (size_px - bh) // 2
-        panel[oy:oy + bh, ox:ox + bw] = cv2.resize(sm.image, (bw, bh), interpolation=cv2.INTER_AREA)
-        cached = (size_px, panel, (bw / W, bh / H), (ox, oy))
-        _OVERVIEW_BASE[scene] = cached
-    _, base, (sx, sy), (ox, oy) = cached
+def _overview_base(sm: SatelliteMap, size_px: int) -> tuple:
+    """The whole map scaled into a ``size_px`` square (letterboxed), cached per map object."""
+    cached = _OVERVIEW_BASE.get(id(sm))
+    if cached is not None and cached[0]() is sm and cached[1] == size_px:
+        return cached[2:]
+    H, W = sm.image.shape[:2]
+    s = size_px / max(H, W)
+    bw, bh = max(1, int(round(W * s))), max(1, int(round(H * s)))
+    panel = np.full((size_px, size_px, 3), 24, np.uint8)
+    ox, oy = (size_px - bw) // 2, (size_px - bh) // 2
+    panel[oy:oy + bh, ox:ox + bw] = cv2.resize(sm.image, (bw, bh), interpolation=cv2.INTER_AREA)
+    for key in [k for k, v in _OVERVIEW_BASE.items() if v[0]() is None]:  # maps gone
+        del _OVERVIEW_BASE[key]
+    _OVERVIEW_BASE[id(sm)] = (weakref.ref(sm), size_px, panel, (bw / W, bh / H), (ox, oy))
+    return _OVERVIEW_BASE[id(sm)][2:]
+
+
+def overview(satmap: SatelliteMap | Scene, pose: Pose2 | None, route=None, size_px: int = PANEL_PX,
+             window_m: float = PANEL_M, posterior: PosteriorView | None = None) -> np.ndarray:
+    """The whole satellite map (a :class:`SatelliteMap` or a scene's) scaled into a ``size_px`` square
+    (letterboxed), with the route, the bird's-eye window (white), the posterior heatmap, the truth (red) and
+    the estimate (green). ``pose`` None or NaN: no truth (the window is where :func:`birdseye` looks)."""
+    sm = _satmap(satmap)
+    base, (sx, sy), (ox, oy) = _overview_base(sm, size_px)
     img = base.copy()
 
     def to_px(xy):
@@ -595,25 +765,30 @@ def overview(scene: Scene, pose: Pose2, route=None, size_px: int = PANEL_PX, win
 
     px_per_m = sx / sm.meters_per_pixel
     _draw_heat_and_route(img, posterior, route, to_px, px_per_m)
-    c = to_px(np.array([pose.x, pose.y]))
+    c = to_px(_panel_centre(sm, pose, posterior))
     half = window_m / 2 * px_per_m
     cv2.rectangle(img, tuple(int(v) for v in np.round(c - half)), tuple(int(v) for v in np.round(c + half)),
                   (255, 255, 255), 1, cv2.LINE_AA)
-    if posterior is not None:
+    has_est = posterior is not None and np.all(np.isfinite(posterior.estimate[:2]))
+    if has_est:
         e = to_px(posterior.estimate[:2])
-        cv2.line(img, tuple(int(v) for v in np.round(c)), tuple(int(v) for v in np.round(e)), (255, 255, 255), 1,
-                 cv2.LINE_AA)
+        if _known(pose):
+            cv2.line(img, tuple(int(v) for v in np.round(c)), tuple(int(v) for v in np.round(e)), (255, 255, 255),
+                     1, cv2.LINE_AA)
         _draw_estimate(img, posterior.estimate, to_px, radius=4)
-    cv2.circle(img, tuple(int(v) for v in np.round(c)), 4, (0, 0, 0), -1, cv2.LINE_AA)
-    cv2.circle(img, tuple(int(v) for v in np.round(c)), 3, TRUTH_RGB, -1, cv2.LINE_AA)
+    if _known(pose):
+        cv2.circle(img, tuple(int(v) for v in np.round(c)), 4, (0, 0, 0), -1, cv2.LINE_AA)
+        cv2.circle(img, tuple(int(v) for v in np.round(c)), 3, TRUTH_RGB, -1, cv2.LINE_AA)
     return img
 
 
-def compose_view(camera_img: np.ndarray, scene: Scene, pose: Pose2, route=None,
+def compose_view(camera_img: np.ndarray, satmap: SatelliteMap | Scene, pose: Pose2 | None, route=None,
                  posterior: PosteriorView | None = None, localized: bool = False) -> np.ndarray:
-    """Camera view (scaled to the panel height), the bird's-eye panel and the whole-map overview. The shape
-    depends only on the camera's image size."""
+    """Camera view (scaled to the panel height), the bird's-eye panel and the whole-map overview, over
+    ``satmap`` (a :class:`SatelliteMap` or a scene's) with ``route`` (a Route or an (N, 2) polyline of the
+    path; NaN rows split it). The shape depends only on the camera's image size."""
     h, w = camera_img.shape[:2]
     cam = cv2.resize(camera_img, (int(round(w * PANEL_PX / h)), PANEL_PX), interpolation=cv2.INTER_LINEAR)
-    return np.ascontiguousarray(np.hstack([cam, birdseye(scene, pose, route, posterior=posterior, localized=localized),
-                                           overview(scene, pose, route, posterior=posterior)]))
+    return np.ascontiguousarray(np.hstack([
+        cam, birdseye(satmap, pose, route, posterior=posterior, localized=localized),
+        overview(satmap, pose, route, posterior=posterior)]))

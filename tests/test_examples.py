@@ -25,3 +25,37 @@ def test_example_stress_runs_and_writes_its_table_and_curve(tmp_path):
     assert meta["aliasing"] == 1.0
     meta = json.loads((tmp_path / "a1_o0.5" / "rec" / "query" / "sequence.json").read_text())["meta"]
     assert meta["pass_config"]["occlusion"] == 0.5
+
+
+def test_example_replay_evaluates_a_recorded_sequence(tmp_path):
+    from satloc.pipeline import BuildConfig
+    from satloc.projection import ProjectionConfig
+    from satloc_env import autoloc
+    from satloc_env.env import SatLocEnv
+    from satloc_env.record import PassConfig, record_pass
+
+    # a short pass 0.5 m beside the database lane of a small city build (the first 25 m of the route)
+    env = SatLocEnv(scene="city", localizer=None, depth=True)
+    try:
+        env.reset(seed=0)
+        env.scene.satmap.save(tmp_path / "rec" / "map")
+        record_pass(env, PassConfig(lane_offset_m=-1.25, spacing_m=3.0, max_frames=6, appearance=0.2, seed=1),
+                    "main", tmp_path / "rec" / "query", "query", progress=False)
+    finally:
+        env.close()
+    build = autoloc.auto_build_dir("city", None, "half", progress=False, cache_dir=tmp_path / "cache",
+                                   max_frames=25, build_config=BuildConfig(features="rgb"),
+                                   projection_config=ProjectionConfig(max_anchors=2000, max_epochs=2))
+    out = tmp_path / "out"
+    r = subprocess.run([sys.executable, str(ROOT / "examples" / "replay.py"), "--sequence", str(tmp_path / "rec" / "query"),
+                        "--localizer", str(build), "--track", "--localize-every", "2", "--views", "2",
+                        "--out", str(out)], capture_output=True, text=True, timeout=600)
+    assert r.returncode == 0, r.stderr
+    assert "replayed 6 frames of 'query'" in r.stdout and "full+track: localized 3 times, 3 with an error" in r.stdout
+    rows = list(csv.DictReader(open(out / "errors.csv")))
+    assert [int(x["frame"]) for x in rows] == [0, 2, 4]
+    errors = np.array([float(x["error_m"]) for x in rows])
+    assert np.all(np.isfinite(errors)) and errors.max() < 1.5
+    assert f"max {errors.max():.2f} m" in r.stdout
+    assert (out / "errors.png").stat().st_size > 5000
+    assert sorted(p.name for p in out.glob("view_*.png")) == ["view_000000.png", "view_000005.png"]

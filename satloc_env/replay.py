@@ -1,0 +1,439 @@
+"""The Gymnasium environment ``satloc/SatLocReplay-v0``: replay a recorded stereo sequence over its satellite map.
+
+Where ``satloc/SatLoc-v0`` (:mod:`satloc_env.env`) renders what a car sees as it drives, this environment steps
+through a recorded :class:`satloc.sequence.Sequence`: a directory written by ``satloc record`` or
+``Sequence.save``, or a ``Sequence`` object (e.g. a dataset reader's lazy sequence, :meth:`Sequence.lazy`). The
+observation and ``info`` follow SatLoc-v0's contract, so an agent or a script written for one runs on the
+other, and with a localizer each step reports the same localization keys::
+
+    import gymnasium as gym, satloc_env
+    env = gym.make("satloc/SatLocReplay-v0", sequence="rec/query", map="rec/map", localizer="rec/build")
+    obs, info = env.reset(seed=0)
+    while True:
+        obs, reward, terminated, truncated, info = env.step(1)   # advance one stride
+        print(info["frame_index"], info["error_m"])
+        if truncated:
+            break
+
+Configuration is :class:`ReplayConfig`; any field can be given to ``gymnasium.make``, and the per-episode ones
+(:data:`EPISODE_KEYS`) again in ``reset(options=...)``. Unknown keys raise :class:`satloc.ConfigError`.
+"""
+from __future__ import annotations
+
+import dataclasses
+import math
+import os
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Literal
+
+import gymnasium as gym
+import numpy as np
+from gymnasium import spaces
+
+from satloc.config import from_dict, override, to_dict
+from satloc.errors import ConfigError
+from satloc.geometry import Pose2
+from satloc.persist import read_json
+from satloc.satmap import SatelliteMap
+from satloc.sequence import Sequence
+
+from .env import (LOCALIZER_INSTANCE, PANEL_M, LocalizationState, SharedSpecMixin, _split_localizer,
+                  check_localizer_camera, check_localizer_config, compose_view, unshare)
+
+#: the value of ``ReplayConfig.sequence`` / ``.map`` when an object (a Sequence, a SatelliteMap) was passed.
+INSTANCE = "<instance>"
+
+
+@dataclass
+class ReplayConfig:
+    sequence: str | None = None             # sequence directory; a Sequence object given as the keyword is
+                                            # stored here as "<instance>" (required: one or the other)
+    map: str | None = None                  # satellite map directory (SatelliteMap.load) or "<instance>" for a
+                                            # SatelliteMap object; None: see SatLocReplayEnv (render only)
+    start_frame: int = 0                    # first frame of an episode
+    end_frame: int | None = None            # frames from this index on are not replayed (None: to the end)
+    random_start: bool = False              # start at a random frame in [start_frame, last - stride] (episode seed)
+    stride: int = 1                         # frames advanced by an action of 1
+    max_skip: int = 1                       # actions are 1..max_skip: advance action * stride frames
+    depth: bool = False                     # add a left-camera depth observation (the frame's own, else stereo)
+    odometry_noise: tuple[float, float] = (0.02, 0.003)  # std: fraction of the distance, radians per step
+    localizer: str | None = None            # None/"none": off; a build directory; a Localizer instance given
+                                            # as the keyword is stored here as "<instance>"
+    localizer_mode: Literal["full", "np", "go"] = "full"   # for a build directory
+    localizer_refine: bool = False          # for a build directory: bird's-eye alignment (satloc.align)
+    localizer_track: bool = False           # fuse each localization into a belief moved by the odometry
+                                            # observations (satloc.track); a new episode starts a new belief
+    localize_every: int = 1                 # localize at reset and at the steps that are multiples of this
+    reward: Literal["none", "neg_error"] = "none"  # neg_error: minus the localization error (metres)
+
+
+#: keys that ``reset(options=...)`` may change; the others fix the spaces, the data or the localizer.
+EPISODE_KEYS = frozenset({"start_frame", "end_frame", "random_start", "stride", "odometry_noise"})
+
+
+class SatLocReplayEnv(SharedSpecMixin, gym.Env):
+    """Step through a recorded stereo sequence; localize its frames against a satellite map.
+
+    **Data.** ``sequence``: a sequence directory (``satloc record``, ``Sequence.save``) or a
+    :class:`satloc.sequence.Sequence` object given as the keyword (shared, not copied, by ``env.spec``; a
+    lazy dataset sequence reads its frames as they are replayed). ``map``: a map directory
+    (:meth:`SatelliteMap.load`) or a :class:`SatelliteMap` object. It is used for rendering only (the
+    localizer carries its own satellite features); without one, the map is the one the localizer's build
+    directory was built from (``build.json``), else ``<sequence dir>/../map`` (the layout of
+    ``satloc record``), else a plain grey canvas around the sequence's path. A map and a sequence that both
+    name their geographic frame (``SatelliteMap.frame``, ``meta["geo_frame"]``) must name the same one.
+
+    **Episode.** It starts at ``start_frame`` (or a random frame with ``random_start``) and each step advances
+    ``action * stride`` frames. ``truncated`` is True at the step after which one more stride would run past
+    the last frame (``end_frame - 1`` or the end of the data); stepping again raises ``RuntimeError``
+    (call ``reset``). ``terminated`` is always False: a replay cannot leave the road.
+
+    **Action.** ``Discrete(max_skip, start=1)``: a skip count, the number of strides to advance. With the
+    default ``max_skip=1`` the only action is 1 (one stride per step, whatever the agent wants). A skip that
+    would run past the last frame stops at the last frame reachable in whole strides.
+
+    **Observation** (Dict), as SatLoc-v0's: ``left``, ``right`` uint8 RGB images of the frame; ``odometry``
+    float32 (dx, dy, dyaw), the motion from the previous step's frame to this one in the previous frame's
+    vehicle frame (from the two frames' poses in the data), plus Gaussian noise of std ``odometry_noise[0]``
+    times the distance (x and y) and ``odometry_noise[1]`` radians (heading) per step, drawn from the
+    episode's RNG: SatLoc-v0's model. Zero at reset. Where either frame has no pose the motion is unknown:
+    the observation is zero, ``info["odometry_valid"]`` False and ``odometry_true`` NaN (with tracking, the
+    next localization starts a new belief). With ``depth=True``: ``depth`` float32 metres, 0 = invalid: the
+    frame's stored depth channel when it has one (the simulator's true depth in a recorded pass), otherwise
+    stereo depth from the pair (:class:`satloc.stereo.StereoDepth`); ``info["depth_from_stereo"]`` says which.
+
+    **info** (fixed-shape numpy values): ``pose`` (x, y, yaw) of the frame in the data (NaN for a frame without
+    a pose), ``odometry_true`` (the noise-free motion of the step), ``odometry_valid``, ``step``,
+    ``frame_index`` (into the sequence), ``timestamp`` (the frame's, seconds). With a localizer, as SatLoc-v0
+    (see :class:`satloc_env.env.SatLocEnv`): ``estimate``, ``error_m`` (to the current frame's pose: NaN for a
+    frame without a pose), ``posterior_poses`` (K, 3), ``posterior_probs`` (K,), ``inlier``, ``inlier_score``
+    and ``localized_step``, computed at reset and at every ``localize_every``-th step (step count, not frame
+    index); ``localizer_track`` fuses them over the episode with the noisy odometry observations. A frame that
+    cannot be localized has NaN ``estimate`` and ``error_m``, and its message in ``env.unwrapped
+    .localization_error``.
+
+    **Localizer**: None (default), a build directory (``satloc build`` + ``satloc train-projection``, loaded in
+    ``localizer_mode``, once per process) or a :class:`satloc.localizer.Localizer` (its own mode holds). It
+    must have been built for the sequence's camera (every :class:`StereoCamera` field); ``"auto"`` is refused
+    (it builds from a simulated scene).
+
+    **Reward**: 0, or with ``reward="neg_error"`` minus ``error_m`` (0 while there is no finite error).
+
+    **Rendering** (``render_mode="rgb_array"``): SatLoc-v0's panels (:func:`satloc_env.env.compose_view`): the
+    left image, a bird's-eye crop of the map around the frame's pose and the whole map with the sequence's
+    path, the posterior heatmap, the estimate (green) and the truth (red).
+
+    **Determinism**: the same data, seed and actions give identical observations and info.
+    """
+
+    metadata = {"render_modes": ["rgb_array"], "render_fps": 10}
+    _SHARED_KWARGS = ("localizer", "sequence", "map")
+
+    def __init__(self, render_mode: str | None = None, **config: Any):
+        if render_mode not in (None, "rgb_array"):
+            raise ConfigError(f"render_mode: expected None or 'rgb_array', got {render_mode!r}")
+        self.render_mode = render_mode
+        config, loc_instance = _split_localizer(config, "SatLocReplayEnv", allow_auto=False)
+        config, seq_instance = _split_instance(config, "sequence", Sequence, "a sequence directory or a "
+                                               "satloc.sequence.Sequence")
+        config, map_instance = _split_instance(config, "map", SatelliteMap, "None, a map directory or a "
+                                               "satloc.satmap.SatelliteMap")
+        self._loc = LocalizationState()
+        cfg = from_dict(ReplayConfig, config, "SatLocReplayEnv config")
+        cfg = check_localizer_config(cfg, loc_instance is not None, allow_auto=False)
+        for key, inst in (("sequence", seq_instance), ("map", map_instance)):
+            if getattr(cfg, key) == INSTANCE and inst is None:
+                raise ConfigError(f"{key}: {INSTANCE!r} stands for an object passed as the {key} keyword; pass the "
+                                  "object itself")
+        if cfg.max_skip < 1:
+            raise ConfigError(f"max_skip: expected an integer >= 1, got {cfg.max_skip}")
+        self.sequence = seq_instance if seq_instance is not None else _load_sequence(cfg.sequence)
+        self.camera = self.sequence.camera
+        self._poses = self.sequence.poses
+        self._stamps = self.sequence.timestamps
+        if len(self.sequence) < 2:
+            raise ConfigError(f"sequence {self.sequence.name!r}: has {len(self.sequence)} frame(s); a replay needs "
+                              "at least 2")
+        # the localizer
+        if loc_instance is not None:
+            self._loc.localizer = loc_instance
+            c = loc_instance.config
+            cfg = dataclasses.replace(cfg, localizer_mode=c.mode, localizer_refine=c.refine,
+                                      localizer_track=cfg.localizer_track or c.track)
+        elif cfg.localizer is not None:
+            from .autoloc import load_cached_localizer
+
+            self._loc.localizer = load_cached_localizer(cfg.localizer, cfg.localizer_mode, cfg.localizer_refine)
+        self._loc.track = cfg.localizer_track
+        self.config = cfg
+        self._episode = self._check_episode(cfg, "SatLocReplayEnv config")
+        if self.localizer is not None:
+            check_localizer_camera(self.localizer, self.camera, f"sequence {self.sequence.name!r}")
+            if self._loc.needs_frame_depth and self.sequence[self._episode.start_frame].depth is None:
+                raise ConfigError(f"localizer: its depth_source is 'frame', but sequence {self.sequence.name!r} has "
+                                  "no depth channel")
+        self._map_instance = map_instance
+        self.satmap: SatelliteMap | None = None     # resolved on first use (render) by the ``map`` property
+        if map_instance is not None or cfg.map is not None:
+            self.satmap = self._resolve_map()
+        # spaces
+        h, w = self.camera.height, self.camera.width
+        obs = {
+            "left": spaces.Box(0, 255, (h, w, 3), np.uint8),
+            "right": spaces.Box(0, 255, (h, w, 3), np.uint8),
+            "odometry": spaces.Box(-np.inf, np.inf, (3,), np.float32),
+        }
+        if cfg.depth:
+            obs["depth"] = spaces.Box(0.0, np.inf, (h, w), np.float32)
+        self.observation_space = spaces.Dict(obs)
+        self.action_space = spaces.Discrete(cfg.max_skip, start=1)
+        self._stereo = None
+        self.frame_index: int | None = None
+        self.steps = 0
+        self._last_left: np.ndarray | None = None
+        self._done = False
+
+    # --- configuration ----------------------------------------------------------------------------
+    @staticmethod
+    def default_config() -> dict:
+        return to_dict(ReplayConfig())
+
+    @property
+    def localizer(self):
+        """The :class:`satloc.localizer.Localizer` in use (None: off)."""
+        return self._loc.localizer
+
+    @property
+    def localization_error(self) -> str | None:
+        """The message of the last frame that could not be localized (None after a result)."""
+        return self._loc.error
+
+    @property
+    def map(self) -> SatelliteMap:
+        """The satellite map the render panels draw on (see the class docstring for the default)."""
+        if self.satmap is None:
+            self.satmap = self._resolve_map()
+        return self.satmap
+
+    def _check_episode(self, cfg: ReplayConfig, where: str) -> ReplayConfig:
+        n = len(self.sequence)
+        if cfg.stride < 1:
+            raise ConfigError(f"{where}: stride: expected an integer >= 1, got {cfg.stride}")
+        end = n if cfg.end_frame is None else cfg.end_frame
+        if not 0 < end <= n:
+            raise ConfigError(f"{where}: end_frame: expected an index in [1, {n}] (the sequence has {n} frames) or "
+                              f"None, got {cfg.end_frame}")
+        if not 0 <= cfg.start_frame < end - cfg.stride:
+            raise ConfigError(f"{where}: start_frame: expected an index in [0, {end - cfg.stride - 1}], leaving at "
+                              f"least one stride ({cfg.stride}) before the end (frame {end - 1}), got "
+                              f"{cfg.start_frame}")
+        if len(cfg.odometry_noise) != 2 or min(cfg.odometry_noise) < 0:
+            raise ConfigError(f"{where}: odometry_noise: expected 2 non-negative numbers, got {cfg.odometry_noise}")
+        return cfg
+
+    def _resolve_map(self) -> SatelliteMap:
+        cfg, seq = self.config, self.sequence
+        if self._map_instance is not None:
+            sm = self._map_instance
+        elif cfg.map is not None:
+            d = Path(cfg.map).expanduser()
+            if not (d / "map.json").is_file():
+                raise ConfigError(f"map: {cfg.map!r} is not a map directory (no map.json); expected None, a directory "
+                                  "written by SatelliteMap.save (e.g. the map/ of `satloc record`) or a SatelliteMap")
+            sm = SatelliteMap.load(d)
+        else:
+            sm = self._default_map()
+        _check_same_geo_frame(sm, seq)
+        return sm
+
+    def _default_map(self) -> SatelliteMap:
+        """The build's map, else the recording's ``map/`` beside the sequence, else a grey canvas."""
+        candidates = []
+        if self.config.localizer not in (None, LOCALIZER_INSTANCE):
+            try:
+                m = read_json(Path(self.config.localizer) / "build.json").get("map")
+            except Exception:  # noqa: BLE001 - an unreadable build.json only loses this default
+                m = None
+            if m:
+                candidates.append(Path(m))
+        seq_dir = getattr(self.sequence, "_dir", None)
+        if seq_dir is not None:
+            candidates.append(Path(seq_dir).parent / "map")
+        for d in candidates:
+            if (d / "map.json").is_file():
+                return SatelliteMap.load(d)
+        return _blank_map(self._poses)
+
+    # --- gym API ----------------------------------------------------------------------------------
+    def reset(self, *, seed: int | None = None, options: dict | None = None):
+        super().reset(seed=seed)
+        options = dict(options or {})
+        bad = sorted(set(options) - EPISODE_KEYS)
+        if bad:
+            raise ConfigError(f"reset options: {bad} cannot change per episode (or are unknown); allowed: "
+                              f"{sorted(EPISODE_KEYS)}")
+        cfg = self._check_episode(override(self.config, options, "reset options"), "reset options")
+        self._episode = cfg
+        start = cfg.start_frame
+        if cfg.random_start:
+            start = int(self.np_random.integers(cfg.start_frame, self._end(cfg) - cfg.stride))
+        self.frame_index, self.steps, self._done = start, 0, False
+        self._loc.reset()
+        obs, from_stereo = self._observe(np.zeros(3, np.float32))
+        self._localize()
+        return obs, self._info(np.zeros(3), True, from_stereo)
+
+    def step(self, action):
+        if self.frame_index is None:
+            raise RuntimeError("call reset() first")
+        if self._done:
+            raise RuntimeError("the replay reached the end of the data (truncated); call reset()")
+        skip = _skip_count(action, self.config.max_skip)
+        cfg = self._episode
+        last = self._end(cfg) - 1
+        prev = self.frame_index
+        target = prev + min(skip, (last - prev) // cfg.stride) * cfg.stride
+        self.frame_index = target
+        self.steps += 1
+        a, b = self._poses[prev], self._poses[target]
+        noise = self.np_random.normal(0.0, 1.0, 3)   # drawn on every step: the stream does not depend on the data
+        if np.all(np.isfinite(a)) and np.all(np.isfinite(b)):
+            true_odo = Pose2(*a).between(Pose2(*b)).as_array()
+            dist = math.hypot(true_odo[0], true_odo[1])
+            odo = true_odo + noise * np.array([cfg.odometry_noise[0] * dist, cfg.odometry_noise[0] * dist,
+                                               cfg.odometry_noise[1]])
+            valid = True
+        else:
+            true_odo, odo, valid = np.full(3, np.nan), np.zeros(3), False
+        obs, from_stereo = self._observe(odo.astype(np.float32))
+        self._loc.add_odometry(obs["odometry"] if valid else np.full(3, np.nan))
+        if self.steps % self.config.localize_every == 0:
+            self._localize()
+        info = self._info(true_odo, valid, from_stereo)
+        self._done = target + cfg.stride > last
+        reward = 0.0
+        if self.config.reward == "neg_error" and np.isfinite(info["error_m"]):
+            reward = -float(info["error_m"])
+        return obs, reward, False, self._done, info
+
+    def _end(self, cfg: ReplayConfig) -> int:
+        return len(self.sequence) if cfg.end_frame is None else cfg.end_frame
+
+    def _observe(self, odometry: np.ndarray) -> tuple[dict, bool]:
+        frame = self.sequence[self.frame_index]
+        self._frame = frame
+        obs = {"left": np.ascontiguousarray(frame.left, np.uint8), "right": np.ascontiguousarray(frame.right, np.uint8),
+               "odometry": odometry}
+        from_stereo = False
+        if self.config.depth:
+            if frame.depth is not None:
+                d = frame.depth
+            else:
+                if self._stereo is None:
+                    from satloc.stereo import StereoDepth
+
+                    self._stereo = StereoDepth(self.camera)
+                d, from_stereo = self._stereo(frame.left, frame.right), True
+            obs["depth"] = np.maximum(np.nan_to_num(np.asarray(d, np.float32), nan=0.0, posinf=0.0), 0.0)
+        self._last_left = obs["left"]
+        return obs, from_stereo
+
+    def _localize(self) -> None:
+        if self.localizer is None:
+            return
+        f = self._frame
+        frame = dataclasses.replace(f, pose=None, labels=None,
+                                    depth=f.depth if self._loc.needs_frame_depth else None)
+        self._loc.localize(frame, self.steps)
+
+    def _info(self, true_odo: np.ndarray, valid: bool, from_stereo: bool) -> dict:
+        i = self.frame_index
+        pose = np.array(self._poses[i], np.float64)
+        info = {
+            "pose": pose,
+            "odometry_true": np.asarray(true_odo, np.float64),
+            "odometry_valid": np.bool_(valid),
+            "step": np.int64(self.steps),
+            "frame_index": np.int64(i),
+            "timestamp": np.float64(self._stamps[i]),
+        }
+        if self.config.depth:
+            info["depth_from_stereo"] = np.bool_(from_stereo)
+        info.update(self._loc.info(pose))
+        return info
+
+    # --- rendering --------------------------------------------------------------------------------
+    def render(self):
+        if self.render_mode != "rgb_array" or self._last_left is None:
+            return None
+        p = self._poses[self.frame_index]
+        pose = Pose2(*p) if np.all(np.isfinite(p)) else None
+        return compose_view(self._last_left, self.map, pose, self._poses, self._loc.view,
+                            localized=self._loc.localized)
+
+    def close(self):
+        self._stereo = None
+
+
+# --- helpers ----------------------------------------------------------------------------------------------
+def _split_instance(config: dict, key: str, cls: type, expected: str) -> tuple[dict, Any]:
+    """Config with an object of ``cls`` given as ``key`` replaced by :data:`INSTANCE`, and the object."""
+    config = dict(config)
+    if key not in config:
+        return config, None
+    value = config[key] = unshare(config[key])
+    if value is None or isinstance(value, str):
+        return config, None
+    if isinstance(value, os.PathLike):
+        config[key] = os.fspath(value)
+        return config, None
+    if not isinstance(value, cls):
+        raise ConfigError(f"SatLocReplayEnv config.{key}: expected {expected}, got {type(value).__name__}")
+    config[key] = INSTANCE
+    return config, value
+
+
+def _load_sequence(path: str | None) -> Sequence:
+    if path is None:
+        raise ConfigError("SatLocReplayEnv config.sequence: a sequence is required (a sequence directory or a "
+                          "satloc.sequence.Sequence)")
+    d = Path(path).expanduser()
+    if not (d / "sequence.json").is_file():
+        raise ConfigError(f"sequence: {path!r} is not a sequence directory (no sequence.json); expected a directory "
+                          "written by `satloc record` or Sequence.save, or a satloc.sequence.Sequence")
+    return Sequence.load(d)
+
+
+def _skip_count(action, max_skip: int) -> int:
+    """The action as a skip count in [1, ``max_skip``] (an integer, a numpy integer or a 1-element array)."""
+    a = np.asarray(action)
+    if a.size != 1 or not np.issubdtype(a.dtype, np.integer) or not 1 <= int(a.reshape(())) <= max_skip:
+        raise ValueError(f"action: expected an integer skip count in [1, {max_skip}], got {action!r}")
+    return int(a.reshape(()))
+
+
+def _check_same_geo_frame(sm: SatelliteMap, seq: Sequence) -> None:
+    """A map and a sequence that both name their geographic frame must name the same one."""
+    frame = getattr(sm, "frame", None)
+    seq_frame = seq.meta.get("geo_frame") if isinstance(seq.meta, dict) else None
+    if frame is None or seq_frame is None:
+        return
+    from satloc.geoframe import GeoFrame
+
+    theirs = GeoFrame.from_dict(seq_frame, f"sequence {seq.name!r} meta.geo_frame")
+    mine = frame if isinstance(frame, GeoFrame) else GeoFrame.from_dict(frame, "map frame")
+    if not (math.isclose(mine.lon0, theirs.lon0, abs_tol=1e-9) and math.isclose(mine.lat0, theirs.lat0, abs_tol=1e-9)):
+        raise ConfigError(f"map: its geographic frame (lon0 {mine.lon0}, lat0 {mine.lat0}) is not the frame of "
+                          f"sequence {seq.name!r} (lon0 {theirs.lon0}, lat0 {theirs.lat0}); load the map into the "
+                          "sequence's frame")
+
+
+def _blank_map(poses: np.ndarray, margin_m: float = PANEL_M / 2, max_px: int = 2048) -> SatelliteMap:
+    """A grey canvas around the path of ``poses`` (the render's map when there is none)."""
+    xy = poses[np.all(np.isfinite(poses[:, :2]), axis=1), :2]
+    lo, hi = (xy.min(0), xy.max(0)) if len(xy) else (np.zeros(2), np.zeros(2))
+    lo, hi = lo - margin_m, hi + margin_m
+    mpp = max(0.5, float((hi - lo).max()) / max_px)
+    w, h = (int(math.ceil(v / mpp)) for v in hi - lo)
+    return SatelliteMap(np.full((h, w, 3), 90, np.uint8), mpp, (float(lo[0]), float(hi[1])))
