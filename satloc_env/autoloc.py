@@ -85,7 +85,7 @@ def _scene_identity(scene: str | os.PathLike) -> tuple[str, str, str, float]:
     files = [("scene.yaml", path)]
     g = spec.generator_spec(str(path))
     if g.type == "image":
-        files += [("image", base / g.image)] + ([("labels", base / g.labels)] if g.labels else [])
+        files += g.files(base)
     _hash_files(h, files)
     source = path.stem if path.parent == SCENES_DIR.resolve() else str(path)
     return spec.name, source, h.hexdigest(), float(spec.knobs.aliasing)

@@ -6,22 +6,51 @@ A scene file (see ``scenes/*.yaml``)::
     seed: 7
     generator: {type: grid, style: city, blocks: [4, 4], pitch_m: 80, road_width_m: 12, sidewalk_m: 3,
                 margin_m: 20}
-      # or {type: image, image: tile.png, labels: labels.png}  (paths relative to the YAML file)
+      # or {type: image, image: tile.tif, roads: roads.png}  (paths relative to the YAML file; see below)
     meters_per_pixel: 0.2          # satellite tile resolution
     ground_mpp: 0.1                # resolution of the ground texture the camera sees
     routes:
       main: {waypoints: [[x, y], ...], closed: true, laps: 1}
+      # or {lonlat: [[lon, lat], ...]} (an image scene with a georeference)
+      # or {trace: true} / {trace: {smooth_m: 2, spacing_m: 2, min_length_m: 50, prune_m: 8, reverse: false}}
+      #    (traced from the image scene's road mask or label image: satloc_env.roadtrace)
     database_route: main
     query_route: main
     objects: {buildings: [...], trees: [...], cars: [...]}   # extra hand-placed objects
     lighting: {sun_azimuth_deg: 135, sun_elevation_deg: 50}
     knobs: {aliasing: 0.0, occlusion: 0.0, appearance: 0.0}
 
-Every field is checked; unknown keys, wrong types, missing images and routes leaving the tile raise
-:class:`satloc.ConfigError` naming the file and the field.
+**Image scenes** (``generator: {type: image, ...}``) drape an image over the ground plane: the camera sees
+the image as the textured ground (``ground_mpp`` must equal ``meters_per_pixel``) and the satellite tile
+is the same image. ``image`` is
+
+* a georeferenced image: a GeoTIFF in any CRS, or an image with a world file (``.pgw/.jgw/.tfw/.wld``)
+  whose CRS comes from a ``.prj`` beside it or the ``crs`` field. It is loaded through
+  :func:`satloc.georef.load_map` at ``meters_per_pixel``, north up, into a
+  :class:`~satloc.geoframe.GeoFrame` whose origin (lon0, lat0) is the loaded area's south-west corner, so
+  the scene keeps the simulator's local frame (x in [0, width_m], y in [0, height_m]) and the scene's
+  ``satmap.frame`` still converts to and from lon/lat. Without ``region`` the area is the largest north-up
+  rectangle inside the image's footprint; ``region: [lon_min, lat_min, lon_max, lat_max]`` (WGS84
+  degrees) crops it;
+* or a plain image (no georeference), taken as it is: north up, ``meters_per_pixel`` per pixel, its
+  south-west corner at the origin.
+
+``labels`` (class ids of :mod:`satloc.labels`) and ``roads`` (a road mask: non-zero is road) are images of
+the same size as ``image``, pixel for pixel, and follow it through the reprojection (nearest class; the
+mask bilinear, then halved). The drivable area and the ground classes come from them: with ``roads``,
+road inside the mask and, outside it, the label image's class or else ``void`` (not drivable); with only
+``labels``, the label image; with neither, road everywhere. A ``trace`` route follows the mask (or the
+label image's road and lane-marking classes): see :func:`satloc_env.roadtrace.trace_route`. Occluders and
+appearance changes work on image scenes as on generated ones.
+
+Every field is checked; unknown keys, wrong types, missing images, images or masks of another size, empty
+masks, masks without a long enough road and routes leaving the tile raise :class:`satloc.ConfigError`
+naming the file and the field.
 """
 from __future__ import annotations
 
+import contextlib
+import dataclasses
 import functools
 import math
 import os
@@ -64,14 +93,52 @@ class GridGeneratorSpec:
 class ImageGeneratorSpec:
     type: Literal["image"]
     image: str
-    labels: str | None = None
+    labels: str | None = None    #: class ids, same size as ``image``
+    roads: str | None = None     #: road mask (non-zero: road), same size as ``image``
+    crs: str | None = None       #: CRS of an image with a world file and no ``.prj`` (e.g. "EPSG:32632")
+    region: tuple[float, float, float, float] | None = None   #: lon_min, lat_min, lon_max, lat_max (degrees)
+
+    def files(self, base: Path) -> list[tuple[str, Path]]:
+        """(field, path) of every existing file the generator reads: the image, its world file and ``.prj``
+        sidecars, the label image and the road mask (what a cache of the scene must depend on)."""
+        from satloc.georef import world_file_candidates
+
+        img = base / self.image
+        out = [("image", img)]
+        out += [("image_sidecar", p) for p in [*world_file_candidates(img), img.with_suffix(".prj")] if p.is_file()]
+        out += [(k, base / getattr(self, k)) for k in ("labels", "roads") if getattr(self, k)]
+        return out
+
+
+@dataclass(frozen=True)
+class TraceSpec:
+    """How a route is traced from an image scene's road mask (see :mod:`satloc_env.roadtrace`)."""
+
+    smooth_m: float = 2.0       #: Gaussian smoothing along the traced centre line, metres
+    spacing_m: float = 2.0      #: waypoint spacing, metres
+    min_length_m: float = 50.0  #: a shorter road is an error
+    prune_m: float = 8.0        #: skeleton twigs shorter than this are ignored, metres
+    reverse: bool = False       #: drive it the other way
 
 
 @dataclass
 class RouteSpec:
-    waypoints: list[tuple[float, float]]
+    """A route: ``waypoints`` in map metres, or ``lonlat`` (WGS84 degrees, an image scene with a
+    georeference), or ``trace`` (traced from the image scene's road mask); exactly one of them."""
+
+    waypoints: list[tuple[float, float]] | None = None
     closed: bool = False
     laps: int = 1
+    lonlat: list[tuple[float, float]] | None = None
+    trace: bool | TraceSpec | None = None
+
+    def __post_init__(self):
+        given = [k for k in ("waypoints", "lonlat", "trace") if getattr(self, k) not in (None, False)]
+        if len(given) != 1:
+            raise ConfigError(f"waypoints/lonlat/trace: expected exactly one of them, got "
+                              f"{' and '.join(given) if given else 'none'}")
+        if self.laps < 1:
+            raise ConfigError(f"laps: expected an integer >= 1, got {self.laps}")
 
 
 @dataclass
@@ -190,14 +257,22 @@ def load_spec(name_or_path: str | os.PathLike) -> tuple[SceneSpec, Path]:
 class Scene:
     """A generated (or image-based) scene: layout, satellite map, routes, drivable area."""
 
-    def __init__(self, spec: SceneSpec, layout: Layout, satmap: SatelliteMap, alias_source: np.ndarray | None = None):
+    def __init__(self, spec: SceneSpec, layout: Layout, satmap: SatelliteMap, alias_source: np.ndarray | None = None,
+                 where: str | None = None):
+        unresolved = sorted(k for k, r in spec.routes.items() if r.waypoints is None)
+        if unresolved:
+            raise ConfigError(f"{where or f'scene {spec.name!r}'}: routes {unresolved}: a Scene needs waypoints; "
+                              f"build it with build_scene (which converts lonlat and traces trace routes)")
         self.spec = spec
         self.layout = layout
         self.satmap = satmap
         self.alias_source = alias_source if alias_source is not None else np.zeros(0, int)
-        self.routes = {k: Route(r.waypoints, r.closed, r.laps, name=f"routes.{k}") for k, r in spec.routes.items()}
+        try:
+            self.routes = {k: Route(r.waypoints, r.closed, r.laps, name=f"routes.{k}") for k, r in spec.routes.items()}
+        except ValueError as e:
+            raise ConfigError(f"{where or f'scene {spec.name!r}'}: {e}") from e
         self.drivable = np.isin(layout.ground_labels, DRIVABLE)
-        self._check_routes()
+        self._check_routes(where or f"scene {self.name!r}")
 
     @property
     def name(self) -> str:
@@ -210,12 +285,12 @@ class Scene:
 
         return build_world(self.layout)
 
-    def _check_routes(self) -> None:
+    def _check_routes(self, where: str) -> None:
         W, H = self.layout.width_m, self.layout.height_m
         for k, r in self.spec.routes.items():
             for i, (x, y) in enumerate(r.waypoints):
                 if not (0 <= x <= W and 0 <= y <= H):
-                    raise ConfigError(f"scene {self.name!r}: routes.{k}.waypoints[{i}] = [{x}, {y}] lies outside "
+                    raise ConfigError(f"{where}: routes.{k}.waypoints[{i}] = [{x}, {y}] lies outside "
                                       f"the tile, which covers x in [0, {W}] and y in [0, {H}] metres")
 
     def is_drivable(self, x: float, y: float) -> bool:
@@ -283,42 +358,253 @@ def _objects_from_spec(spec: ObjectsSpec) -> tuple[list[Building], list[Tree], l
     return b, t, c
 
 
-def _image_layout(g: ImageGeneratorSpec, spec: SceneSpec, base: Path, where: str) -> Layout:
+@dataclass
+class _ImageGround:
+    """An image scene's ground: the layout, the geo frame (None for a plain image) and the road mask."""
+
+    layout: Layout
+    frame: Any                      # satloc.geoframe.GeoFrame | None
+    roads: np.ndarray | None        # (H, W) bool road mask on the layout's raster, if any
+
+
+def _image_layout(g: ImageGeneratorSpec, spec: SceneSpec, base: Path, where: str) -> _ImageGround:
     img_path = base / g.image
     if not img_path.is_file():
         raise ConfigError(f"{where}: generator.image: image file {img_path} not found")
-    try:
-        rgb = read_image(img_path)
-    except FormatError as e:
-        raise ConfigError(f"{where}: generator.image: {e}") from e
-    if g.labels:
-        lab_path = base / g.labels
-        if not lab_path.is_file():
-            raise ConfigError(f"{where}: generator.labels: label image {lab_path} not found")
-        labels = read_image(lab_path, grayscale=True)
-        if labels.shape != rgb.shape[:2]:
-            raise ConfigError(f"{where}: generator.labels: size {labels.shape[::-1]} differs from the image "
-                              f"{rgb.shape[1::-1]}")
-        if labels.max() >= NUM_CLASSES:
-            raise ConfigError(f"{where}: generator.labels: class id {labels.max()} >= {NUM_CLASSES}")
-    else:
-        labels = np.full(rgb.shape[:2], CLASS_ID["road"], np.uint8)
     if abs(spec.ground_mpp - spec.meters_per_pixel) > 1e-9:
         raise ConfigError(f"{where}: an image scene uses the image as the ground texture: ground_mpp must equal "
                           f"meters_per_pixel ({spec.meters_per_pixel})")
+    mpp = spec.meters_per_pixel
+    if _is_georeferenced(img_path, g.crs):
+        rgb, frame, grid = _load_georeferenced(img_path, g, mpp, where)
+        src_shape = grid["shape"]
+    else:
+        for k in ("crs", "region"):
+            if getattr(g, k) is not None:
+                raise ConfigError(f"{where}: generator.{k}: {img_path} is not georeferenced (no geotransform "
+                                  f"and no world file beside it), so it has no place on Earth to apply {k} to")
+        try:
+            rgb = read_image(img_path)
+        except FormatError as e:
+            raise ConfigError(f"{where}: generator.image: {e}") from e
+        frame, grid = None, None
+        src_shape = rgb.shape[:2]
+
+    def aligned(field_name: str, kind: str) -> np.ndarray:
+        path = base / getattr(g, field_name)
+        if not path.is_file():
+            raise ConfigError(f"{where}: generator.{field_name}: {kind} {path} not found")
+        try:
+            a = read_image(path, grayscale=True)
+        except FormatError as e:
+            raise ConfigError(f"{where}: generator.{field_name}: {e}") from e
+        if a.shape != tuple(src_shape):
+            raise ConfigError(f"{where}: generator.{field_name}: {path} is {a.shape[1]}x{a.shape[0]} px, but "
+                              f"the image {img_path.name} is {src_shape[1]}x{src_shape[0]} px; it must be "
+                              f"aligned with the image pixel for pixel")
+        return a
+
+    labels = roads = None
+    if g.labels:
+        labels = aligned("labels", "label image")
+        if labels.max() >= NUM_CLASSES:
+            raise ConfigError(f"{where}: generator.labels: class id {labels.max()} >= {NUM_CLASSES}")
+        if grid is not None:
+            labels = _reproject_aligned(labels, grid, "nearest")
+    if g.roads:
+        raw = aligned("roads", "road mask") > 0
+        if not raw.any():
+            raise ConfigError(f"{where}: generator.roads: the road mask {base / g.roads} is empty (no non-zero "
+                              f"pixel)")
+        roads = raw if grid is None else _reproject_aligned(raw.astype(np.uint8) * 255, grid, "bilinear") >= 128
+        if not roads.any():
+            raise ConfigError(f"{where}: generator.roads: no road of the mask {base / g.roads} lies in the "
+                              f"loaded area of the image")
+    if roads is not None:
+        base_labels = labels if labels is not None else np.full(rgb.shape[:2], CLASS_ID["void"], np.uint8)
+        labels = np.where(roads, np.where(np.isin(base_labels, DRIVABLE), base_labels, CLASS_ID["road"]),
+                          np.where(np.isin(base_labels, DRIVABLE), CLASS_ID["void"], base_labels)).astype(np.uint8)
+    elif labels is None:
+        labels = np.full(rgb.shape[:2], CLASS_ID["road"], np.uint8)
     h, w = labels.shape
-    return Layout(w * spec.meters_per_pixel, h * spec.meters_per_pixel, spec.ground_mpp, rgb, labels)
+    return _ImageGround(Layout(w * mpp, h * mpp, spec.ground_mpp, rgb, labels), frame, roads)
+
+
+def _is_georeferenced(path: Path, crs: str | None) -> bool:
+    """An image with a world file beside it, a ``crs`` field, or a GeoTIFF with a geotransform."""
+    from satloc.georef import world_file_candidates
+
+    if crs is not None or any(p.is_file() for p in world_file_candidates(path)):
+        return True
+    if path.suffix.lower() not in (".tif", ".tiff"):
+        return False
+    import rasterio
+    from rasterio.errors import RasterioIOError
+
+    try:
+        with _quiet_rasterio(), rasterio.Env(GDAL_GEOREF_SOURCES="PAM,INTERNAL"), rasterio.open(path) as ds:
+            return not ds.transform.is_identity or bool(ds.gcps[0])
+    except RasterioIOError:
+        return False  # read_image reports it
+
+
+@contextlib.contextmanager
+def _quiet_rasterio():
+    """Silence rasterio's NotGeoreferencedWarning (a plain image opened to look for a georeference)."""
+    import warnings
+
+    from rasterio.errors import NotGeoreferencedWarning
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", NotGeoreferencedWarning)
+        yield
+
+
+def _load_georeferenced(path: Path, g: ImageGeneratorSpec, mpp: float, where: str):
+    """RGB, GeoFrame (origin at the loaded area's south-west corner) and the source/output grids."""
+    from satloc.geoframe import GeoFrame
+    from satloc.georef import load_map
+
+    def load(**kw):
+        try:
+            return load_map(path, mpp, crs=g.crs, **kw)
+        except FormatError as e:
+            raise ConfigError(f"{where}: generator.image: {e}") from e
+        except ConfigError as e:
+            msg = str(e)
+            field = "region" if msg.startswith("region") and g.region is not None else (
+                "crs" if msg.startswith("crs") else "image")
+            raise ConfigError(f"{where}: generator.{field}: {msg}") from e
+
+    if g.region is None:
+        probe = load()                                   # the largest north-up rectangle in the footprint
+        x0, x1, y0, y1 = probe.extent
+        (lon0, lat0), (lon1, lat1) = probe.frame.to_lonlat(np.array([[x0, y0], [x1, y1]]))
+    else:
+        lon0, lat0, lon1, lat1 = (float(v) for v in g.region)
+        if not (-180 <= lon0 < lon1 <= 180 and -85 <= lat0 < lat1 <= 85):
+            raise ConfigError(f"{where}: generator.region: expected [lon_min, lat_min, lon_max, lat_max] in "
+                              f"degrees with lon_min < lon_max and lat_min < lat_max, got {list(g.region)}")
+    frame = GeoFrame(lon0, lat0)
+    ex, ny = frame.to_map(np.array([lon1, lat1]))
+    # whole pixels only; a corner from another frame lands within a micrometre of this frame's lattice
+    w_m = math.floor(ex / mpp + 1e-6) * mpp
+    h_m = math.floor(ny / mpp + 1e-6) * mpp
+    if w_m < mpp or h_m < mpp:
+        raise ConfigError(f"{where}: generator.region: {list(g.region or ())} is smaller than one "
+                          f"{mpp:g} m pixel")
+    sm = load(frame=frame, region=(0.0, 0.0, w_m, h_m))
+    ox, oy = sm.origin
+    if abs(ox) > 1e-6 or abs(sm.extent[2]) > 1e-6:
+        raise ConfigError(f"{where}: generator.image: the loaded map's south-west corner lies at ({ox:.3f}, "
+                          f"{sm.extent[2]:.3f}) m of its frame, expected the origin")
+    grid = _source_grid(path, g.crs)
+    grid.update(dst_crs=frame.proj4, dst_transform=(mpp, 0.0, ox, 0.0, -mpp, oy), dst_shape=sm.shape)
+    return sm.image, frame, grid
+
+
+def _source_grid(path: Path, crs: str | None) -> dict:
+    """The image's pixel grid as :func:`satloc.georef.load_map` reads it: size, transform, CRS."""
+    import pyproj
+    import rasterio
+    from rasterio.crs import CRS
+
+    from satloc.georef import read_world_file, world_file_candidates
+
+    with _quiet_rasterio(), rasterio.Env(GDAL_GEOREF_SOURCES="PAM,INTERNAL"), rasterio.open(path) as ds:
+        shape, transform, own_crs, driver = (ds.height, ds.width), ds.transform, ds.crs, ds.driver
+    if transform.is_identity or driver != "GTiff":
+        world = next((c for c in world_file_candidates(path) if c.is_file()), None)
+        if world is not None:
+            transform = read_world_file(world)
+    if own_crs is None:
+        text = crs if crs is not None else path.with_suffix(".prj").read_text().strip()
+        own_crs = CRS.from_wkt(pyproj.CRS.from_user_input(text).to_wkt())
+    return {"shape": shape, "src_transform": transform, "src_crs": own_crs}
+
+
+def _reproject_aligned(a: np.ndarray, grid: dict, resampling: str) -> np.ndarray:
+    """A single-band uint8 raster on the image's pixel grid, reprojected onto the scene's tile grid."""
+    from affine import Affine
+    from rasterio.crs import CRS
+    from rasterio.enums import Resampling
+    from rasterio.warp import reproject
+
+    out = np.zeros(grid["dst_shape"], np.uint8)
+    reproject(np.ascontiguousarray(a, np.uint8), out, src_transform=grid["src_transform"], src_crs=grid["src_crs"],
+              src_nodata=None, dst_transform=Affine(*grid["dst_transform"]), dst_crs=CRS.from_proj4(grid["dst_crs"]),
+              dst_nodata=None, resampling=getattr(Resampling, resampling), num_threads=1)
+    return out
+
+
+def _resolve_routes(spec: SceneSpec, ground: _ImageGround | None, lay: Layout, g, base: Path,
+                    where: str) -> dict[str, RouteSpec]:
+    """Every route as waypoints in map metres: ``lonlat`` converted through the geo frame, ``trace`` traced
+    from the road mask (or the label image's roads)."""
+    from .roadtrace import RoadTraceError, TraceParams, trace_route
+
+    out: dict[str, RouteSpec] = {}
+    traced: dict[TraceSpec, Any] = {}
+    for k, r in spec.routes.items():
+        field_ = f"routes.{k}"
+        if r.waypoints is not None:
+            out[k] = r
+            continue
+        if r.lonlat is not None:
+            frame = ground.frame if ground is not None else None
+            if frame is None:
+                raise ConfigError(f"{where}: {field_}.lonlat: the scene has no geo frame (lon/lat routes need "
+                                  f"an image scene with a georeferenced image); give waypoints in metres")
+            xy = frame.to_map(np.asarray(r.lonlat, np.float64).reshape(-1, 2))
+            for i, (x, y) in enumerate(xy):
+                if not (0 <= x <= lay.width_m and 0 <= y <= lay.height_m):
+                    raise ConfigError(f"{where}: {field_}.lonlat[{i}] = {list(r.lonlat[i])} lies outside the "
+                                      f"image, at ({x:.1f}, {y:.1f}) m; the image covers lon/lat "
+                                      f"{_lonlat_box(frame, lay)}")
+            out[k] = RouteSpec(waypoints=[(float(x), float(y)) for x, y in xy], closed=r.closed, laps=r.laps)
+            continue
+        t = r.trace if isinstance(r.trace, TraceSpec) else TraceSpec()
+        if ground is None or (ground.roads is None and not (isinstance(g, ImageGeneratorSpec) and g.labels)):
+            raise ConfigError(f"{where}: {field_}.trace: tracing needs a road mask: an image scene with "
+                              f"generator.roads (or generator.labels)")
+        mask = ground.roads if ground.roads is not None else np.isin(
+            lay.ground_labels, (CLASS_ID["road"], CLASS_ID["lane_marking"]))
+        src = f"generator.roads ({base / g.roads})" if ground.roads is not None else \
+            f"generator.labels ({base / g.labels})"
+        key = dataclasses.replace(t, reverse=False)
+        if key not in traced:
+            try:
+                traced[key] = trace_route(mask, lay.ground_mpp, TraceParams(t.smooth_m, t.spacing_m, t.min_length_m,
+                                                                             t.prune_m))
+            except RoadTraceError as e:
+                raise ConfigError(f"{where}: {field_}.trace: {src}: {e}") from e
+            except ValueError as e:
+                raise ConfigError(f"{where}: {field_}.trace.{e}") from e
+        tr = traced[key]
+        if r.closed and not tr.closed:
+            raise ConfigError(f"{where}: {field_}.closed: the road traced from {src} is not a loop (it has dead "
+                              f"ends); drop closed: true")
+        pts = tr.waypoints[::-1] if t.reverse else tr.waypoints
+        out[k] = RouteSpec(waypoints=[(float(x), float(y)) for x, y in pts], closed=tr.closed, laps=r.laps)
+    return out
+
+
+def _lonlat_box(frame, lay: Layout) -> str:
+    (a, b), (c, d) = frame.to_lonlat(np.array([[0.0, 0.0], [lay.width_m, lay.height_m]]))
+    return f"[{a:.6f}, {b:.6f}] to [{c:.6f}, {d:.6f}]"
 
 
 def build_scene(spec: SceneSpec, base_dir: Path | None = None, aliasing: float | None = None,
                 where: str | None = None) -> Scene:
-    """Generate the scene described by ``spec`` (deterministic from ``spec.seed``)."""
+    """Generate the scene described by ``spec`` (deterministic from ``spec.seed``). The returned scene's spec
+    has every route as waypoints in metres (lon/lat converted, traced routes traced)."""
     where = where or f"scene {spec.name!r}"
     base_dir = base_dir or SCENES_DIR
     aliasing = spec.knobs.aliasing if aliasing is None else aliasing
     Knobs(aliasing=aliasing)
     g = spec.generator_spec(where)
     src = None
+    ground = None
     if g.type == "grid":
         params = GridParams(g.style, tuple(g.blocks), g.pitch_m, g.road_width_m, g.sidewalk_m, g.margin_m)
         try:
@@ -326,7 +612,9 @@ def build_scene(spec: SceneSpec, base_dir: Path | None = None, aliasing: float |
         except ValueError as e:
             raise ConfigError(f"{where}: {e}") from e
     else:
-        lay = _image_layout(g, spec, base_dir, where)
+        ground = _image_layout(g, spec, base_dir, where)
+        lay = ground.layout
+    routes = _resolve_routes(spec, ground, lay, g, base_dir, where)
     b, t, c = _objects_from_spec(spec.objects)
     lay.buildings += b
     lay.trees += t
@@ -340,8 +628,10 @@ def build_scene(spec: SceneSpec, base_dir: Path | None = None, aliasing: float |
             raise ConfigError(f"{where}: {e}") from e
     else:
         tile, tile_labels = lay.ground_rgb, lay.ground_labels
-    satmap = SatelliteMap(tile, spec.meters_per_pixel, (0.0, lay.height_m), tile_labels)
-    return Scene(replace(spec, knobs=replace(spec.knobs, aliasing=aliasing)), lay, satmap, src)
+    frame = ground.frame if ground is not None else None
+    satmap = SatelliteMap(tile, spec.meters_per_pixel, (0.0, lay.height_m), tile_labels, frame)
+    spec = replace(spec, routes=routes, knobs=replace(spec.knobs, aliasing=aliasing))
+    return Scene(spec, lay, satmap, src, where=where)
 
 
 @functools.lru_cache(maxsize=4)
