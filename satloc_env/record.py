@@ -100,9 +100,10 @@ def record_passes(config: RecordConfig | dict[str, Any], out_dir: str | Path, pr
             route = p.route or (scene.spec.database_route if name == "database" else scene.spec.query_route)
             if name == "database":
                 scene.satmap.save(out / "map")
-            sequences.append(record_pass(env, p, route, out / name, name, progress,
-                                         {"source": "satloc_env", "scene": scene.name,
-                                          "aliasing": scene.spec.knobs.aliasing}))
+            meta = {"source": "satloc_env", "scene": scene.name, "aliasing": scene.spec.knobs.aliasing}
+            if scene.satmap.frame is not None:  # a scene over georeferenced imagery: poses are in its GeoFrame
+                meta["geo_frame"] = scene.satmap.frame.to_dict()
+            sequences.append(record_pass(env, p, route, out / name, name, progress, meta))
         finally:
             env.close()
     return sequences[0], sequences[1]

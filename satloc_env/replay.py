@@ -49,7 +49,8 @@ INSTANCE = "<instance>"
 class ReplayConfig:
     sequence: str | None = None             # sequence directory; a Sequence object given as the keyword is
                                             # stored here as "<instance>" (required: one or the other)
-    map: str | None = None                  # satellite map directory (SatelliteMap.load) or "<instance>" for a
+    map: str | None = None                  # satellite map directory (SatelliteMap.load), a GeoTIFF, an image with
+                                            # a world file or an XYZ tile folder (satloc.georef), or "<instance>" for a
                                             # SatelliteMap object; None: see SatLocReplayEnv (render only)
     start_frame: int = 0                    # first frame of an episode
     end_frame: int | None = None            # frames from this index on are not replayed (None: to the end)
@@ -78,7 +79,9 @@ class SatLocReplayEnv(SharedSpecMixin, gym.Env):
     **Data.** ``sequence``: a sequence directory (``satloc record``, ``Sequence.save``) or a
     :class:`satloc.sequence.Sequence` object given as the keyword (shared, not copied, by ``env.spec``; a
     lazy dataset sequence reads its frames as they are replayed). ``map``: a map directory
-    (:meth:`SatelliteMap.load`) or a :class:`SatelliteMap` object. It is used for rendering only (the
+    (:meth:`SatelliteMap.load`), georeferenced imagery that :func:`satloc.georef.load_map` reads (a GeoTIFF,
+    an image with a world file, an XYZ tile folder: read into the sequence's ``meta["geo_frame"]`` around its
+    path) or a :class:`SatelliteMap` object. It is used for rendering only (the
     localizer carries its own satellite features); without one, the map is the one the localizer's build
     directory was built from (``build.json``), else ``<sequence dir>/../map`` (the layout of
     ``satloc record``), else a plain grey canvas around the sequence's path. A map and a sequence that both
@@ -238,14 +241,30 @@ class SatLocReplayEnv(SharedSpecMixin, gym.Env):
             sm = self._map_instance
         elif cfg.map is not None:
             d = Path(cfg.map).expanduser()
-            if not (d / "map.json").is_file():
-                raise ConfigError(f"map: {cfg.map!r} is not a map directory (no map.json); expected None, a directory "
-                                  "written by SatelliteMap.save (e.g. the map/ of `satloc record`) or a SatelliteMap")
-            sm = SatelliteMap.load(d)
+            sm = SatelliteMap.load(d) if (d / "map.json").is_file() else self._load_geo_map(d)
         else:
             sm = self._default_map()
         _check_same_geo_frame(sm, seq)
         return sm
+
+    def _load_geo_map(self, path: Path) -> SatelliteMap:
+        """A GeoTIFF, image + world file or XYZ tile folder, read into the sequence's GeoFrame around its path."""
+        seq = self.sequence
+        if not path.exists():
+            raise ConfigError(f"map: {str(path)!r} not found; expected None, a map directory (map.json), a GeoTIFF, "
+                              "an image with a world file, an XYZ tile folder or a SatelliteMap")
+        geo = seq.meta.get("geo_frame") if isinstance(seq.meta, dict) else None
+        if geo is None:
+            raise ConfigError(f"map: {str(path)!r} is georeferenced imagery, but sequence {seq.name!r} has no "
+                              "meta['geo_frame'] to place it in (only real-data readers and georeferenced scenes set it)")
+        from satloc.geoframe import GeoFrame
+        from satloc.georef import load_map
+
+        xy = self._poses[np.all(np.isfinite(self._poses[:, :2]), axis=1), :2]
+        m = PANEL_M / 2
+        region = (*(xy.min(0) - m), *(xy.max(0) + m)) if len(xy) else None
+        return load_map(path, frame=GeoFrame.from_dict(geo, f"sequence {seq.name!r} meta.geo_frame"),
+                        region=region)
 
     def _default_map(self) -> SatelliteMap:
         """The build's map, else the recording's ``map/`` beside the sequence, else a grey canvas."""

@@ -365,3 +365,28 @@ def test_config_errors(rec, seq, loc, build_dir, tmp_path):
     assert EPISODE_KEYS == {"start_frame", "end_frame", "random_start", "stride", "odometry_noise"}
     assert SatLocReplayEnv.default_config()["localizer"] is None
     env.close()
+
+
+def test_map_from_georeferenced_imagery(tmp_path):
+    """``map=`` a GeoTIFF: read into the sequence's GeoFrame around its path; lon/lat marks land where they lie."""
+    from geofixtures import MARKS, REF, UTM, make_geotiff, mark_errors
+
+    tif, _, _ = make_geotiff(tmp_path / "area.tif", UTM)
+    cam = SatLocEnv(localizer=None).camera
+    img = np.zeros((cam.height, cam.width, 3), np.uint8)
+    # two frames near the red mark (-123, 61 m from the fixture's reference), in a frame 30 m east of it
+    frame = type(REF)(*REF.to_lonlat(np.array([30.0, 0.0])))
+    frames = [Frame(img, img, Pose2(x, 55.0, 0.0), 0.1 * i) for i, x in enumerate((-160.0, -145.0))]
+    seq = Sequence(cam, frames, "geo", {"geo_frame": frame.to_dict()})
+    env = gym.make(ID, sequence=seq, map=str(tif), render_mode="rgb_array")
+    env.reset(seed=0)
+    sm = env.unwrapped.map
+    assert sm.frame == frame
+    sm.check_covers(seq.poses[:, :2], "the path", margin_m=30.0)
+    errs = mark_errors(sm)     # the mark inside the loaded window lies where its lon/lat says
+    assert errs["red"] < 1.0 and math.isinf(errs["blue"]), errs
+    assert env.render().shape[0] == PANEL_PX
+    with pytest.raises(ConfigError, match="no meta\\['geo_frame'\\]"):
+        gym.make(ID, sequence=Sequence(cam, frames, "plain"), map=str(tif)).reset(seed=0)
+    with pytest.raises(ConfigError, match="not found"):
+        gym.make(ID, sequence=seq, map=str(tmp_path / "nothing.tif")).reset(seed=0)
