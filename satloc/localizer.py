@@ -147,6 +147,17 @@ class Localization:
         return poses, probs
 
 
+def top_k_estimate(candidates: np.ndarray, posterior: np.ndarray, k: int = 3) -> Pose2:
+    """The posterior-weighted mean pose of the ``k`` most probable candidates (the paper reports k = 3);
+    headings are averaged on the circle."""
+    k = min(int(k), len(candidates))
+    top = np.argsort(-posterior)[:k]
+    w = posterior[top] / max(float(posterior[top].sum()), 1e-300)
+    x, y = float(w @ candidates[top, 0]), float(w @ candidates[top, 1])
+    yaw = math.atan2(float(w @ np.sin(candidates[top, 2])), float(w @ np.cos(candidates[top, 2])))
+    return Pose2(x, y, yaw)
+
+
 class _Observation(NamedTuple):
     depth: np.ndarray     # (H, W) metres
     uv: np.ndarray        # (n, 2) grid samples with valid depth
@@ -419,10 +430,5 @@ class Localizer:
             inlier_score = float(scores.max() / scores.mean())
         if tracker is not None:
             post = tracker.fuse(post)
-        k = min(self.config.top_k, len(cands))
-        top = np.argsort(-post)[:k]
-        w = post[top] / max(post[top].sum(), 1e-300)
-        x, y = float(w @ cands[top, 0]), float(w @ cands[top, 1])
-        yaw = math.atan2(float(w @ np.sin(cands[top, 2])), float(w @ np.cos(cands[top, 2])))
-        return Localization(Pose2(x, y, yaw), cands, post, inlier_score,
+        return Localization(top_k_estimate(cands, post, self.config.top_k), cands, post, inlier_score,
                             inlier_score >= self.config.inlier_threshold, n)
