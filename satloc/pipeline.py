@@ -38,13 +38,28 @@ class BuildConfig:
     max_frames: int | None = None           # use only the first frames of the database
 
 
-def build(database: str | Path, satmap: str | Path, out: str | Path, config: BuildConfig = BuildConfig(),
-          progress: bool = True) -> dict:
-    """Build the dictionary of ``database`` against ``satmap`` into ``out``; returns the build summary."""
+def _source_name(obj: "str | Path | Sequence | SatelliteMap", directory: "Path | None") -> "str | None":
+    """What build.json records as the database / map: the directory it was read from, else None."""
+    if isinstance(obj, (str, Path)):
+        return str(Path(obj).resolve())
+    return str(Path(directory).resolve()) if directory is not None else None
+
+
+def build(database: str | Path | Sequence, satmap: str | Path | SatelliteMap, out: str | Path,
+          config: BuildConfig = BuildConfig(), progress: bool = True) -> dict:
+    """Build the dictionary of ``database`` against ``satmap`` into ``out``; returns the build summary.
+
+    ``database``: a sequence directory or a :class:`Sequence` (e.g. a dataset reader's lazy one); ``satmap``: a
+    map directory (:meth:`SatelliteMap.save`) or a :class:`SatelliteMap`. Every posed database frame must lie on
+    the map (:meth:`SatelliteMap.check_covers`), else :class:`ConfigError` before any work."""
     out = Path(out)
-    db, sm = Sequence.load(database), SatelliteMap.load(satmap)
+    db = database if isinstance(database, Sequence) else Sequence.load(database)
+    sm = satmap if isinstance(satmap, SatelliteMap) else SatelliteMap.load(satmap)
     if config.max_frames is not None:
         db = db.head(config.max_frames)
+    posed = db.poses[np.all(np.isfinite(db.poses), axis=1)]
+    on = "" if isinstance(satmap, SatelliteMap) else f" on the map {satmap}"
+    sm.check_covers(posed[:, :2], f"database {db.name!r} poses{on}")
     ext = make_extractor(config.features)
     t0 = time.perf_counter()
     sf = SatelliteFeatures.compute(sm, ext)
@@ -54,7 +69,8 @@ def build(database: str | Path, satmap: str | Path, out: str | Path, config: Bui
     sf.save(out / "satellite_features.npz")
     d.save(out / "dictionary.npz")
     summary = dict(header("build"), config=to_dict(config), camera=db.camera.to_dict(),
-                   database=str(Path(database).resolve()), map=str(Path(satmap).resolve()),
+                   database=_source_name(database, getattr(db, "_dir", None)), database_name=db.name,
+                   map=_source_name(satmap, None),
                    entries=len(d), database_frames=len(db), database_m=round(db.path_length(), 1),
                    satellite_features_s=round(t1 - t0, 2), dictionary_s=round(t2 - t1, 2))
     write_json(out / "build.json", summary)

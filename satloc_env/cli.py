@@ -84,6 +84,29 @@ def cmd_experiment(args) -> int:
     return 0
 
 
+def cmd_evaluate(args) -> int:
+    """The method on replayed real data: a KITTI raw drive or a Malaga extract, its queries (another drive or
+    a split of the same one) and a georeferenced satellite image (satloc_env/evaluate.py)."""
+    from satloc_env.evaluate import EvaluateConfig, evaluate
+
+    overrides = {"resolution": args.resolution, "mpp": args.mpp, "split": args.split,
+                 "modes": list(args.modes) if args.modes else None}
+    if args.queries is not None and args.split is not None:
+        raise SatlocError("give either --queries (another drive) or --split (random:F or passes), not both")
+    cfg = _stage_config(EvaluateConfig, args.config, overrides)
+    log = (lambda *a, **k: None) if args.quiet else (lambda m: print(m, file=sys.stderr, flush=True))
+    reader = "malaga" if args.malaga else "kitti"
+    s = evaluate(args.malaga or args.database, args.satellite, args.out, cfg, queries=args.queries, reader=reader,
+                 progress=not args.quiet, log=log)
+    print(f"satloc evaluate: {s['sequence']}, database {s['database_frames']} frames ({s['database_m']:.0f} m), "
+          f"{s['queries']} queries; {s['split']}")
+    for mode, r in s["modes"].items():
+        print(f"  {mode:16s}  mean {r['mean_m']:.2f} m (std {r['std_m']:.2f})  median {r['median_m']:.2f} m  "
+              f"{100 * r['within_1m']:.0f} % within 1 m  {r['queries_per_s']:.1f} queries/s")
+    print(f"written: {Path(args.out) / 'results.csv'}, {Path(args.out) / 'results.md'}, pictures in {args.out}")
+    return 0
+
+
 def cmd_record(args) -> int:
     from satloc_env.record import PassConfig, RecordConfig, record_passes
 
@@ -209,6 +232,30 @@ def build_parser() -> argparse.ArgumentParser:
     ex.add_argument("--config", help="YAML with ExperimentConfig fields (satloc_env/experiment.py)")
     ex.add_argument("--quiet", action="store_true")
     ex.set_defaults(func=cmd_experiment)
+
+    ev = sub.add_parser("evaluate", help="the method on real data: a KITTI raw drive or Malaga extract against a "
+                                         "georeferenced satellite image; per-mode errors, results.csv, pictures")
+    src = ev.add_mutually_exclusive_group(required=True)
+    src.add_argument("--database", metavar="KITTI_DRIVE_DIR",
+                     help="KITTI raw drive folder <date>/<date>_drive_<nnnn>_sync (the database)")
+    src.add_argument("--malaga", metavar="EXTRACT_DIR", help="Malaga Urban extract folder (the database)")
+    ev.add_argument("--queries", metavar="DIR", help="another drive / extract of the same dataset as the queries")
+    ev.add_argument("--split", default=None,
+                    help="without --queries: 'random:F' = a seeded random fraction F of the frames is the database, "
+                         "the rest the queries (random:0.4 = 40 %% database, 60 %% queries; the default), or "
+                         "'passes' = the first pass is the database, later passes over it the queries")
+    ev.add_argument("--satellite", required=True, metavar="MAP",
+                    help="georeferenced satellite image: GeoTIFF, image + world file, or XYZ tile folder")
+    ev.add_argument("--out", required=True, help="output folder (stages in it are reused by later runs)")
+    ev.add_argument("--resolution", choices=["half", "full"], default=None,
+                    help="half (default): images and camera resized by 1/2 (KITTI: 621x188); full: the data's size")
+    ev.add_argument("--mpp", type=float, default=None, help="satellite metres per pixel (default 0.2)")
+    ev.add_argument("--modes", nargs="+", default=None, metavar="MODE",
+                    help="modes to localize with: go np full full+align go+track np+track full+track "
+                         "full+track+align (default: all of these, as table1)")
+    ev.add_argument("--config", help="YAML with EvaluateConfig fields (satloc_env/evaluate.py)")
+    ev.add_argument("--quiet", action="store_true")
+    ev.set_defaults(func=cmd_evaluate)
 
     r = sub.add_parser("record", help="record database and query passes of a scene")
     r.add_argument("--scene", default="city")

@@ -10,6 +10,10 @@ folders, how often each single-image cue scores a place more than 10 m away abov
 
 Every stage's output is kept in the experiment folder and reused when the folder is run again with the same
 configuration (delete the folder to start over).
+
+The two halves are shared with ``satloc evaluate`` (:mod:`satloc_env.evaluate`, real data): :func:`build_and_learn`
+(build + projections, with stage stamps) and :func:`localize_and_report` (every mode on any database/query pair
+and satellite map: ``localization_<mode>.*``, ``summary.json`` and the pictures).
 """
 from __future__ import annotations
 
@@ -23,11 +27,12 @@ import numpy as np
 from satloc.config import from_dict, to_dict
 from satloc.context import ContextConfig
 from satloc.errors import ConfigError
-from satloc.geometry import wrap_angle
+from satloc.geometry import Pose2, wrap_angle
 from satloc.localizer import Localization, LocalizerConfig
 from satloc.persist import atomic_path, read_json, write_json
 from satloc.pipeline import BuildConfig, build, load_localizer, localize, train_projection
 from satloc.projection import ProjectionConfig
+from satloc.satmap import SatelliteMap
 from satloc.sequence import Sequence
 from satloc.track import noisy_odometry
 
@@ -111,23 +116,40 @@ def _stages(cfg: ExperimentConfig, out: Path, progress: bool, log) -> tuple[Sequ
         _stamp(out / "record.json", rc)
     times["record_s"] = time.perf_counter() - t
     db, q = Sequence.load(out / "rec" / "database"), Sequence.load(out / "rec" / "query")
+    bdir, more = build_and_learn(cfg, cfg.scene, db, out / "rec" / "map", out, {"record": rc}, progress, log)
+    times.update(more)
+    return db, q, bdir, times
+
+
+def build_and_learn(cfg, label: str, database: Sequence, satmap: str | Path, out: Path, source: dict,
+                    progress: bool = True, log=print) -> tuple[Path, dict]:
+    """The method's offline stages on any database: build the dictionary of ``database`` against the map
+    directory ``satmap`` into ``out/build``, then learn the projections if a mode of ``cfg.modes`` needs them.
+
+    ``cfg`` gives ``features``, ``context``, ``projection`` and ``modes`` (an :class:`ExperimentConfig` or a
+    :class:`satloc_env.evaluate.EvaluateConfig`). Each stage is skipped when ``out`` holds its stamp
+    (``build_stage.json``, ``projection_stage.json``) for the same configuration and ``source`` (a dict that
+    identifies the data, e.g. ``{"record": <record config>}``). Returns the build folder and the stage times."""
     bc = BuildConfig(features=cfg.features, context=cfg.context)
     bdir = out / "build"
+    times: dict[str, float] = {}
     t = time.perf_counter()
-    if not _stage_done(out / "build_stage.json", dict(to_dict(bc), record=rc)):
-        log(f"[{cfg.scene}] building the dictionary ({len(db)} database frames)")
-        build(out / "rec" / "database", out / "rec" / "map", bdir, bc, progress)
-        _stamp(out / "build_stage.json", dict(to_dict(bc), record=rc))
+    bstamp = dict(to_dict(bc), **source)
+    if not _stage_done(out / "build_stage.json", bstamp):
+        log(f"[{label}] building the dictionary ({len(database)} database frames)")
+        (out / "projection_stage.json").unlink(missing_ok=True)   # projections of an earlier build are stale
+        build(database, satmap, bdir, bc, progress)
+        _stamp(out / "build_stage.json", bstamp)
     times["build_s"] = time.perf_counter() - t
     t = time.perf_counter()
     if any(m.startswith("full") for m in cfg.modes):
         pc = dict(to_dict(cfg.projection), build=read_json(bdir / "build.json").get("entries"))
         if not _stage_done(out / "projection_stage.json", pc) or not (bdir / "projections.pt").is_file():
-            log(f"[{cfg.scene}] learning the projections W_g, W_s")
+            log(f"[{label}] learning the projections W_g, W_s")
             train_projection(bdir, cfg.projection, progress)
             _stamp(out / "projection_stage.json", pc)
     times["projection_s"] = time.perf_counter() - t
-    return db, q, bdir, times
+    return bdir, times
 
 
 def _covered(cfg: ExperimentConfig, db: Sequence, q: Sequence) -> np.ndarray:
@@ -137,11 +159,19 @@ def _covered(cfg: ExperimentConfig, db: Sequence, q: Sequence) -> np.ndarray:
     return sel
 
 
-def run_scene(cfg: ExperimentConfig, out: str | Path, progress: bool = True, log=print) -> dict:
-    """Record, build, learn, localize (each mode) and draw; returns the per-mode summaries."""
-    out = Path(out)
-    db, q, bdir, times = _stages(cfg, out, progress, log)
-    sel = _covered(cfg, db, q)
+def localize_and_report(cfg, label: str, db: Sequence, q: Sequence, sel: np.ndarray, bdir: Path,
+                        satmap: SatelliteMap, out: Path, head: dict, times: dict, progress: bool = True,
+                        log=print) -> dict:
+    """Localize the query frames ``sel`` of ``q`` against the build ``bdir`` in every mode of ``cfg.modes``
+    and report: per mode ``localization_<mode>.npz/.json`` (:func:`satloc.pipeline.localize`), ``summary.json``
+    (``head``, then the database size, the query count, the stage ``times`` and each mode's summary),
+    ``errors_along_route.png`` and the posteriors of the best, a median and the worst query of each mode drawn
+    on ``satmap`` (``posterior_<mode>_q<i>.png``). Returns the summary.
+
+    ``cfg`` gives ``modes``, ``localizer`` (LocalizerConfig fields other than the mode), ``odometry_noise`` and
+    ``odometry_seed``: the tracked modes move their belief by odometry simulated from the true poses of
+    consecutive evaluated queries, with that noise. Works on any database/query pair: a simulated recording
+    (:func:`run_scene`) or replayed real data (:mod:`satloc_env.evaluate`)."""
     # tracked modes: odometry between consecutive evaluated queries, simulated from their true poses
     odo = noisy_odometry(q.poses[sel], cfg.odometry_noise, cfg.odometry_seed)
     results: dict[str, dict] = {}
@@ -160,7 +190,7 @@ def run_scene(cfg: ExperimentConfig, out: str | Path, progress: bool = True, log
         s.update(localizer_init_s=round(t_init, 2), within_1m=float(np.mean(err < 1.0)),
                  within_10m=float(np.mean(err < 10.0)))
         results[mode] = s
-        log(f"[{cfg.scene}] {METHOD_NAMES[mode]:9s} mean {s['mean_m']:.2f} m (std {s['std_m']:.2f}), median "
+        log(f"[{label}] {METHOD_NAMES[mode]:9s} mean {s['mean_m']:.2f} m (std {s['std_m']:.2f}), median "
             f"{s['median_m']:.2f} m, {100 * s['within_1m']:.0f} % within 1 m, {s['queries_per_s']:.1f} queries/s "
             f"over {s['queries']} queries")
         # a few posteriors to draw: the best, a median and the worst query of this mode
@@ -168,21 +198,29 @@ def run_scene(cfg: ExperimentConfig, out: str | Path, progress: bool = True, log
         picks = sorted({int(order[0]), int(order[len(order) // 2]), int(order[-1])})
         examples[mode] = [(int(sel[i]), kept[i]) for i in picks if i in kept]
         del loc, kept
-    summary = {"scene": cfg.scene, "config": to_dict(cfg), "database_frames": len(db),
-               "database_m": round(db.path_length(), 1), "queries": int(len(sel)),
-               "times_s": {k: round(v, 1) for k, v in times.items()}, "modes": results}
+    summary = dict(head, database_frames=len(db), database_m=round(db.path_length(), 1), queries=int(len(sel)),
+                   times_s={k: round(v, 1) for k, v in times.items()}, modes=results)
     write_json(out / "summary.json", summary)
     from satloc.plots import plot_errors_along_route, plot_posterior
 
     plot_errors_along_route(out, q, sel, cfg.modes, out / "errors_along_route.png")
-    from .scene import load_scene
-
-    scene = load_scene(cfg.scene, cfg.aliasing)
+    poses = q.poses
     for mode, ex in examples.items():
         for qi, r in ex:
-            plot_posterior(scene.satmap, r, q[qi].pose, out / f"posterior_{mode}_q{qi:03d}.png",
-                           title=f"{cfg.scene} query {qi}, {METHOD_NAMES[mode]}")
+            truth = Pose2.from_array(poses[qi]) if np.all(np.isfinite(poses[qi])) else None
+            plot_posterior(satmap, r, truth, out / f"posterior_{mode}_q{qi:03d}.png",
+                           title=f"{label} query {qi}, {METHOD_NAMES[mode]}")
     return summary
+
+
+def run_scene(cfg: ExperimentConfig, out: str | Path, progress: bool = True, log=print) -> dict:
+    """Record, build, learn, localize (each mode) and draw; returns the per-mode summaries."""
+    out = Path(out)
+    db, q, bdir, times = _stages(cfg, out, progress, log)
+    sel = _covered(cfg, db, q)
+    # the scene's satellite map, as record_passes saved it (the same pixels as the scene's tile)
+    return localize_and_report(cfg, cfg.scene, db, q, sel, bdir, SatelliteMap.load(out / "rec" / "map"), out,
+                               {"scene": cfg.scene, "config": to_dict(cfg)}, times, progress, log)
 
 
 def table1(out: str | Path, scenes: tuple[str, ...] = ("city", "residential"), config: dict | None = None,
