@@ -158,6 +158,19 @@ class StereoCamera:
             cx=(self.cx + 0.5) * sx - 0.5, cy=(self.cy + 0.5) * sy - 0.5,
         )
 
+    def rig_differences(self, other: "StereoCamera", baseline_rel: float = 0.03, height_m: float = 0.1,
+                        pitch_rad: float = 0.02) -> list[str]:
+        """How ``other``'s rig (baseline, mounting height, pitch) differs from this one beyond the given
+        tolerances; empty when images of one can be resampled into the other's intrinsics and used as its."""
+        bad = []
+        if abs(other.baseline - self.baseline) > baseline_rel * self.baseline:
+            bad.append(f"baseline {other.baseline:.4f} m against {self.baseline:.4f} m")
+        if abs(other.mount_height - self.mount_height) > height_m:
+            bad.append(f"mount_height {other.mount_height:.3f} m against {self.mount_height:.3f} m")
+        if abs(other.pitch - self.pitch) > pitch_rad:
+            bad.append(f"pitch {other.pitch:.4f} rad against {self.pitch:.4f} rad")
+        return bad
+
     # --- matrices ---------------------------------------------------------------------------------
     @property
     def K(self) -> np.ndarray:

@@ -218,6 +218,19 @@ class Sequence:
         v._frames, v._poses, v._stamps = self._frames[:n], self._poses[:n], self._stamps[:n]
         return v
 
+    def view(self, index=None, camera: StereoCamera | None = None, name: str | None = None) -> "Sequence":
+        """A lazy sequence of the frames ``index`` (default: all) with both images resampled into ``camera``
+        (default: this sequence's): resized to its image size, then warped to its intrinsics (a rectified
+        pinhole pair: an affine map), e.g. a drive at half resolution or a query drive in the database's
+        intrinsics. Depth and labels are not carried over. ``meta["source_frames"]`` lists the indices."""
+        index = np.arange(len(self)) if index is None else np.asarray(index, np.int64).reshape(-1)
+        if len(index) and (index.min() < -len(self) or index.max() >= len(self)):
+            raise IndexError(f"view: frame indices must lie in [0, {len(self)}), got {index.min()}..{index.max()}")
+        camera = camera or self.camera
+        meta = dict(self.meta, source_frames=[int(i) for i in index], source_camera=self.camera.to_dict())
+        return Sequence.lazy(camera, self._poses[index], self._stamps[index], _Resampled(self, index, camera),
+                             name=name or self.name, meta=meta)
+
     def path_length(self) -> float:
         p = self._poses[:, :2]
         p = p[np.all(np.isfinite(p), axis=1)]
@@ -269,3 +282,29 @@ class Sequence:
                   depth, labels)
         f.check(self.camera, where=f"{d} frame {i}")
         return f
+
+
+class _Resampled:
+    """Reads frame ``index[j]`` of ``seq`` and resamples both images into ``camera`` (a plain object, so a
+    view can be pickled like the readers' sequences)."""
+
+    def __init__(self, seq: Sequence, index: np.ndarray, camera: StereoCamera):
+        self.seq, self.index = seq, np.asarray(index, np.int64)
+        src = seq.camera
+        self.size = (camera.width, camera.height)
+        self.resize = (src.width, src.height) != self.size
+        r = src.resized(*self.size)  # the camera of cv2.resize's output
+        a = np.array([[camera.fx / r.fx, 0.0, camera.cx - camera.fx / r.fx * r.cx],
+                      [0.0, camera.fy / r.fy, camera.cy - camera.fy / r.fy * r.cy]])
+        self.affine = None if np.allclose(a, [[1, 0, 0], [0, 1, 0]], rtol=0, atol=1e-9) else a
+
+    def _image(self, img: np.ndarray) -> np.ndarray:
+        if self.resize:
+            img = cv2.resize(img, self.size, interpolation=cv2.INTER_AREA)
+        if self.affine is not None:
+            img = cv2.warpAffine(img, self.affine, self.size, flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT)
+        return img
+
+    def __call__(self, j: int) -> Frame:
+        f = self.seq[int(self.index[j])]
+        return Frame(self._image(f.left), self._image(f.right), f.pose, f.timestamp)

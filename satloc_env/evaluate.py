@@ -49,7 +49,6 @@ import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
-import cv2
 import numpy as np
 
 from satloc.config import from_dict, to_dict
@@ -62,7 +61,7 @@ from satloc.geometry import StereoCamera, arc_length, wrap_angle
 from satloc.persist import atomic_dir, atomic_path
 from satloc.projection import ProjectionConfig
 from satloc.satmap import SatelliteMap
-from satloc.sequence import Frame, Sequence
+from satloc.sequence import Sequence
 
 from .experiment import (MODES, METHOD_NAMES, _stage_done, _stamp, build_and_learn, covered_queries,
                          localize_and_report)
@@ -196,52 +195,10 @@ def output_camera(camera: StereoCamera, resolution: str) -> StereoCamera:
     return camera.resized(int(math.floor(camera.width / 2 + 0.5)), int(math.floor(camera.height / 2 + 0.5)))
 
 
-class _Resampled:
-    """Reads frame ``index[j]`` of ``seq`` and resamples both images into ``camera`` (a plain object, so the
-    view can be pickled like the readers' sequences)."""
-
-    def __init__(self, seq: Sequence, index: np.ndarray, camera: StereoCamera):
-        self.seq, self.index = seq, np.asarray(index, np.int64)
-        src = seq.camera
-        self.size = (camera.width, camera.height)
-        self.resize = (src.width, src.height) != self.size
-        r = src.resized(*self.size)  # the camera of cv2.resize's output
-        a = np.array([[camera.fx / r.fx, 0.0, camera.cx - camera.fx / r.fx * r.cx],
-                      [0.0, camera.fy / r.fy, camera.cy - camera.fy / r.fy * r.cy]])
-        self.affine = None if np.allclose(a, [[1, 0, 0], [0, 1, 0]], rtol=0, atol=1e-9) else a
-
-    def _image(self, img: np.ndarray) -> np.ndarray:
-        if self.resize:
-            img = cv2.resize(img, self.size, interpolation=cv2.INTER_AREA)
-        if self.affine is not None:
-            img = cv2.warpAffine(img, self.affine, self.size, flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT)
-        return img
-
-    def __call__(self, j: int) -> Frame:
-        f = self.seq[int(self.index[j])]
-        return Frame(self._image(f.left), self._image(f.right), f.pose, f.timestamp)
-
-
-def frame_view(seq: Sequence, index, camera: StereoCamera | None = None, name: str | None = None) -> Sequence:
-    """A lazy sequence of the frames ``index`` of ``seq``, resampled into ``camera`` (default: ``seq``'s);
-    ``meta["source_frames"]`` lists the indices in ``seq``."""
-    index = np.asarray(index, np.int64)
-    camera = camera or seq.camera
-    meta = dict(seq.meta, source_frames=[int(i) for i in index], source_camera=seq.camera.to_dict())
-    return Sequence.lazy(camera, seq.poses[index], seq.timestamps[index], _Resampled(seq, index, camera),
-                         name=name or seq.name, meta=meta)
-
-
 def check_query_camera(q: StereoCamera, db: StereoCamera, where: str) -> None:
     """Queries are resampled into the database camera's intrinsics, but the rig must be the same: baseline
     within 3 %, mounting height within 0.1 m, pitch within 0.02 rad."""
-    bad = []
-    if abs(q.baseline - db.baseline) > 0.03 * db.baseline:
-        bad.append(f"baseline {q.baseline:.4f} m against {db.baseline:.4f} m")
-    if abs(q.mount_height - db.mount_height) > 0.1:
-        bad.append(f"mount_height {q.mount_height:.3f} m against {db.mount_height:.3f} m")
-    if abs(q.pitch - db.pitch) > 0.02:
-        bad.append(f"pitch {q.pitch:.4f} rad against {db.pitch:.4f} rad")
+    bad = db.rig_differences(q)
     if bad:
         raise ConfigError(f"{where}: the query rig differs from the database's ({'; '.join(bad)}); the localizer "
                           "uses the database camera for both")
@@ -322,8 +279,8 @@ def evaluate(database: str | Path, satellite: str | Path, out: str | Path, confi
         qfull = _read(queries, reader, cfg, frame)
         check_query_camera(output_camera(qfull.camera, cfg.resolution), camera, f"queries {queries}")
         posed = np.flatnonzero(np.all(np.isfinite(full.poses), axis=1))
-        db = frame_view(full, posed, camera)
-        q = frame_view(qfull, np.arange(len(qfull)), camera)
+        db = full.view(posed, camera)
+        q = qfull.view(None, camera)
         split = f"queries from {Path(queries).resolve()}"
         name = f"{full.name} / {qfull.name}"
     else:
@@ -335,7 +292,7 @@ def evaluate(database: str | Path, satellite: str | Path, out: str | Path, confi
             di, qi, back = passes_split(full.poses, cfg.passes_near_m, cfg.passes_gap_m, cfg.passes_heading_deg,
                                         where=f"split passes of {database}")
             split = f"passes: frames before {back} (first pass) database, from {back} on queries"
-        db, q = frame_view(full, di, camera), frame_view(full, qi, camera, name=f"{full.name} queries")
+        db, q = full.view(di, camera), full.view(qi, camera, name=f"{full.name} queries")
     if len(db) < 2:
         raise ConfigError(f"{database}: the database has {len(db)} posed frame(s); the method needs at least 2")
     sel = covered_queries(db, q, cfg.coverage_m)[::cfg.query_stride]

@@ -152,9 +152,6 @@ class SatLocReplayEnv(SharedSpecMixin, gym.Env):
         if cfg.max_skip < 1:
             raise ConfigError(f"max_skip: expected an integer >= 1, got {cfg.max_skip}")
         self.sequence = seq_instance if seq_instance is not None else _load_sequence(cfg.sequence)
-        self.camera = self.sequence.camera
-        self._poses = self.sequence.poses
-        self._stamps = self.sequence.timestamps
         if len(self.sequence) < 2:
             raise ConfigError(f"sequence {self.sequence.name!r}: has {len(self.sequence)} frame(s); a replay needs "
                               "at least 2")
@@ -169,6 +166,11 @@ class SatLocReplayEnv(SharedSpecMixin, gym.Env):
 
             self._loc.localizer = load_cached_localizer(cfg.localizer, cfg.localizer_mode, cfg.localizer_refine)
         self._loc.track = cfg.localizer_track
+        if self.localizer is not None:
+            self.sequence = _in_camera(self.sequence, self.localizer.camera)
+        self.camera = self.sequence.camera
+        self._poses = self.sequence.poses
+        self._stamps = self.sequence.timestamps
         self.config = cfg
         self._episode = self._check_episode(cfg, "SatLocReplayEnv config")
         if self.localizer is not None:
@@ -415,13 +417,21 @@ def _split_instance(config: dict, key: str, cls: type, expected: str) -> tuple[d
 
 def _load_sequence(path: str | None) -> Sequence:
     if path is None:
-        raise ConfigError("SatLocReplayEnv config.sequence: a sequence is required (a sequence directory or a "
-                          "satloc.sequence.Sequence)")
-    d = Path(path).expanduser()
-    if not (d / "sequence.json").is_file():
-        raise ConfigError(f"sequence: {path!r} is not a sequence directory (no sequence.json); expected a directory "
-                          "written by `satloc record` or Sequence.save, or a satloc.sequence.Sequence")
-    return Sequence.load(d)
+        raise ConfigError("SatLocReplayEnv config.sequence: a sequence is required (a sequence directory, a KITTI "
+                          "raw drive, a Malaga Urban extract or a satloc.sequence.Sequence)")
+    from satloc.datasets import open_sequence
+
+    return open_sequence(Path(path).expanduser())
+
+
+def _in_camera(seq: Sequence, camera) -> Sequence:
+    """``seq`` resampled into the localizer's ``camera`` when the two differ only in image size and intrinsics
+    (e.g. a KITTI drive at 1242x375 and a localizer built at half resolution); otherwise ``seq`` unchanged, and
+    the camera check that follows says what differs."""
+    c = seq.camera
+    if c == camera or c.rig_differences(camera, 1e-6, 1e-6, 1e-6):
+        return seq
+    return seq.view(None, camera)
 
 
 def _skip_count(action, max_skip: int) -> int:
