@@ -23,8 +23,10 @@ import satloc_env  # noqa: F401  (registers satloc/SatLocReplay-v0)
 
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--sequence", required=True, help="sequence directory (satloc record, Sequence.save)")
-    ap.add_argument("--map", default=None, help="satellite map directory (default: the build's, or ../map)")
+    ap.add_argument("--sequence", required=True,
+                    help="a sequence directory (satloc record, Sequence.save), a KITTI raw drive or a Malaga extract")
+    ap.add_argument("--map", default=None, help="a satellite map directory or georeferenced imagery (GeoTIFF, image + "
+                    "world file, XYZ tiles; default: the build's map, or ../map)")
     ap.add_argument("--localizer", default="none", help="a build directory of `satloc build`, or none")
     ap.add_argument("--mode", default="full", choices=["full", "np", "go"])
     ap.add_argument("--track", action="store_true", help="fuse localizations over time with the odometry")

@@ -15,7 +15,6 @@ Sequences are written to a temporary directory and renamed into place only when 
 """
 from __future__ import annotations
 
-import os
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable, Iterator, Sequence as Seq
@@ -24,6 +23,7 @@ import cv2
 import numpy as np
 
 from .errors import FormatError
+from .geoframe import GeoFrame
 from .geometry import Pose2, StereoCamera
 from .persist import atomic_dir, load_npz, read_json, save_npz, write_json, header
 from .satmap import read_image
@@ -204,6 +204,12 @@ class Sequence:
     def poses(self) -> np.ndarray:
         """(N, 3) [x, y, yaw]; rows of NaN where a frame has no pose."""
         return self._poses.copy()
+
+    @property
+    def geo_frame(self) -> GeoFrame | None:
+        """The :class:`GeoFrame` the poses are in (real data: ``meta["geo_frame"]``); None for a local frame."""
+        d = self.meta.get("geo_frame")
+        return None if d is None else GeoFrame.from_dict(d, f"sequence {self.name!r} meta.geo_frame")
 
     @property
     def timestamps(self) -> np.ndarray:

@@ -272,7 +272,7 @@ def evaluate(database: str | Path, satellite: str | Path, out: str | Path, confi
     times: dict[str, float] = {}
     t = time.perf_counter()
     full = _read(database, reader, cfg, None)
-    frame = GeoFrame.from_dict(full.meta["geo_frame"], where=f"{database}: geo_frame")
+    frame = full.geo_frame
     camera = output_camera(full.camera, cfg.resolution)
     name = full.name
     if queries is not None:

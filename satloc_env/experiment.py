@@ -223,6 +223,15 @@ def run_scene(cfg: ExperimentConfig, out: str | Path, progress: bool = True, log
                                {"scene": cfg.scene, "config": to_dict(cfg)}, times, progress, log)
 
 
+def scene_label(scene: str) -> str:
+    """The name a scene's results are filed under: its ``name`` (a shipped name, or the name inside a scene
+    file given by path, so ``scenes/suburb_utm.yaml`` is filed as ``suburb_utm``)."""
+    from .scene import load_spec, scene_path
+
+    p = scene_path(scene)
+    return load_spec(p)[0].name if p.suffix in (".yaml", ".yml") else Path(scene).name
+
+
 def table1(out: str | Path, scenes: tuple[str, ...] = ("city", "residential"), config: dict | None = None,
            progress: bool = True, log=print) -> list[dict]:
     """Run :func:`run_scene` on each scene; write ``table1.csv`` (method,scene,mean_m,std_m), ``table1.md``
@@ -231,10 +240,11 @@ def table1(out: str | Path, scenes: tuple[str, ...] = ("city", "residential"), c
     rows = []
     for scene in scenes:
         cfg = from_dict(ExperimentConfig, dict(config or {}, scene=scene), "experiment config")
-        s = run_scene(cfg, out / scene, progress, log)
+        label = scene_label(scene)
+        s = run_scene(cfg, out / label, progress, log)
         for mode in cfg.modes:
             m = s["modes"][mode]
-            rows.append({"method": METHOD_NAMES[mode], "scene": scene, "mean_m": round(m["mean_m"], 3),
+            rows.append({"method": METHOD_NAMES[mode], "scene": label, "mean_m": round(m["mean_m"], 3),
                          "std_m": round(m["std_m"], 3), "median_m": round(m["median_m"], 3),
                          "within_1m": round(m["within_1m"], 3), "queries": m["queries"],
                          "queries_per_s": m["queries_per_s"]})
@@ -331,13 +341,14 @@ def aliasing(out: str | Path, scenes: tuple[str, ...] = ("city", "residential"),
     rows = []
     for scene in scenes:
         cfg = from_dict(ExperimentConfig, dict(config or {}, scene=scene), "experiment config")
-        s = aliasing_scene(cfg, out / scene, progress, log)
+        label = scene_label(scene)
+        s = aliasing_scene(cfg, out / label, progress, log)
         for cue, c in s["cues"].items():
-            rows.append({"scene": scene, "cue": cue, "measured": s["measured"], "far_wins": c["far_wins"],
+            rows.append({"scene": label, "cue": cue, "measured": s["measured"], "far_wins": c["far_wins"],
                          "median_margin": round(c["median_margin"], 3) if c["median_margin"] is not None else None})
-        rows.append({"scene": scene, "cue": "every co-occurrence mode", "measured": s["measured"],
+        rows.append({"scene": label, "cue": "every co-occurrence mode", "measured": s["measured"],
                      "far_wins": len(s["lost_by_every_cooccurrence_mode"]), "median_margin": None})
-        rows.append({"scene": scene, "cue": "every cue", "measured": s["measured"],
+        rows.append({"scene": label, "cue": "every cue", "measured": s["measured"],
                      "far_wins": len(s["lost_by_every_cue"]), "median_margin": None})
         log(f"[{scene}] queries where every cue prefers a place > {FAR_M:.0f} m away: {s['lost_by_every_cue']}")
     with atomic_path(out / "aliasing.csv", suffix=".csv") as tmp:

@@ -255,17 +255,16 @@ class SatLocReplayEnv(SharedSpecMixin, gym.Env):
         if not path.exists():
             raise ConfigError(f"map: {str(path)!r} not found; expected None, a map directory (map.json), a GeoTIFF, "
                               "an image with a world file, an XYZ tile folder or a SatelliteMap")
-        geo = seq.meta.get("geo_frame") if isinstance(seq.meta, dict) else None
-        if geo is None:
+        frame = seq.geo_frame
+        if frame is None:
             raise ConfigError(f"map: {str(path)!r} is georeferenced imagery, but sequence {seq.name!r} has no "
                               "meta['geo_frame'] to place it in (only real-data readers and georeferenced scenes set it)")
-        from satloc.geoframe import GeoFrame
         from satloc.georef import load_map
 
         xy = self._poses[np.all(np.isfinite(self._poses[:, :2]), axis=1), :2]
         m = PANEL_M / 2
         region = (*(xy.min(0) - m), *(xy.max(0) + m)) if len(xy) else None
-        return load_map(path, frame=GeoFrame.from_dict(geo, f"sequence {seq.name!r} meta.geo_frame"),
+        return load_map(path, frame=frame,
                         region=region)
 
     def _default_map(self) -> SatelliteMap:
@@ -444,14 +443,9 @@ def _skip_count(action, max_skip: int) -> int:
 
 def _check_same_geo_frame(sm: SatelliteMap, seq: Sequence) -> None:
     """A map and a sequence that both name their geographic frame must name the same one."""
-    frame = getattr(sm, "frame", None)
-    seq_frame = seq.meta.get("geo_frame") if isinstance(seq.meta, dict) else None
-    if frame is None or seq_frame is None:
+    mine, theirs = sm.frame, seq.geo_frame
+    if mine is None or theirs is None:
         return
-    from satloc.geoframe import GeoFrame
-
-    theirs = GeoFrame.from_dict(seq_frame, f"sequence {seq.name!r} meta.geo_frame")
-    mine = frame if isinstance(frame, GeoFrame) else GeoFrame.from_dict(frame, "map frame")
     if not (math.isclose(mine.lon0, theirs.lon0, abs_tol=1e-9) and math.isclose(mine.lat0, theirs.lat0, abs_tol=1e-9)):
         raise ConfigError(f"map: its geographic frame (lon0 {mine.lon0}, lat0 {mine.lat0}) is not the frame of "
                           f"sequence {seq.name!r} (lon0 {theirs.lon0}, lat0 {theirs.lat0}); load the map into the "

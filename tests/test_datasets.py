@@ -18,7 +18,8 @@ def test_open_sequence_dispatches_on_the_folder(tmp_path):
     other = GeoFrame(DEFAULT_FRAME.lon0 + 0.001, DEFAULT_FRAME.lat0)
     moved = open_sequence(drive, other)           # the frame goes to the reader
     assert moved.meta["geo_frame"] == other.to_dict()
-    own = GeoFrame.from_dict(seq.meta["geo_frame"])
+    own = seq.geo_frame
+    assert moved.geo_frame == other and own == GeoFrame.from_dict(seq.meta["geo_frame"])
     assert np.allclose(moved.poses[:, :2], other.to_map(own.to_lonlat(seq.poses[:, :2])), atol=1e-3)
 
     t = T0 + np.arange(6) * 0.5
