@@ -6,7 +6,7 @@ encoder-decoder with skip connections and two heads: per-pixel scores of the :da
 and one boundary logit. There is one network per view (``ground``, ``satellite``), both stored in one
 weights file, ``satloc/weights/fcn.pt`` (retrain with ``python -m satloc_env.train_features``).
 
-Extractors (the :mod:`satloc.features` interface, ``extractor(image, view) -> (H, W, dim) float32``):
+Extractors (the :mod:`satloc.extractor` interface, ``extractor(image, view) -> (H, W, dim) float32``):
 
 - :class:`SemanticFeatures`: per-pixel class probabilities (softmax of the scores), ``dim = NUM_CLASSES``; or
   of any torch module you plug in that returns per-pixel class scores.
@@ -42,7 +42,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from .errors import ConfigError, FormatError
-from .features import View, check_image
+from .extractor import View, check_image
 from .labels import CLASSES, NUM_CLASSES
 from .persist import atomic_path, check_header, header
 
@@ -200,6 +200,20 @@ class FCNOutput(NamedTuple):
 
 def _to_tensor(image: np.ndarray) -> torch.Tensor:
     return torch.from_numpy(np.ascontiguousarray(image)).permute(2, 0, 1).unsqueeze(0).float().div_(255.0)
+
+
+def _one_thread_after_fork() -> None:
+    """In a child made by ``fork``: run torch on one thread.
+
+    torch's CPU kernels run on an OpenMP (libgomp) thread pool that ``fork`` does not copy; once the parent
+    has used it with more than one thread, the child's first parallel region waits forever for the missing
+    workers (measured: a 3x3 convolution in a forked child never returned; with one thread it ran in
+    13 ms). torch's own DataLoader workers also run on one thread. Children made by ``spawn`` or
+    ``forkserver`` keep torch's default; raising the number again in a fork child brings the hang back."""
+    torch.set_num_threads(1)
+
+
+os.register_at_fork(after_in_child=_one_thread_after_fork)
 
 
 @contextlib.contextmanager

@@ -3,31 +3,24 @@
 Every extractor has one interface: ``extractor(image, view) -> (H, W, dim) float32`` where ``image`` is an
 RGB uint8 (H, W, 3) array and ``view`` is ``"ground"`` or ``"satellite"`` (an extractor may treat the views
 differently, e.g. with a network trained per view). ``FeatureStack`` concatenates extractors' channels.
+
+The interface itself (:class:`FeatureExtractor`, :data:`View`, :func:`check_image`) lives in
+:mod:`satloc.extractor` and is re-exported here. This module stands above :mod:`satloc.fcn`: the named
+feature sets of :func:`make_extractor` use its network extractors (imported on demand, as they load torch),
+and :mod:`satloc.fcn` does not import this module.
 """
 from __future__ import annotations
 
-from typing import Literal, Protocol, Sequence, runtime_checkable
+from typing import Sequence
 
 import cv2
 import numpy as np
 
 from .errors import ConfigError
+from .extractor import FeatureExtractor, View, check_image
 
-View = Literal["ground", "satellite"]
-
-
-@runtime_checkable
-class FeatureExtractor(Protocol):
-    name: str
-    dim: int
-
-    def __call__(self, image: np.ndarray, view: View) -> np.ndarray: ...
-
-
-def check_image(image: np.ndarray, where: str = "image") -> None:
-    if not isinstance(image, np.ndarray) or image.ndim != 3 or image.shape[2] != 3 or image.dtype != np.uint8:
-        got = f"{image.dtype} {image.shape}" if isinstance(image, np.ndarray) else type(image).__name__
-        raise ConfigError(f"{where}: expected an (H, W, 3) uint8 RGB image, got {got}")
+__all__ = ["View", "FeatureExtractor", "check_image", "BilateralRGB", "FeatureStack", "FEATURE_SETS",
+           "make_extractor"]
 
 
 class BilateralRGB:

@@ -20,6 +20,21 @@ What importing it does:
 It also provides :class:`MultiViewOffscreenRenderer`, a ``pyrender.OffscreenRenderer`` that draws several
 cameras of a scene in one go, without multisampling, and sets texture filtering (anisotropy, LOD bias) on
 uploaded textures.
+
+**Fork safety.** Creating the first context starts the driver's threads (measured on 2 cores: 5 threads, among
+them ``llvmpipe-0`` and ``llvmpipe-1``, the rasterizer's, one per core, and Mesa's shader disk-cache thread),
+which serve every context of the process until it exits: this module never terminates the EGL display.
+``fork`` copies only the thread that calls it, so in a child of a process that has created a context the
+driver waits forever for threads that do not exist: measured with Mesa 22.3 llvmpipe, a child creates a
+context of its own without complaint, but its first ``glReadPixels`` never returns. That is
+how ``gym.make_vec(..., vectorization_mode="async")`` with the default ``fork`` start method hung after the
+parent had rendered. The module records the pid that created the first context; every GL entry point
+(:class:`MultiViewOffscreenRenderer` creation and :meth:`~MultiViewOffscreenRenderer.render_views`) calls
+:func:`check_process` first, which raises :class:`GLForkError` at once in such a child, with the remedy: start
+the workers with ``spawn`` or ``forkserver`` (``vector_kwargs={"context": "spawn"}``). Re-creating a context
+in the child is not offered: the display, its screen and their locks are shared state copied mid-use.
+Deleting a renderer inherited from the parent only drops the references (no GL or EGL call, which could
+block). A process that forked before its first render is unaffected.
 """
 from __future__ import annotations
 
@@ -34,7 +49,8 @@ import pyrender  # noqa: E402
 from OpenGL import GL  # noqa: E402
 from pyrender.constants import ProgramFlags  # noqa: E402
 
-__all__ = ["pyrender", "MultiViewOffscreenRenderer", "configure_filtering", "max_anisotropy"]
+__all__ = ["pyrender", "MultiViewOffscreenRenderer", "GLForkError", "check_process", "configure_filtering",
+           "max_anisotropy"]
 
 #: GL_TEXTURE_MAX_ANISOTROPY and GL_MAX_TEXTURE_MAX_ANISOTROPY (EXT/ARB_texture_filter_anisotropic, core in 4.6).
 _GL_TEXTURE_MAX_ANISOTROPY = 0x84FE
@@ -42,6 +58,39 @@ _GL_MAX_TEXTURE_MAX_ANISOTROPY = 0x84FF
 _ANISOTROPY_EXTENSIONS = ("GL_EXT_texture_filter_anisotropic", "GL_ARB_texture_filter_anisotropic")
 _MIPMAP_FILTERS = (None, GL.GL_LINEAR_MIPMAP_LINEAR, GL.GL_LINEAR_MIPMAP_NEAREST,
                    GL.GL_NEAREST_MIPMAP_LINEAR, GL.GL_NEAREST_MIPMAP_NEAREST)
+
+
+#: pid of the process that created the first GL context through this module (None: none yet). A forked child
+#: inherits the value and so can tell that the driver's threads it would need were left behind.
+_gl_pid: int | None = None
+
+
+class GLForkError(RuntimeError):
+    """Raised on GL use in a process forked from one that had already created a GL context."""
+
+
+def _forked() -> bool:
+    """Whether this process is a fork of one that had created a GL context."""
+    return _gl_pid is not None and _gl_pid != os.getpid()
+
+
+def check_process() -> None:
+    """Raise :class:`GLForkError` if this process was forked from one that had created a GL context (its
+    driver threads are not in this process: rendering would hang). Cheap; called before any GL use."""
+    if _forked():
+        raise GLForkError(
+            f"satloc_env: process {os.getpid()} was forked from process {_gl_pid} after that process had created "
+            "an OpenGL context; the GL driver (EGL, Mesa llvmpipe) does not survive fork and rendering here would "
+            "hang. Start worker processes with the 'spawn' or 'forkserver' method instead, e.g. "
+            "gym.make_vec(\"satloc/SatLoc-v0\", n, vectorization_mode=\"async\", "
+            "vector_kwargs={\"context\": \"spawn\"}) or multiprocessing.get_context(\"spawn\"), or fork before "
+            "the parent renders anything.")
+
+
+def _mark_gl_process() -> None:
+    global _gl_pid
+    if _gl_pid is None:
+        _gl_pid = os.getpid()
 
 
 def _mesh_bounds(self: "pyrender.Mesh") -> np.ndarray:
@@ -115,6 +164,11 @@ class _MultiViewRenderer(pyrender.Renderer):
         self._programs = {p: prog for p, prog in self._programs.items() if p._in_context()}
 
     def delete(self):
+        if _forked():   # a copy inherited through fork: forget the GL objects, call no GL
+            self._filtered, self._programs, self._views_fb = set(), {}, None
+            self._meshes, self._mesh_textures, self._shadow_textures = set(), set(), set()
+            self._main_fb = self._main_fb_ms = self._shadow_fb = None
+            return
         super().delete()
         self._filtered = set()
         self._programs = {}
@@ -149,7 +203,11 @@ class _MultiViewRenderer(pyrender.Renderer):
         """Draw ``scene`` from each camera node (cameras with a finite ``zfar``); per view return ``"color"``
         (``"rgb"``: H x W x 3 uint8, ``"red"``: H x W uint8 red channel; ``None``: not read) and, if ``depth``,
         ``"depth"`` (H x W float32 metric z-depth, 0 where nothing was drawn). ``depth`` may also be an int k:
-        depth is then read for the first k views only. Arrays are C-contiguous."""
+        depth is then read for the first k views only. Arrays are C-contiguous.
+
+        The result depends only on the scene, not on the process, when the mesh nodes that the first camera is
+        equally far from (e.g. inside several bounding boxes) have distinct names: they are drawn in name
+        order (unnamed nodes: in the order of pyrender's node set, which varies between processes)."""
         flags = pyrender.RenderFlags.FLAT
         self._update_context(scene, flags)
         w, h, n = self.viewport_width, self.viewport_height, len(cameras)
@@ -167,7 +225,13 @@ class _MultiViewRenderer(pyrender.Renderer):
         GL.glActiveTexture(GL.GL_TEXTURE0)
 
         # Front to back (nearest bounding box first, from the first camera) so that the depth test rejects
-        # hidden fragments before they are shaded.
+        # hidden fragments before they are shaded. Ties (several boxes around the camera: gap 0) are drawn in the
+        # order of the nodes' names, then of the primitives in their mesh. The order decides which of two
+        # fragments at exactly the same depth is kept (GL_LESS keeps the first drawn), and faces of different
+        # meshes at the same depth occur (seen: the episode's occluders and the world chunk around the camera,
+        # both at gap 0, giving a car's outline one way or the other). pyrender's ``scene.mesh_nodes`` is a set
+        # of nodes hashed by address, whose order differs from process to process: ordering ties by it made
+        # a few frames in a thousand differ between processes.
         eye = scene.get_pose(cameras[0])[:3, 3]
         draws = []
         for node in scene.mesh_nodes:
@@ -177,15 +241,15 @@ class _MultiViewRenderer(pyrender.Renderer):
                 centre = pose[:3, :3] @ ((lo + hi) / 2) + pose[:3, 3]
                 half = np.abs(pose[:3, :3]) @ ((hi - lo) / 2)
                 gap = float(np.linalg.norm(np.clip(eye, centre - half, centre + half) - eye))
-                for prim in node.mesh.primitives:
-                    draws.append((gap, self._program(prim), prim, pose))
-        draws.sort(key=lambda d: d[0])
+                for i, prim in enumerate(node.mesh.primitives):
+                    draws.append((gap, node.name or "", i, self._program(prim), prim, pose))
+        draws.sort(key=lambda d: d[:3])
         for k, cam in enumerate(cameras):
             GL.glViewport(0, (n - 1 - k) * h, w, h)
             view = np.linalg.inv(scene.get_pose(cam))
             proj = cam.camera.get_projection_matrix(width=w, height=h)
             bound, model, factor = None, None, None
-            for _, program, prim, pose in draws:
+            for _, _, _, program, prim, pose in draws:
                 if program is not bound:
                     program._bind()
                     program.set_uniform("V", view)
@@ -250,10 +314,13 @@ class MultiViewOffscreenRenderer(pyrender.OffscreenRenderer):
     textures get ``anisotropy`` and ``lod_bias`` (see :func:`configure_filtering`)."""
 
     def __init__(self, viewport_width: int, viewport_height: int, anisotropy: float = 1.0, lod_bias: float = 0.0):
+        check_process()
         self._filtering = (float(anisotropy), float(lod_bias))
         super().__init__(viewport_width, viewport_height)
 
     def _create(self):
+        check_process()
+        _mark_gl_process()   # before the driver starts its threads, so that a failure half-way still counts
         super()._create()
         # The stock renderer has allocated no GL objects yet, so swapping it out leaks nothing.
         self._renderer = _MultiViewRenderer(self.viewport_width, self.viewport_height, *self._filtering)
@@ -265,9 +332,16 @@ class MultiViewOffscreenRenderer(pyrender.OffscreenRenderer):
         ``gc.collect``, which this skips.)"""
         if self._renderer is None:
             return
-        self._platform.make_current()
-        self._renderer.delete()
         platform = self._platform
+        if _forked():    # a copy inherited through fork: no GL or EGL call (eglTerminate could block)
+            self._renderer.delete()
+            if hasattr(platform, "_egl_display"):
+                platform._egl_context = platform._egl_display = None   # its __del__ would eglTerminate
+            self._renderer = None
+            self._platform = None
+            return
+        platform.make_current()
+        self._renderer.delete()
         if hasattr(platform, "_egl_display"):                  # pyrender's EGLPlatform
             from OpenGL import EGL
 
@@ -282,6 +356,7 @@ class MultiViewOffscreenRenderer(pyrender.OffscreenRenderer):
     def render_views(self, scene: "pyrender.Scene", cameras: Sequence["pyrender.Node"], color: str | None = "rgb",
                      depth: bool | int = True) -> list[dict[str, np.ndarray]]:
         """See :meth:`_MultiViewRenderer.render_views`."""
+        check_process()
         self._platform.make_current()
         try:
             return self._renderer.render_views(scene, cameras, color, depth)

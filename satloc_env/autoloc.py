@@ -18,6 +18,10 @@ processes (e.g. async vector env workers) build it once and never see a partial 
 
 :func:`auto_build_dir` returns the directory (building it on a miss); the CLI and scripts can use it like a
 build directory of ``satloc build``. :func:`load_cached_localizer` loads a build directory once per process.
+
+The environment (:mod:`satloc_env.env`) imports this module; this module records the database pass with
+:mod:`satloc_env.record` in an environment made through gymnasium's registry (:func:`satloc_env.record.make_env`)
+and imports neither of them back.
 """
 from __future__ import annotations
 
@@ -41,7 +45,7 @@ from satloc.config import to_dict
 from satloc.errors import ConfigError
 from satloc.persist import FORMAT_VERSION, header, read_json, write_json
 
-from .record import RecordConfig, record_pass
+from .record import RecordConfig, make_env, record_pass
 from .scene import SCENES_DIR, load_spec, scene_path
 
 log = logging.getLogger(__name__)
@@ -217,14 +221,12 @@ def _build_entry(out: Path, key: dict, scene, aliasing, resolution, max_frames, 
 
     from satloc.pipeline import build, train_projection
 
-    from .env import SatLocEnv
-
     speed, db, bc, pc = _configs(max_frames, build_config, projection_config)
     rec = out / "recording"
     stages = tqdm(total=3, desc="auto localizer", unit="stage", disable=not progress, leave=False)
     # localizer=None: the recorder's env must not itself ask for an auto localizer (infinite recursion)
-    env = SatLocEnv(scene=os.fspath(scene), resolution=resolution, aliasing=aliasing, speed_mps=speed,
-                    depth=db.depth, labels=db.labels, localizer=None)
+    env = make_env(scene=os.fspath(scene), resolution=resolution, aliasing=aliasing, speed_mps=speed,
+                   depth=db.depth, labels=db.labels, localizer=None)
     try:
         env.reset(seed=db.seed)
         sc = env.scene

@@ -7,6 +7,11 @@
     out_dir/query/        Sequence: the query pass (another lane offset, appearance and occluders)
 
 Both sequences use the on-disk layout of :mod:`satloc.sequence`, which the dataset readers also produce.
+
+This module does not import :mod:`satloc_env.env`: the environment uses :mod:`satloc_env.autoloc` for
+``localizer="auto"``, which records the scene's database pass with this module, so the recorders make their
+environments through gymnasium's registry entry of ``satloc/SatLoc-v0`` (:func:`make_env`) and the imports
+go one way (env -> autoloc -> record).
 """
 from __future__ import annotations
 
@@ -14,14 +19,24 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+import gymnasium as gym
 import numpy as np
+from gymnasium.envs.registration import load_env_creator
 from tqdm import tqdm
 
 from satloc.config import from_dict, to_dict
 from satloc.geometry import Pose2
 from satloc.sequence import Frame, Sequence, SequenceWriter
 
-from .env import SatLocEnv
+#: the id ``satloc_env`` registers the simulator under (``satloc_env.ENV_ID``; importing the package, which
+#: every import of this module does first, registers it)
+ENV_ID = "satloc/SatLoc-v0"
+
+
+def make_env(**config: Any) -> gym.Env:
+    """A new, unwrapped ``satloc/SatLoc-v0`` environment (:class:`satloc_env.env.SatLocEnv`) with ``config``:
+    the class of the registry's entry point, called without gymnasium's wrappers."""
+    return load_env_creator(gym.spec(ENV_ID).entry_point)(**config)
 
 
 @dataclass
@@ -48,9 +63,10 @@ class RecordConfig:
                                                                    occlusion=0.3, appearance=0.5, seed=1))
 
 
-def record_pass(env: SatLocEnv, p: PassConfig, route: str, out: Path, name: str, progress: bool = True,
+def record_pass(env: gym.Env, p: PassConfig, route: str, out: Path, name: str, progress: bool = True,
                 meta: dict | None = None) -> Sequence:
-    """Drive ``route`` once with the autopilot, writing a frame every ``p.spacing_m`` metres to ``out``."""
+    """Drive ``route`` once with the autopilot of ``env`` (a ``satloc/SatLoc-v0`` environment, wrapped or
+    not), writing a frame every ``p.spacing_m`` metres to ``out``."""
     obs, info = env.reset(seed=p.seed, options={
         "route": route, "lane_offset_m": p.lane_offset_m, "occlusion": p.occlusion, "appearance": p.appearance,
         "max_steps": 10**9})
@@ -92,8 +108,8 @@ def record_passes(config: RecordConfig | dict[str, Any], out_dir: str | Path, pr
     sequences = []
     for name, p in (("database", cfg.database), ("query", cfg.query)):
         # localizer=None: recording needs no localization (and "auto" would itself record the database pass)
-        env = SatLocEnv(scene=cfg.scene, resolution=cfg.resolution, aliasing=cfg.aliasing, speed_mps=cfg.speed_mps,
-                        depth=p.depth, labels=p.labels, localizer=None)
+        env = make_env(scene=cfg.scene, resolution=cfg.resolution, aliasing=cfg.aliasing, speed_mps=cfg.speed_mps,
+                       depth=p.depth, labels=p.labels, localizer=None)
         try:
             env.reset(seed=p.seed)
             scene = env.scene

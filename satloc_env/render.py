@@ -5,7 +5,8 @@ as vertex colours) and a label mesh (the same geometry with the label texture, n
 episode's occluders as one more such pair. A frame moves the two camera nodes, hides the chunks that cannot
 be within ``zfar`` of the camera and draws with flat (unlit) shading into a single-sample framebuffer, so
 depth is exact at pixel centres. The GL context is created on the first render, not before: a process that
-holds one cannot safely ``fork``.
+holds one cannot safely ``fork`` (rendering in such a child raises :class:`satloc_env._gl.GLForkError` at once
+instead of hanging; see :mod:`satloc_env._gl`).
 """
 from __future__ import annotations
 
@@ -125,14 +126,17 @@ class StereoRenderer:
     # --- scene management ---------------------------------------------------------------------------------
     def _context(self) -> Any:
         """The offscreen renderer, creating the scene and the GL context on first use."""
-        from satloc_env._gl import MultiViewOffscreenRenderer, pyrender
+        from satloc_env._gl import MultiViewOffscreenRenderer, check_process, pyrender
 
+        check_process()   # a fork of a process that has rendered: fail now, rendering would hang
         if self._scene is None:
             self._scene = pyrender.Scene(bg_color=self._sky)
-            for chunk in self.world.chunks:
+            # Named nodes: the multi-view renderer draws equally near nodes in name order, which makes the
+            # image the same in every process (see _MultiViewRenderer.render_views).
+            for i, chunk in enumerate(self.world.chunks):
                 pair = _meshes(chunk)
-                for mesh in pair:
-                    self._scene.add(mesh)
+                for mesh, kind in zip(pair, ("color", "labels")):
+                    self._scene.add(mesh, name=f"chunk{i:05d}/{kind}")
                 self._chunk_meshes.append(pair)
             cam = self.camera
             for side in _SIDES:
@@ -151,7 +155,8 @@ class StereoRenderer:
         if self._occluders is not None:
             color, label = _meshes(self._occluders)
             label.is_visible = False
-            self._occluder_nodes = [self._scene.add(color), self._scene.add(label)]
+            self._occluder_nodes = [self._scene.add(color, name="occluders/color"),
+                                    self._scene.add(label, name="occluders/labels")]
 
     def _cull(self, pose: Pose2) -> None:
         """Show the colour meshes of the chunks whose footprint comes within reach of the camera."""
