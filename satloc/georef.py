@@ -21,15 +21,21 @@ as an RGB uint8 map whose ``frame`` is set. rasterio and pyproj do every CRS con
 
 Output grid: pixel edges lie on multiples of ``mpp`` from the frame's origin, so maps loaded in one frame
 at one resolution share their pixel lattice (a region's map is a crop of the whole map). Without a
-``region`` the map is the largest north-up rectangle inside the image's footprint (no black wedges where
-a UTM or rotated image does not reach); a ``region`` is widened outwards to the lattice and must lie in the
-image (within half an output pixel).
+``region`` the map is a north-up rectangle inside the image's footprint, bounded by the innermost reach of
+each image edge (no black wedges where a UTM or rotated image does not reach): the whole image when it is
+north up in the frame, nearly all of it when it is turned by a few degrees (UTM's grid convergence), but
+much less than the largest inscribed rectangle when it is turned by tens of degrees (pass a ``region``
+then). A ``region`` is widened outwards to the lattice and must lie in the image (within half an output
+pixel). :func:`map_bounds` gives a load's frame, resolution and extent without reading pixels.
 
 Band handling: grey (1 band) becomes three equal channels; grey + alpha and RGBA are composited over
 black (a transparent pixel is black); a palette image is expanded through its colour table; more than four
 bands take the red, green and blue bands (or the first three). 16-bit bands are scaled by 1/257; other
 sample types are rejected.
 
+:func:`input_files` lists the files a load reads (for caches of loaded maps), :func:`is_georeferenced` tells a
+georeferenced image from a plain one, and :func:`reproject_band` takes a raster aligned with an image (a label
+image, a road mask) onto a loaded map's grid.
 :func:`write_geotiff`, :func:`save_geotiff` and :func:`write_world_file` write these formats (atomically)
 for tests and scenes.
 """
@@ -70,37 +76,12 @@ def load_map(path: str | os.PathLike, mpp: float | None = None, frame: GeoFrame 
     world file, the line) and :class:`ConfigError` for bad arguments or a region the image does not cover.
     """
     from affine import Affine
-    from rasterio.crs import CRS
     from rasterio.enums import Resampling
     from rasterio.warp import reproject
 
-    path = Path(path)
     mpp = _check_args(mpp, frame, region, zoom)
-    user_crs = _parse_crs(crs) if crs is not None else None
-    if path.is_dir():
-        if user_crs is not None:
-            raise ConfigError(f"crs: a tile folder ({path}) is always in EPSG:3857; do not pass crs=")
-        src = _tile_source(path, zoom)
-    elif path.is_file():
-        if zoom is not None:
-            raise ConfigError(f"zoom: only a tile folder has zoom levels; {path} is a file")
-        src = _file_source(path, user_crs)
-    else:
-        raise FormatError(f"{path}: file or tile folder not found")
-
-    if frame is None:
-        centre = _apply(src.transform, src.width / 2, src.height / 2)
-        lon, lat = _transform_points(src.crs, CRS.from_epsg(4326), *centre)
-        try:
-            frame = GeoFrame(float(lon[0]), float(lat[0]))
-        except ConfigError as e:
-            raise FormatError(f"{src.path}: the image centre is not a valid map origin ({e})") from e
-    frame_crs = CRS.from_proj4(frame.proj4)
-    src_gsd = _ground_resolution(src, frame_crs)
-    if mpp is None:
-        mpp = _round_mpp(src_gsd)
-
-    x0, y0, x1, y1 = _output_bounds(src, frame_crs, mpp, region, src_gsd)
+    src = _open_source(Path(path), crs, zoom)
+    frame, frame_crs, mpp, src_gsd, (x0, y0, x1, y1) = _plan(src, mpp, frame, region)
     width, height = int(round((x1 - x0) / mpp)), int(round((y1 - y0) / mpp))
     if width < 1 or height < 1:
         raise ConfigError(f"{src.path}: the image covers less than one {mpp:g} m pixel of the frame")
@@ -115,6 +96,87 @@ def load_map(path: str | os.PathLike, mpp: float | None = None, frame: GeoFrame 
               dst_transform=dst_transform, dst_crs=frame_crs, dst_nodata=None, resampling=resampling,
               num_threads=1)
     return SatelliteMap(np.ascontiguousarray(out.transpose(1, 2, 0)), float(mpp), (x0, y1), None, frame)
+
+
+def map_bounds(path: str | os.PathLike, mpp: float | None = None, frame: GeoFrame | None = None, crs=None,
+               zoom: int | None = None) -> tuple[GeoFrame, float, tuple[float, float, float, float]]:
+    """(frame, mpp, (x_min, y_min, x_max, y_max)) of the map :func:`load_map` returns for these arguments
+    without a ``region``, from the georeference alone (no pixel is read). Same arguments and errors."""
+    mpp = _check_args(mpp, frame, None, zoom)
+    src = _open_source(Path(path), crs, zoom)
+    frame, _, mpp, _, bounds = _plan(src, mpp, frame, None)
+    return frame, mpp, bounds
+
+
+def input_files(path: str | os.PathLike, zoom: int | None = None) -> list[Path]:
+    """Every existing file that :func:`load_map` may read for ``path``: the image, then its world file,
+    ``.prj`` and GDAL ``.aux.xml`` sidecars; for a tile folder, every tile of the zoom level it loads
+    (``zoom``, default the highest), sorted. What a cache of a loaded map must depend on."""
+    path = Path(path)
+    if path.is_dir():
+        tiles = _scan_tiles(path)
+        if not tiles:
+            return []
+        level = tiles.get(max(tiles) if zoom is None else zoom, {})
+        return sorted(level.values())
+    if not path.is_file():
+        return []
+    sidecars = [*world_file_candidates(path), path.with_suffix(".prj"), path.with_name(path.name + ".aux.xml")]
+    return [path] + [p for p in sidecars if p.is_file()]
+
+
+def is_georeferenced(path: str | os.PathLike, crs=None) -> bool:
+    """Whether the image file ``path`` claims a place on Earth, so that it is for :func:`load_map` and not a
+    plain picture: a world file beside it, a geotransform of its own (a GeoTIFF's, or GDAL's ``.aux.xml``),
+    ground control points (which :func:`load_map` then refuses by name: it reads geotransforms only), or a
+    ``crs`` given for it. False for a plain image and for a file rasterio cannot open (the caller's own reader
+    reports that)."""
+    import rasterio
+    from rasterio.errors import RasterioIOError
+
+    path = Path(path)
+    if crs is not None or any(p.is_file() for p in world_file_candidates(path)):
+        return True
+    if path.suffix.lower() not in IMAGE_SUFFIXES:
+        return False
+    try:
+        with _quiet(), rasterio.Env(GDAL_GEOREF_SOURCES="PAM,INTERNAL"), rasterio.open(path) as ds:
+            return not ds.transform.is_identity or bool(ds.gcps[0])
+    except RasterioIOError:
+        return False
+
+
+def reproject_band(band: np.ndarray, path: str | os.PathLike, satmap: SatelliteMap, crs=None,
+                   resampling: str = "nearest", what: str = "the band") -> np.ndarray:
+    """A single-band uint8 raster aligned pixel for pixel with the image at ``path`` (e.g. its label image or
+    road mask), reprojected onto the grid of ``satmap`` (a map :func:`load_map` read from ``path``, or any map
+    with a geo frame). ``crs`` as for :func:`load_map`; ``resampling``: a ``rasterio.enums.Resampling`` name;
+    ``what`` names the band in the :class:`ConfigError` raised when its size is not the image's."""
+    from affine import Affine
+    from rasterio.crs import CRS
+    from rasterio.enums import Resampling
+    from rasterio.warp import reproject
+
+    if satmap.frame is None:
+        raise ConfigError("reproject_band: the map has no geo frame (a synthetic local frame)")
+    path = Path(path)
+    if path.is_dir():
+        raise ConfigError(f"reproject_band: {path} is a tile folder; expected an image file")
+    src = _open_source(path, crs, None)
+    a = np.asarray(band)
+    if a.shape != (src.height, src.width):
+        size = f"{a.shape[1]}x{a.shape[0]}" if a.ndim == 2 else f"of shape {a.shape}"
+        raise ConfigError(f"{what} is {size} px, but the image {path.name} is {src.width}x{src.height} px; it "
+                          f"must be aligned with the image pixel for pixel")
+    if not hasattr(Resampling, resampling):
+        raise ConfigError(f"reproject_band: resampling {resampling!r} is not a rasterio Resampling name")
+    mpp = satmap.meters_per_pixel
+    out = np.zeros(satmap.shape[:2], np.uint8)
+    reproject(np.ascontiguousarray(a, np.uint8), out, src_transform=src.transform, src_crs=src.crs,
+              src_nodata=None, dst_transform=Affine(mpp, 0.0, satmap.origin[0], 0.0, -mpp, satmap.origin[1]),
+              dst_crs=CRS.from_proj4(satmap.frame.proj4), dst_nodata=None,
+              resampling=getattr(Resampling, resampling), num_threads=1)
+    return out
 
 
 def write_geotiff(path: str | os.PathLike, image: np.ndarray, transform, crs=None) -> None:
@@ -240,6 +302,38 @@ class _Source:
         return self.read(c0, r0, w, h), _compose(self.transform, Affine.translation(c0, r0))
 
 
+def _open_source(path: Path, crs, zoom: int | None) -> _Source:
+    """The raster at ``path``: a tile folder or an image file (``crs``: the user's CRS argument)."""
+    user_crs = _parse_crs(crs) if crs is not None else None
+    if path.is_dir():
+        if user_crs is not None:
+            raise ConfigError(f"crs: a tile folder ({path}) is always in EPSG:3857; do not pass crs=")
+        return _tile_source(path, zoom)
+    if path.is_file():
+        if zoom is not None:
+            raise ConfigError(f"zoom: only a tile folder has zoom levels; {path} is a file")
+        return _file_source(path, user_crs)
+    raise FormatError(f"{path}: file or tile folder not found")
+
+
+def _plan(src: _Source, mpp: float | None, frame: GeoFrame | None, region):
+    """(frame, its rasterio CRS, mpp, the source's ground resolution, output bounds) of a load."""
+    from rasterio.crs import CRS
+
+    if frame is None:
+        centre = _apply(src.transform, src.width / 2, src.height / 2)
+        lon, lat = _transform_points(src.crs, CRS.from_epsg(4326), *centre)
+        try:
+            frame = GeoFrame(float(lon[0]), float(lat[0]))
+        except ConfigError as e:
+            raise FormatError(f"{src.path}: the image centre is not a valid map origin ({e})") from e
+    frame_crs = CRS.from_proj4(frame.proj4)
+    src_gsd = _ground_resolution(src, frame_crs)
+    if mpp is None:
+        mpp = _round_mpp(src_gsd)
+    return frame, frame_crs, mpp, src_gsd, _output_bounds(src, frame_crs, mpp, region, src_gsd)
+
+
 def _file_source(path: Path, user_crs) -> _Source:
     import rasterio
     from rasterio.errors import RasterioIOError
@@ -281,12 +375,8 @@ def _file_source(path: Path, user_crs) -> _Source:
     return _Source(path, src_crs, own_transform, width, height, read)
 
 
-def _tile_source(root: Path, zoom: int | None) -> _Source:
-    import rasterio
-    from affine import Affine
-    from rasterio.crs import CRS
-    from rasterio.errors import RasterioIOError
-
+def _scan_tiles(root: Path) -> dict[int, dict[tuple[int, int], Path]]:
+    """{zoom: {(x, y): tile file}} of a ``<z>/<x>/<y>.<png|jpg|jpeg>`` folder."""
     tiles: dict[int, dict[tuple[int, int], Path]] = {}
     for zdir in root.iterdir():
         if not (zdir.is_dir() and zdir.name.isdigit()):
@@ -298,6 +388,16 @@ def _tile_source(root: Path, zoom: int | None) -> _Source:
             for f in xdir.iterdir():
                 if f.is_file() and f.suffix.lower() in TILE_SUFFIXES and f.stem.isdigit():
                     tiles.setdefault(z, {})[(int(xdir.name), int(f.stem))] = f
+    return tiles
+
+
+def _tile_source(root: Path, zoom: int | None) -> _Source:
+    import rasterio
+    from affine import Affine
+    from rasterio.crs import CRS
+    from rasterio.errors import RasterioIOError
+
+    tiles = _scan_tiles(root)
     if not tiles:
         raise FormatError(f"{root}: no XYZ tiles (expected <zoom>/<x>/<y>.png or .jpg under the folder)")
     if zoom is None:

@@ -67,12 +67,21 @@ def plot_posterior(satmap: SatelliteMap, result: Localization, truth: Pose2 | No
     plt.close(fig)
 
 
+def _along(poses: np.ndarray) -> np.ndarray:
+    """Distance along a pass to each frame over its posed frames (NaN for a frame without a pose: a real
+    sequence's frames outside its GPS track), so a frame without a pose adds no jump to the origin."""
+    ok = np.all(np.isfinite(poses[:, :2]), axis=1)
+    s = np.full(len(poses), np.nan)
+    s[ok] = arc_length(poses[ok])
+    return s
+
+
 def plot_errors_along_route(results_dir: str | Path, queries: Sequence, frames: np.ndarray, modes,
                             path: str | Path) -> None:
     """Localization error of each mode (``localization_<mode>.npz`` in ``results_dir``) against the query's
     distance along its pass."""
     plt = _pyplot()
-    s = arc_length(np.nan_to_num(queries.poses))
+    s = _along(queries.poses)
     fig, ax = plt.subplots(figsize=(10, 4))
     for mode in modes:
         a, _ = load_npz(Path(results_dir) / f"localization_{mode}.npz", "localization")
@@ -93,7 +102,7 @@ def plot_margins_along_route(queries: Sequence, frames: np.ndarray, margins: dic
     query's distance along its pass: co-occurrence cues (log-probability ratios) above, ``bev`` (a
     correlation difference) below; under the red line a look-alike wins."""
     plt = _pyplot()
-    s = arc_length(np.nan_to_num(queries.poses))[frames]
+    s = _along(queries.poses)[frames]
     fig, axes = plt.subplots(2, 1, figsize=(10, 6), sharex=True)
     for cue, m in margins.items():
         ax = axes[1] if cue == "bev" else axes[0]

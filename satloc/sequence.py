@@ -229,9 +229,11 @@ class Sequence:
         (default: this sequence's): resized to its image size, then warped to its intrinsics (a rectified
         pinhole pair: an affine map), e.g. a drive at half resolution or a query drive in the database's
         intrinsics. Depth and labels are not carried over. ``meta["source_frames"]`` lists the indices."""
-        index = np.arange(len(self)) if index is None else np.asarray(index, np.int64).reshape(-1)
-        if len(index) and (index.min() < -len(self) or index.max() >= len(self)):
-            raise IndexError(f"view: frame indices must lie in [0, {len(self)}), got {index.min()}..{index.max()}")
+        n = len(self)
+        index = np.arange(n) if index is None else np.asarray(index, np.int64).reshape(-1)
+        if len(index) and (index.min() < -n or index.max() >= n):
+            raise IndexError(f"view: frame indices must lie in [-{n}, {n}), got {index.min()}..{index.max()}")
+        index = np.where(index < 0, index + n, index)   # meta["source_frames"] names the frames as 0..n-1
         camera = camera or self.camera
         meta = dict(self.meta, source_frames=[int(i) for i in index], source_camera=self.camera.to_dict())
         return Sequence.lazy(camera, self._poses[index], self._stamps[index], _Resampled(self, index, camera),
@@ -299,6 +301,8 @@ class _Resampled:
         src = seq.camera
         self.size = (camera.width, camera.height)
         self.resize = (src.width, src.height) != self.size
+        # area averaging to shrink; bilinear to enlarge (OpenCV's area mode enlarges like nearest neighbour)
+        self.interp = cv2.INTER_AREA if camera.width <= src.width and camera.height <= src.height else cv2.INTER_LINEAR
         r = src.resized(*self.size)  # the camera of cv2.resize's output
         a = np.array([[camera.fx / r.fx, 0.0, camera.cx - camera.fx / r.fx * r.cx],
                       [0.0, camera.fy / r.fy, camera.cy - camera.fy / r.fy * r.cy]])
@@ -306,7 +310,7 @@ class _Resampled:
 
     def _image(self, img: np.ndarray) -> np.ndarray:
         if self.resize:
-            img = cv2.resize(img, self.size, interpolation=cv2.INTER_AREA)
+            img = cv2.resize(img, self.size, interpolation=self.interp)
         if self.affine is not None:
             img = cv2.warpAffine(img, self.affine, self.size, flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT)
         return img

@@ -3,9 +3,11 @@
 :func:`evaluate` reads a database drive (and optionally a query drive) with the dataset readers of
 :mod:`satloc.datasets`, all in ONE :class:`~satloc.geoframe.GeoFrame` (the database's: the query reader gets
 ``frame=`` it), loads the georeferenced satellite image with :func:`satloc.georef.load_map` into that frame
-over the bounding box of every pose plus ``margin_m``, and then runs the same stages as the synthetic
-experiments (:mod:`satloc_env.experiment`): build (dictionary + dense satellite features), learn the
-projections, localize the covered queries in each mode (GO, NP, full, +align, +track) and draw.
+over the bounding box of the drive's poses (with ``queries=``: of the database's and of the query drive's
+frames within ``coverage_m`` of it, so a query drive may run on beyond the area the image covers) plus
+``margin_m``, and then runs the same stages as the synthetic experiments (:mod:`satloc_env.experiment`):
+build (dictionary + dense satellite features), learn the projections, localize the covered queries in each
+mode (GO, NP, full, +align, +track) and draw.
 
 Where the queries come from (exactly one):
 
@@ -32,6 +34,7 @@ method and its shipped FCN are tuned for: the simulator's 620x188 at fx 361; Mal
 The output folder ``out`` holds::
 
     map/                       the satellite map in the frame (SatelliteMap layout), reused by later runs
+                               while the files it was read from (image, world file, .prj, tiles) are unchanged
     build/                     dictionary, satellite features, projections (satloc build / train-projection)
     map_stage.json, build_stage.json, projection_stage.json     stage stamps: a stage is redone only when
                                its inputs or configuration change
@@ -54,6 +57,7 @@ import numpy as np
 from satloc.config import from_dict, to_dict
 from satloc.context import ContextConfig
 from satloc.datasets import load_kitti, load_malaga
+from satloc.datasets.kitti import CAMERAS, IMU_HEIGHT_M, MISSING
 from satloc.datasets.malaga import MalagaConfig
 from satloc.errors import ConfigError
 from satloc.geoframe import GeoFrame
@@ -75,7 +79,7 @@ class KittiOptions:
 
     camera: str = "color"            # "color" (image_02/03) or "gray" (image_00/01)
     missing: str = "skip"            # frames without a left/right image or OXTS file: "skip" or "error"
-    imu_height: float = 0.93         # the IMU's height above the road (KITTI's sensor setup)
+    imu_height: float = IMU_HEIGHT_M  # the IMU's height above the road (KITTI's sensor setup)
 
 
 @dataclass
@@ -123,8 +127,8 @@ class EvaluateConfig:
         bad = [m for m in self.modes if m not in METHOD_NAMES]
         if bad or not self.modes:
             raise ConfigError(f"modes: unknown {bad}; expected a non-empty subset of {list(METHOD_NAMES)}")
-        if self.kitti.camera not in ("color", "gray") or self.kitti.missing not in ("skip", "error"):
-            raise ConfigError(f"kitti: expected camera 'color' or 'gray' and missing 'skip' or 'error', got "
+        if self.kitti.camera not in CAMERAS or self.kitti.missing not in MISSING:
+            raise ConfigError(f"kitti: expected camera in {sorted(CAMERAS)} and missing in {list(MISSING)}, got "
                               f"camera {self.kitti.camera!r}, missing {self.kitti.missing!r}")
 
 
@@ -213,9 +217,18 @@ def _read(path, reader: str, cfg: EvaluateConfig, frame: GeoFrame | None) -> Seq
     return load_malaga(path, frame, cfg.malaga)
 
 
-def _file_stamp(path: Path) -> list:
-    st = path.stat()
-    return [st.st_size, st.st_mtime_ns]
+def _files_stamp(path: Path, zoom: int | None) -> dict:
+    """Size and modification time of every file a load of ``path`` reads (the image and its world file,
+    ``.prj`` and ``.aux.xml`` sidecars; every tile of a tile folder's zoom level), as a count and a digest."""
+    from satloc.georef import input_files
+
+    base = path if path.is_dir() else path.parent
+    h = hashlib.sha1()
+    files = input_files(path, zoom)
+    for f in files:
+        st = f.stat()
+        h.update(f"{f.relative_to(base)}\0{st.st_size}\0{st.st_mtime_ns}\n".encode())
+    return {"count": len(files), "sha1": h.hexdigest()}
 
 
 def _sequence_stamp(seq: Sequence) -> dict:
@@ -239,9 +252,9 @@ def load_satellite(path: str | Path, cfg: EvaluateConfig, frame: GeoFrame, poses
     m = cfg.margin_m
     region = (float(xy[:, 0].min() - m), float(xy[:, 1].min() - m), float(xy[:, 0].max() + m),
               float(xy[:, 1].max() + m))
-    stamp = {"satellite": str(path.resolve()), "satellite_file": _file_stamp(path), "mpp": cfg.mpp,
-             "region": [round(v, 3) for v in region], "geo_frame": frame.to_dict(), "crs": cfg.satellite_crs,
-             "zoom": cfg.satellite_zoom}
+    stamp = {"satellite": str(path.resolve()), "satellite_files": _files_stamp(path, cfg.satellite_zoom),
+             "mpp": cfg.mpp, "region": [round(v, 3) for v in region], "geo_frame": frame.to_dict(),
+             "crs": cfg.satellite_crs, "zoom": cfg.satellite_zoom}
     mdir = out / "map"
     if _stage_done(out / "map_stage.json", stamp) and (mdir / "map.json").is_file():
         return SatelliteMap.load(mdir), stamp, time.perf_counter() - t
@@ -295,7 +308,8 @@ def evaluate(database: str | Path, satellite: str | Path, out: str | Path, confi
         db, q = full.view(di, camera), full.view(qi, camera, name=f"{full.name} queries")
     if len(db) < 2:
         raise ConfigError(f"{database}: the database has {len(db)} posed frame(s); the method needs at least 2")
-    sel = covered_queries(db, q, cfg.coverage_m)[::cfg.query_stride]
+    covered = covered_queries(db, q, cfg.coverage_m)
+    sel = covered[::cfg.query_stride]
     if len(sel) == 0:
         raise ConfigError(f"{queries or database}: no query frame lies within {cfg.coverage_m:g} m of the database "
                           f"path (split: {split})")
@@ -303,7 +317,8 @@ def evaluate(database: str | Path, satellite: str | Path, out: str | Path, confi
     log(f"[{name}] {split}; {len(sel)} queries within {cfg.coverage_m:g} m of the database path")
 
     out.mkdir(parents=True, exist_ok=True)
-    poses = np.concatenate([db.poses, q.poses])
+    # the map covers the drive (whatever the split), or the database and the query drive's frames near it
+    poses = full.poses if queries is None else np.concatenate([db.poses, q.poses[covered]])
     sm, map_stamp, times["map_s"] = load_satellite(satellite, cfg, frame, poses, out, log)
     source = {"data": {"reader": reader, "database": str(Path(database).resolve()),
                        "options": to_dict(cfg.kitti if reader == "kitti" else cfg.malaga),

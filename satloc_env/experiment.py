@@ -109,7 +109,10 @@ def _stages(cfg: ExperimentConfig, out: Path, progress: bool, log) -> tuple[Sequ
                                         max_frames=cfg.query_frames))
     times: dict[str, float] = {}
     t = time.perf_counter()
-    rc = to_dict(rec)
+    from .autoloc import cache_key
+
+    # the scene files' content too (YAML, image, road mask): an edited scene is recorded again
+    rc = dict(to_dict(rec), scene_sha256=cache_key(cfg.scene, cfg.aliasing)["scene_sha256"])
     if not _stage_done(out / "record.json", rc):
         log(f"[{cfg.scene}] recording the database and query passes into {out / 'rec'}")
         record_passes(rec, out / "rec", progress)
@@ -232,15 +235,25 @@ def scene_label(scene: str) -> str:
     return load_spec(p)[0].name if p.suffix in (".yaml", ".yml") else Path(scene).name
 
 
+def scene_labels(scenes) -> list[str]:
+    """:func:`scene_label` of each scene; :class:`ConfigError` when two would be filed under one name."""
+    labels = [scene_label(s) for s in scenes]
+    for i, label in enumerate(labels):
+        if label in labels[:i]:
+            j = labels.index(label)
+            raise ConfigError(f"scenes: {scenes[j]!r} and {scenes[i]!r} are both named {label!r}; their results "
+                              "would be filed in one folder (give the scene files different names)")
+    return labels
+
+
 def table1(out: str | Path, scenes: tuple[str, ...] = ("city", "residential"), config: dict | None = None,
            progress: bool = True, log=print) -> list[dict]:
     """Run :func:`run_scene` on each scene; write ``table1.csv`` (method,scene,mean_m,std_m), ``table1.md``
     and ``table1.json`` into ``out``; return the rows."""
     out = Path(out)
     rows = []
-    for scene in scenes:
+    for scene, label in zip(scenes, scene_labels(scenes)):
         cfg = from_dict(ExperimentConfig, dict(config or {}, scene=scene), "experiment config")
-        label = scene_label(scene)
         s = run_scene(cfg, out / label, progress, log)
         for mode in cfg.modes:
             m = s["modes"][mode]
@@ -339,9 +352,8 @@ def aliasing(out: str | Path, scenes: tuple[str, ...] = ("city", "residential"),
     into ``out``; return the rows."""
     out = Path(out)
     rows = []
-    for scene in scenes:
+    for scene, label in zip(scenes, scene_labels(scenes)):
         cfg = from_dict(ExperimentConfig, dict(config or {}, scene=scene), "experiment config")
-        label = scene_label(scene)
         s = aliasing_scene(cfg, out / label, progress, log)
         for cue, c in s["cues"].items():
             rows.append({"scene": label, "cue": cue, "measured": s["measured"], "far_wins": c["far_wins"],

@@ -43,6 +43,9 @@ from .env import (LOCALIZER_INSTANCE, PANEL_M, LocalizationState, SharedSpecMixi
 
 #: the value of ``ReplayConfig.sequence`` / ``.map`` when an object (a Sequence, a SatelliteMap) was passed.
 INSTANCE = "<instance>"
+#: georeferenced imagery given as ``map`` is read at its own resolution, or coarser to stay within this many
+#: pixels a side (it is only drawn)
+MAX_MAP_PX = 8192
 
 
 @dataclass
@@ -81,7 +84,8 @@ class SatLocReplayEnv(SharedSpecMixin, gym.Env):
     lazy dataset sequence reads its frames as they are replayed). ``map``: a map directory
     (:meth:`SatelliteMap.load`), georeferenced imagery that :func:`satloc.georef.load_map` reads (a GeoTIFF,
     an image with a world file, an XYZ tile folder: read into the sequence's ``meta["geo_frame"]`` around its
-    path) or a :class:`SatelliteMap` object. It is used for rendering only (the
+    path, at the image's resolution or coarser within :data:`MAX_MAP_PX` pixels a side) or a
+    :class:`SatelliteMap` object. It is used for rendering only (the
     localizer carries its own satellite features); without one, the map is the one the localizer's build
     directory was built from (``build.json``), else ``<sequence dir>/../map`` (the layout of
     ``satloc record``), else a plain grey canvas around the sequence's path. A map and a sequence that both
@@ -166,6 +170,7 @@ class SatLocReplayEnv(SharedSpecMixin, gym.Env):
 
             self._loc.localizer = load_cached_localizer(cfg.localizer, cfg.localizer_mode, cfg.localizer_refine)
         self._loc.track = cfg.localizer_track
+        self._seq_dir = getattr(self.sequence, "_dir", None)   # a recording's folder (its map/ is beside it)
         if self.localizer is not None:
             self.sequence = _in_camera(self.sequence, self.localizer.camera)
         self.camera = self.sequence.camera
@@ -259,13 +264,18 @@ class SatLocReplayEnv(SharedSpecMixin, gym.Env):
         if frame is None:
             raise ConfigError(f"map: {str(path)!r} is georeferenced imagery, but sequence {seq.name!r} has no "
                               "meta['geo_frame'] to place it in (only real-data readers and georeferenced scenes set it)")
-        from satloc.georef import load_map
+        from satloc.georef import load_map, map_bounds
 
         xy = self._poses[np.all(np.isfinite(self._poses[:, :2]), axis=1), :2]
         m = PANEL_M / 2
         region = (*(xy.min(0) - m), *(xy.max(0) + m)) if len(xy) else None
-        return load_map(path, frame=frame,
-                        region=region)
+        # the image's own resolution, coarsened for a long path so that the map stays within MAX_MAP_PX a side
+        # (it is drawn in panels of PANEL_M / PANEL_PX m per pixel; a 0.1 m orthophoto of a 5 km drive would
+        # take gigabytes)
+        _, mpp, bounds = map_bounds(path, frame=frame)
+        x0, y0, x1, y1 = region if region is not None else bounds
+        mpp = max(mpp, max(x1 - x0, y1 - y0) / MAX_MAP_PX)
+        return load_map(path, mpp, frame=frame, region=region)
 
     def _default_map(self) -> SatelliteMap:
         """The build's map, else the recording's ``map/`` beside the sequence, else a grey canvas."""
@@ -277,9 +287,8 @@ class SatLocReplayEnv(SharedSpecMixin, gym.Env):
                 m = None
             if m:
                 candidates.append(Path(m))
-        seq_dir = getattr(self.sequence, "_dir", None)
-        if seq_dir is not None:
-            candidates.append(Path(seq_dir).parent / "map")
+        if self._seq_dir is not None:
+            candidates.append(Path(self._seq_dir).parent / "map")
         for d in candidates:
             if (d / "map.json").is_file():
                 return SatelliteMap.load(d)

@@ -28,6 +28,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from satloc.geometry import arc_length
+
 __all__ = ["TraceParams", "TracedRoute", "trace_route", "RoadTraceError"]
 
 
@@ -108,7 +110,7 @@ def trace_route(mask: np.ndarray, mpp: float, params: TraceParams = TraceParams(
         xy = _recentre(xy, m, mpp, closed)
     xy = _smooth(xy, params.smooth_m, closed)
     xy = _resample(xy, params.spacing_m, closed)
-    length = float(np.sum(np.linalg.norm(np.diff(np.vstack([xy, xy[:1]]) if closed else xy, axis=0), axis=1)))
+    length = float(arc_length(np.vstack([xy, xy[:1]]) if closed else xy)[-1])
     if length < params.min_length_m:
         raise RoadTraceError(f"the longest road traced through the mask is {length:.1f} m long, shorter than "
                              f"min_length_m = {params.min_length_m:g} m")
@@ -270,10 +272,6 @@ def _loop_path(g) -> np.ndarray:
 
 
 # --- polyline post-processing ------------------------------------------------------------------------
-def _arc(xy: np.ndarray) -> np.ndarray:
-    return np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(xy, axis=0), axis=1))])
-
-
 def _recentre(xy: np.ndarray, mask: np.ndarray, mpp: float, closed: bool) -> np.ndarray:
     """Move the path (points ~0.25 m apart) to the middle of the road across it.
 
@@ -297,10 +295,10 @@ def _recentre(xy: np.ndarray, mask: np.ndarray, mpp: float, closed: bool) -> np.
     balanced = np.abs(dl - dr) < 0.3 * mid
     if balanced.sum() < 8:
         return xy
-    hw = _local_median(_arc(xy), mid, balanced, 30.0)
+    hw = _local_median(arc_length(xy), mid, balanced, 30.0)
     good = np.abs(dl + dr - 2 * hw) <= 0.15 * 2 * hw   # the road's usual width: no opening, no notch
     # the curbs start to flare before an opening: keep a road half-width of margin from it
-    sarc = _arc(xy)
+    sarc = arc_length(xy)
     bad_s = sarc[~good]
     if len(bad_s):
         j = np.clip(np.searchsorted(bad_s, sarc), 1, len(bad_s))
@@ -378,7 +376,7 @@ def _curb_distances(xy: np.ndarray, nrm: np.ndarray, mask: np.ndarray, mpp: floa
 def _tangents_at_good(xy: np.ndarray, good: np.ndarray, span_m: float = 3.0) -> np.ndarray:
     """Unit direction of travel at each point from the good points within ``span_m`` before it (for the
     start of an opening) or after it (for its end): a chord over the last / next few metres."""
-    s = _arc(xy)
+    s = arc_length(xy)
     tan = np.zeros_like(xy)
     for i in range(len(xy)):
         lo = np.flatnonzero(good & (s >= s[i] - span_m) & (s <= s[i]))
@@ -434,7 +432,7 @@ def _smooth(xy: np.ndarray, sigma_m: float, closed: bool) -> np.ndarray:
 
 def _resample(xy: np.ndarray, spacing: float, closed: bool) -> np.ndarray:
     pts = np.vstack([xy, xy[:1]]) if closed else xy
-    s = _arc(pts)
+    s = arc_length(pts)
     if s[-1] <= 0:
         return xy[:1]
     n = max(1, int(math.floor(s[-1] / spacing + 1e-9)))

@@ -49,7 +49,6 @@ naming the file and the field.
 """
 from __future__ import annotations
 
-import contextlib
 import dataclasses
 import functools
 import math
@@ -101,11 +100,11 @@ class ImageGeneratorSpec:
     def files(self, base: Path) -> list[tuple[str, Path]]:
         """(field, path) of every existing file the generator reads: the image, its world file and ``.prj``
         sidecars, the label image and the road mask (what a cache of the scene must depend on)."""
-        from satloc.georef import world_file_candidates
+        from satloc.georef import input_files
 
         img = base / self.image
         out = [("image", img)]
-        out += [("image_sidecar", p) for p in [*world_file_candidates(img), img.with_suffix(".prj")] if p.is_file()]
+        out += [("image_sidecar", p) for p in input_files(img)[1:]]
         out += [(k, base / getattr(self, k)) for k in ("labels", "roads") if getattr(self, k)]
         return out
 
@@ -375,9 +374,12 @@ def _image_layout(g: ImageGeneratorSpec, spec: SceneSpec, base: Path, where: str
         raise ConfigError(f"{where}: an image scene uses the image as the ground texture: ground_mpp must equal "
                           f"meters_per_pixel ({spec.meters_per_pixel})")
     mpp = spec.meters_per_pixel
-    if _is_georeferenced(img_path, g.crs):
-        rgb, frame, grid = _load_georeferenced(img_path, g, mpp, where)
-        src_shape = grid["shape"]
+    geo = None   # the map read from a georeferenced image
+    from satloc.georef import is_georeferenced
+
+    if is_georeferenced(img_path, g.crs):
+        geo = _load_georeferenced(img_path, g, mpp, where)
+        rgb, frame = geo.image, geo.frame
     else:
         for k in ("crs", "region"):
             if getattr(g, k) is not None:
@@ -387,10 +389,10 @@ def _image_layout(g: ImageGeneratorSpec, spec: SceneSpec, base: Path, where: str
             rgb = read_image(img_path)
         except FormatError as e:
             raise ConfigError(f"{where}: generator.image: {e}") from e
-        frame, grid = None, None
-        src_shape = rgb.shape[:2]
+        frame = None
 
-    def aligned(field_name: str, kind: str) -> np.ndarray:
+    def aligned(field_name: str, kind: str, resampling: str, value=None) -> tuple[np.ndarray, np.ndarray]:
+        """The raster of ``field_name`` as read (uint8, or ``value`` where non-zero) and on the scene's tile."""
         path = base / getattr(g, field_name)
         if not path.is_file():
             raise ConfigError(f"{where}: generator.{field_name}: {kind} {path} not found")
@@ -398,25 +400,32 @@ def _image_layout(g: ImageGeneratorSpec, spec: SceneSpec, base: Path, where: str
             a = read_image(path, grayscale=True)
         except FormatError as e:
             raise ConfigError(f"{where}: generator.{field_name}: {e}") from e
-        if a.shape != tuple(src_shape):
-            raise ConfigError(f"{where}: generator.{field_name}: {path} is {a.shape[1]}x{a.shape[0]} px, but "
-                              f"the image {img_path.name} is {src_shape[1]}x{src_shape[0]} px; it must be "
-                              f"aligned with the image pixel for pixel")
-        return a
+        if value is not None:
+            a = np.where(a > 0, value, 0).astype(np.uint8)
+        if geo is None:
+            if a.shape != rgb.shape[:2]:
+                raise ConfigError(f"{where}: generator.{field_name}: {path} is {a.shape[1]}x{a.shape[0]} px, but "
+                                  f"the image {img_path.name} is {rgb.shape[1]}x{rgb.shape[0]} px; it must be "
+                                  f"aligned with the image pixel for pixel")
+            return a, a
+        from satloc.georef import reproject_band
+
+        try:
+            return a, reproject_band(a, img_path, geo, g.crs, resampling, what=str(path))
+        except (ConfigError, FormatError) as e:
+            raise ConfigError(f"{where}: generator.{field_name}: {e}") from e
 
     labels = roads = None
     if g.labels:
-        labels = aligned("labels", "label image")
-        if labels.max() >= NUM_CLASSES:
-            raise ConfigError(f"{where}: generator.labels: class id {labels.max()} >= {NUM_CLASSES}")
-        if grid is not None:
-            labels = _reproject_aligned(labels, grid, "nearest")
+        raw, labels = aligned("labels", "label image", "nearest")
+        if raw.max() >= NUM_CLASSES:
+            raise ConfigError(f"{where}: generator.labels: class id {raw.max()} >= {NUM_CLASSES}")
     if g.roads:
-        raw = aligned("roads", "road mask") > 0
+        raw, tiled = aligned("roads", "road mask", "bilinear", value=255)   # bilinear, then halved
         if not raw.any():
             raise ConfigError(f"{where}: generator.roads: the road mask {base / g.roads} is empty (no non-zero "
                               f"pixel)")
-        roads = raw if grid is None else _reproject_aligned(raw.astype(np.uint8) * 255, grid, "bilinear") >= 128
+        roads = tiled >= 128
         if not roads.any():
             raise ConfigError(f"{where}: generator.roads: no road of the mask {base / g.roads} lies in the "
                               f"loaded area of the image")
@@ -430,44 +439,14 @@ def _image_layout(g: ImageGeneratorSpec, spec: SceneSpec, base: Path, where: str
     return _ImageGround(Layout(w * mpp, h * mpp, spec.ground_mpp, rgb, labels), frame, roads)
 
 
-def _is_georeferenced(path: Path, crs: str | None) -> bool:
-    """An image with a world file beside it, a ``crs`` field, or a GeoTIFF with a geotransform."""
-    from satloc.georef import world_file_candidates
-
-    if crs is not None or any(p.is_file() for p in world_file_candidates(path)):
-        return True
-    if path.suffix.lower() not in (".tif", ".tiff"):
-        return False
-    import rasterio
-    from rasterio.errors import RasterioIOError
-
-    try:
-        with _quiet_rasterio(), rasterio.Env(GDAL_GEOREF_SOURCES="PAM,INTERNAL"), rasterio.open(path) as ds:
-            return not ds.transform.is_identity or bool(ds.gcps[0])
-    except RasterioIOError:
-        return False  # read_image reports it
-
-
-@contextlib.contextmanager
-def _quiet_rasterio():
-    """Silence rasterio's NotGeoreferencedWarning (a plain image opened to look for a georeference)."""
-    import warnings
-
-    from rasterio.errors import NotGeoreferencedWarning
-
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore", NotGeoreferencedWarning)
-        yield
-
-
 def _load_georeferenced(path: Path, g: ImageGeneratorSpec, mpp: float, where: str):
-    """RGB, GeoFrame (origin at the loaded area's south-west corner) and the source/output grids."""
+    """The image as a :class:`SatelliteMap` in a GeoFrame whose origin is the loaded area's south-west corner."""
     from satloc.geoframe import GeoFrame
-    from satloc.georef import load_map
+    from satloc.georef import load_map, map_bounds
 
-    def load(**kw):
+    def call(fn, *args, **kw):
         try:
-            return load_map(path, mpp, crs=g.crs, **kw)
+            return fn(*args, crs=g.crs, **kw)
         except FormatError as e:
             raise ConfigError(f"{where}: generator.image: {e}") from e
         except ConfigError as e:
@@ -476,10 +455,9 @@ def _load_georeferenced(path: Path, g: ImageGeneratorSpec, mpp: float, where: st
                 "crs" if msg.startswith("crs") else "image")
             raise ConfigError(f"{where}: generator.{field}: {msg}") from e
 
-    if g.region is None:
-        probe = load()                                   # the largest north-up rectangle in the footprint
-        x0, x1, y0, y1 = probe.extent
-        (lon0, lat0), (lon1, lat1) = probe.frame.to_lonlat(np.array([[x0, y0], [x1, y1]]))
+    if g.region is None:                                  # the largest north-up rectangle in the footprint
+        probe_frame, _, (x0, y0, x1, y1) = call(map_bounds, path, mpp)
+        (lon0, lat0), (lon1, lat1) = probe_frame.to_lonlat(np.array([[x0, y0], [x1, y1]]))
     else:
         lon0, lat0, lon1, lat1 = (float(v) for v in g.region)
         if not (-180 <= lon0 < lon1 <= 180 and -85 <= lat0 < lat1 <= 85):
@@ -493,48 +471,12 @@ def _load_georeferenced(path: Path, g: ImageGeneratorSpec, mpp: float, where: st
     if w_m < mpp or h_m < mpp:
         raise ConfigError(f"{where}: generator.region: {list(g.region or ())} is smaller than one "
                           f"{mpp:g} m pixel")
-    sm = load(frame=frame, region=(0.0, 0.0, w_m, h_m))
-    ox, oy = sm.origin
+    sm = call(load_map, path, mpp, frame=frame, region=(0.0, 0.0, w_m, h_m))
+    ox = sm.origin[0]
     if abs(ox) > 1e-6 or abs(sm.extent[2]) > 1e-6:
         raise ConfigError(f"{where}: generator.image: the loaded map's south-west corner lies at ({ox:.3f}, "
                           f"{sm.extent[2]:.3f}) m of its frame, expected the origin")
-    grid = _source_grid(path, g.crs)
-    grid.update(dst_crs=frame.proj4, dst_transform=(mpp, 0.0, ox, 0.0, -mpp, oy), dst_shape=sm.shape)
-    return sm.image, frame, grid
-
-
-def _source_grid(path: Path, crs: str | None) -> dict:
-    """The image's pixel grid as :func:`satloc.georef.load_map` reads it: size, transform, CRS."""
-    import pyproj
-    import rasterio
-    from rasterio.crs import CRS
-
-    from satloc.georef import read_world_file, world_file_candidates
-
-    with _quiet_rasterio(), rasterio.Env(GDAL_GEOREF_SOURCES="PAM,INTERNAL"), rasterio.open(path) as ds:
-        shape, transform, own_crs, driver = (ds.height, ds.width), ds.transform, ds.crs, ds.driver
-    if transform.is_identity or driver != "GTiff":
-        world = next((c for c in world_file_candidates(path) if c.is_file()), None)
-        if world is not None:
-            transform = read_world_file(world)
-    if own_crs is None:
-        text = crs if crs is not None else path.with_suffix(".prj").read_text().strip()
-        own_crs = CRS.from_wkt(pyproj.CRS.from_user_input(text).to_wkt())
-    return {"shape": shape, "src_transform": transform, "src_crs": own_crs}
-
-
-def _reproject_aligned(a: np.ndarray, grid: dict, resampling: str) -> np.ndarray:
-    """A single-band uint8 raster on the image's pixel grid, reprojected onto the scene's tile grid."""
-    from affine import Affine
-    from rasterio.crs import CRS
-    from rasterio.enums import Resampling
-    from rasterio.warp import reproject
-
-    out = np.zeros(grid["dst_shape"], np.uint8)
-    reproject(np.ascontiguousarray(a, np.uint8), out, src_transform=grid["src_transform"], src_crs=grid["src_crs"],
-              src_nodata=None, dst_transform=Affine(*grid["dst_transform"]), dst_crs=CRS.from_proj4(grid["dst_crs"]),
-              dst_nodata=None, resampling=getattr(Resampling, resampling), num_threads=1)
-    return out
+    return sm
 
 
 def _resolve_routes(spec: SceneSpec, ground: _ImageGround | None, lay: Layout, g, base: Path,

@@ -53,5 +53,26 @@ def test_view_picks_frames_and_resamples_into_a_camera():
     half = cam.resized(32, 16)
     h = seq.view(None, half)
     assert h.camera == half and h[0].left.shape == (16, 32, 3) and len(h) == 5
+    neg = seq.view([-1, 0])                       # negative indices count from the end, recorded as 0..n-1
+    assert neg.meta["source_frames"] == [4, 0] and np.array_equal(neg[0].left, frames[4].left)
     with pytest.raises(IndexError):
         seq.view([5])
+    with pytest.raises(IndexError):
+        seq.view([-6])
+
+
+def test_view_enlarges_smoothly():
+    """A view into a larger camera interpolates (OpenCV's area mode, right for shrinking, enlarges like nearest
+    neighbour: 6.2 grey levels rms from the true picture at 4x here, bilinear 1.1)."""
+    def wave(x, y):
+        return 127 + 60 * np.sin(0.31 * x + 0.2 * y) + 50 * np.cos(0.17 * x - 0.41 * y)
+
+    cam = StereoCamera(80, 40, 50.0, 50.0, 39.5, 19.5, 0.5)
+    yy, xx = np.mgrid[0:40, 0:80].astype(np.float64)
+    img = np.repeat(np.clip(wave(xx, yy), 0, 255).astype(np.uint8)[..., None], 3, axis=2)
+    big = cam.resized(320, 160)
+    f = Sequence(cam, [Frame(img, img, Pose2(), 0.0)], "s").view(None, big)[0]
+    v, u = np.mgrid[0:160, 0:320].astype(np.float64)
+    truth = wave((u + 0.5) / 4 - 0.5, (v + 0.5) / 4 - 0.5)      # the source pixel under each output pixel
+    err = f.left[8:-8, 8:-8, 0] - truth[8:-8, 8:-8]
+    assert np.sqrt(np.mean(err ** 2)) < 2.0

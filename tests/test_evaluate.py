@@ -301,3 +301,67 @@ def _write(tmp_path: Path, cfg: dict) -> Path:
     p = tmp_path / "config.yaml"
     p.write_text(yaml.safe_dump(cfg))
     return p
+
+
+def test_satellite_map_stage_follows_the_files_it_was_read_from(tmp_path):
+    """``out/map`` is reused only while the files it was read from are unchanged: the image, its world file
+    (and .prj), every tile of a tile folder."""
+    from affine import Affine
+    from geofixtures import REF, UTM, make_tiles, make_world_image
+
+    from satloc.georef import load_map, write_world_file
+    from satloc_env.evaluate import EvaluateConfig, load_satellite
+
+    poses = np.array([[-30.0, -20.0, 0.0], [30.0, 20.0, 0.0]])
+    cfg = EvaluateConfig(mpp=1.0, margin_m=20.0)
+    region = (-50.0, -40.0, 50.0, 40.0)
+    quiet = lambda *a: None  # noqa: E731
+    path, _, tr = make_world_image(tmp_path / "w.png", UTM, gsd_m=1.0)
+    out = tmp_path / "out"
+    first, _, _ = load_satellite(path, cfg, REF, poses, out, quiet)
+    stamp = (out / "map_stage.json").stat().st_mtime_ns
+    again, _, _ = load_satellite(path, cfg, REF, poses, out, quiet)
+    assert np.array_equal(again.image, first.image) and (out / "map_stage.json").stat().st_mtime_ns == stamp
+    write_world_file(path.with_suffix(".pgw"), Affine(tr.a, tr.b, tr.c + 24.0, tr.d, tr.e, tr.f))   # 24 m east
+    moved, _, _ = load_satellite(path, cfg, REF, poses, out, quiet)
+    assert not np.array_equal(moved.image, first.image)
+    assert np.array_equal(moved.image, load_map(path, 1.0, frame=REF, region=region).image)
+
+    root, written = make_tiles(tmp_path / "tiles", zoom=16)
+    cfg = EvaluateConfig(mpp=2.0, margin_m=20.0)
+    before, _, _ = load_satellite(root, cfg, REF, poses, tmp_path / "out2", quiet)
+    for x, y in written:                      # every tile repainted (its negative)
+        f = root / "16" / str(x) / f"{y}.png"
+        cv2.imwrite(str(f), 255 - cv2.imread(str(f)))
+    after, _, _ = load_satellite(root, cfg, REF, poses, tmp_path / "out2", quiet)
+    assert np.array_equal(after.image, load_map(root, 2.0, frame=REF, region=region).image)
+    assert np.abs(after.image.astype(int) + before.image.astype(int) - 255).max() <= 2
+
+
+def test_query_drive_running_beyond_the_satellite_image(data, tmp_path, capsys):
+    """The map must cover the database and the queries evaluated, not a query drive's frames far from the
+    database path (here: drive B with five more frames 2 km north, off the satellite image)."""
+    import shutil
+
+    src = data["drives"][2]
+    date = tmp_path / "kitti" / src.parent.name
+    shutil.copytree(src.parent, date)
+    drv = date / src.name
+    n = len((drv / "image_02" / "timestamps.txt").read_text().splitlines())
+    last = f"{n - 1:010d}"
+    oxts = (drv / "oxts" / "data" / f"{last}.txt").read_text().split()
+    for k in range(5):
+        i = f"{n + k:010d}"
+        for cam in ("image_02", "image_03"):
+            shutil.copy(drv / cam / "data" / f"{last}.png", drv / cam / "data" / f"{i}.png")
+        (drv / "oxts" / "data" / f"{i}.txt").write_text(" ".join([f"{float(oxts[0]) + 0.02 + 1e-5 * k!r}"]
+                                                                 + oxts[1:]) + "\n")
+    for stream in ("image_02", "image_03", "oxts"):
+        lines = (drv / stream / "timestamps.txt").read_text().splitlines()
+        (drv / stream / "timestamps.txt").write_text("\n".join(lines + [lines[-1]] * 5) + "\n")
+    out = tmp_path / "beyond"
+    rc, text, err = _run(capsys, "--database", data["drives"][1], "--queries", drv, "--satellite", data["tif"],
+                         "--out", out, "--config", data["config"], "--modes", "go")
+    assert rc == 0, err
+    s = json.loads((out / "summary.json").read_text())
+    assert s["queries"] == 15 and np.all(np.isfinite(_errors(out, "go")))

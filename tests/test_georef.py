@@ -259,7 +259,7 @@ def test_bad_arguments(inputs):
                       (dict(region=(0, 0, 1)), "region"), (dict(zoom=18), "zoom")]:
         with pytest.raises(ConfigError, match=match):
             load_map(path, **kw)
-    with pytest.raises(ConfigError, match=rf"region: .* is not covered by .*gutm.tif, which covers x \["):
+    with pytest.raises(ConfigError, match=r"region: .* is not covered by .*gutm.tif, which covers x \["):
         load_map(path, frame=REF, region=(150.0, 0.0, 260.0, 50.0))
 
 
@@ -321,3 +321,36 @@ def test_check_covers():
     with pytest.raises(ConfigError, match="expected"):
         sm.check_covers(np.zeros(3), "poses")
     sm.check_covers(np.zeros((0, 2)), "poses")  # nothing to check
+
+
+def test_map_bounds_input_files_and_aligned_bands(tmp_path, inputs):
+    from satloc.georef import input_files, is_georeferenced, map_bounds, reproject_band
+
+    for kind in ("geotiff_utm", "jpg_world_rotated", "xyz_tiles"):
+        sm = load_map(inputs[kind], mpp=1.0)               # map_bounds: the same frame and extent, no pixels
+        frame, mpp, (x0, y0, x1, y1) = map_bounds(inputs[kind], 1.0)
+        assert frame == sm.frame and mpp == 1.0
+        assert (x0, x1, y0, y1) == pytest.approx(sm.extent, abs=1e-6), kind
+    assert map_bounds(inputs["geotiff_utm"])[1] == 0.5
+    # the files a load reads: the image and its sidecars; every tile of the level
+    path, img, tr = make_world_image(tmp_path / "w.png", UTM)
+    assert input_files(path) == [path, tmp_path / "w.pgw", tmp_path / "w.prj"]
+    assert input_files(inputs["geotiff_utm"]) == [inputs["geotiff_utm"]]
+    root, written = make_tiles(tmp_path / "t", zoom=16)
+    coarse = make_tiles(tmp_path / "t", zoom=15)[1]
+    assert input_files(root) == sorted(root / "16" / str(x) / f"{y}.png" for x, y in written)
+    assert len(input_files(root, zoom=15)) == len(coarse)
+    assert input_files(tmp_path / "nothing.tif") == []
+    # a band aligned with the image (its red channel) lands where the image's own pixels land
+    sm = load_map(path, 1.0, frame=REF)
+    red = reproject_band(img[..., 0], path, sm, resampling="average")   # as load_map at 2x its source pixel
+    assert red.shape == sm.shape[:2] and np.abs(red.astype(int) - sm.image[..., 0].astype(int)).max() <= 2
+    with pytest.raises(ConfigError, match=r"mask.png is 10x8 px, but the image w.png is 800x600 px"):
+        reproject_band(np.zeros((8, 10), np.uint8), path, sm, what="mask.png")
+    # georeferenced or plain
+    write_image(tmp_path / "plain.png", np.zeros((8, 8, 3), np.uint8))
+    write_geotiff(tmp_path / "plain.tif", np.zeros((8, 8, 3), np.uint8), Affine.identity())
+    (tmp_path / "junk.tif").write_bytes(b"junk")
+    assert is_georeferenced(path) and is_georeferenced(inputs["geotiff_4326"])
+    assert is_georeferenced(tmp_path / "plain.png", crs=UTM)
+    assert not any(is_georeferenced(tmp_path / n) for n in ("plain.png", "plain.tif", "junk.tif"))

@@ -401,3 +401,25 @@ def test_shipped_suburb_spec_round_trips(tmp_path, suburb):
     r = Scene.load(tmp_path / "saved")
     assert r.satmap.frame == suburb.satmap.frame
     assert np.allclose(r.routes["main"].points, suburb.routes["main"].points)
+
+
+def test_experiment_records_again_when_a_scene_file_changes(tmp_path, monkeypatch):
+    """``satloc experiment`` reuses a scene's recorded passes only while the scene's files are unchanged (the
+    YAML, the image and the road mask: what the auto-localizer's key hashes), not just its name or path."""
+    import satloc_env.experiment as experiment
+
+    recorded = []
+    monkeypatch.setattr(experiment, "record_passes", lambda rec, out, progress: recorded.append(rec.scene))
+    monkeypatch.setattr(experiment.Sequence, "load", staticmethod(lambda path: None))
+    monkeypatch.setattr(experiment, "build_and_learn", lambda *a, **k: (tmp_path / "build", {}))
+    p = write_scene(tmp_path, _base(tmp_path), {"main": {"trace": True}})
+    cfg = experiment.ExperimentConfig(scene=str(p))
+    for _ in range(2):
+        experiment._stages(cfg, tmp_path / "out", False, lambda m: None)
+    assert recorded == [str(p)]                                    # the second run reused the recording
+    cv2.imwrite(str(tmp_path / "roads.png"), draw_road((H_PX, W_PX), rounded_l(E0, N0), 12.0))
+    experiment._stages(cfg, tmp_path / "out", False, lambda m: None)
+    assert recorded == [str(p), str(p)]                            # a wider road: recorded again
+    with pytest.raises(ConfigError, match="both named 'geo'"):
+        experiment.table1(tmp_path / "t", (str(p), str(write_scene(tmp_path, _base(tmp_path), {"main": {
+            "trace": True}}, "other.yaml"))), progress=False)

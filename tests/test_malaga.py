@@ -1,5 +1,6 @@
 """Malaga Urban extract reader (satloc.datasets.malaga) on extracts written by tests/malagafixture.py."""
 import math
+import pickle
 
 import cv2
 import numpy as np
@@ -67,6 +68,10 @@ def test_poses_are_the_gps_interpolated_at_image_times(tmp_path):
     i = int(np.flatnonzero(inside)[10])
     f = seq2[i]
     assert f.timestamp == seq2.timestamps[i] and np.allclose(f.pose.as_array(), seq2.poses[i])
+    # a plain reader: the sequence (and a view of it) can go to a worker process, as a KITTI drive's can
+    again = pickle.loads(pickle.dumps(seq2.view([i])))
+    g = again[0]
+    assert np.array_equal(g.left, f.left) and np.array_equal(g.right, f.right) and g.pose == f.pose
 
 
 def test_frames_outside_the_gps_track_have_no_pose(tmp_path):

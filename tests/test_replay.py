@@ -9,7 +9,6 @@ beside the database lane, a mild appearance change) and the small localizer of t
 import dataclasses
 import itertools
 import math
-from pathlib import Path
 
 import gymnasium as gym
 import numpy as np
@@ -367,9 +366,9 @@ def test_config_errors(rec, seq, loc, build_dir, tmp_path):
     env.close()
 
 
-def test_map_from_georeferenced_imagery(tmp_path):
+def test_map_from_georeferenced_imagery(tmp_path, monkeypatch):
     """``map=`` a GeoTIFF: read into the sequence's GeoFrame around its path; lon/lat marks land where they lie."""
-    from geofixtures import MARKS, REF, UTM, make_geotiff, mark_errors
+    from geofixtures import REF, UTM, make_geotiff, mark_errors
 
     tif, _, _ = make_geotiff(tmp_path / "area.tif", UTM)
     cam = SatLocEnv(localizer=None).camera
@@ -386,6 +385,13 @@ def test_map_from_georeferenced_imagery(tmp_path):
     errs = mark_errors(sm)     # the mark inside the loaded window lies where its lon/lat says
     assert errs["red"] < 1.0 and math.isinf(errs["blue"]), errs
     assert env.render().shape[0] == PANEL_PX
+    # a path longer than MAX_MAP_PX pixels of the image's own resolution: read coarser, never larger
+    import satloc_env.replay as replay_module
+
+    monkeypatch.setattr(replay_module, "MAX_MAP_PX", 64)
+    coarse = gym.make(ID, sequence=seq, map=str(tif)).unwrapped.map
+    assert max(coarse.shape[:2]) <= 65 and coarse.meters_per_pixel > 1.4 and coarse.frame == frame
+    coarse.check_covers(seq.poses[:, :2], "the path", margin_m=30.0)
     with pytest.raises(ConfigError, match="no meta\\['geo_frame'\\]"):
         gym.make(ID, sequence=Sequence(cam, frames, "plain"), map=str(tif)).reset(seed=0)
     with pytest.raises(ConfigError, match="not found"):
@@ -425,3 +431,21 @@ def test_real_kitti_drive_replayed_with_a_localizer_built_from_it(tmp_path):
     # not the method's accuracy against satellite imagery
     assert np.median(errors) < 1.0, errors
     assert env.render().shape[0] == PANEL_PX
+
+
+def test_a_recording_in_another_resolution_is_resampled_and_keeps_its_map(rec, seq, loc, tmp_path):
+    """A recording at twice the localizer's resolution: replayed in the localizer's camera, and its ``map/``
+    beside it is still the default map (the resampled view has no folder of its own)."""
+    import shutil
+
+    big = seq.camera.resized(2 * seq.camera.width, 2 * seq.camera.height)
+    seq.view(range(3), big).save(tmp_path / "rec" / "query")
+    shutil.copytree(rec / "map", tmp_path / "rec" / "map")
+    env = gym.make(ID, sequence=str(tmp_path / "rec" / "query"), localizer=loc, render_mode="rgb_array")
+    obs, info = env.reset(seed=0)
+    assert env.unwrapped.camera == loc.camera and obs["left"].shape == seq[0].left.shape
+    # up and down again: the original frame, but for the resampling's blur
+    assert np.mean(np.abs(obs["left"].astype(int) - seq[0].left.astype(int))) < 6
+    assert np.isfinite(info["error_m"]) and info["error_m"] < 1.5
+    assert np.array_equal(env.unwrapped.map.image, SatelliteMap.load(rec / "map").image)
+    env.close()

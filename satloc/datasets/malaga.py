@@ -79,7 +79,7 @@ import numpy as np
 from ..config import from_dict
 from ..errors import ConfigError, FormatError
 from ..geoframe import GeoFrame
-from ..geometry import Pose2, StereoCamera
+from ..geometry import Pose2, StereoCamera, arc_length
 from ..satmap import read_image
 from ..sequence import Frame, Sequence
 
@@ -363,12 +363,24 @@ def _read_pair(left: Path, right: Path) -> tuple[np.ndarray, np.ndarray]:
     return a, b
 
 
+class _PairReader:
+    """Reads pair ``i`` of an extract (a plain object, so a sequence can be pickled to a worker process)."""
+
+    def __init__(self, left: list[Path], right: list[Path], poses: np.ndarray, stamps: np.ndarray):
+        self.left, self.right, self.poses, self.stamps = left, right, poses, stamps
+
+    def __call__(self, i: int) -> Frame:
+        a, b = _read_pair(self.left[i], self.right[i])
+        p = self.poses[i]
+        return Frame(a, b, Pose2.from_array(p) if np.all(np.isfinite(p)) else None, float(self.stamps[i]))
+
+
 # --- poses ----------------------------------------------------------------------------------------------
 
 def _hermite_track(v: np.ndarray):
     """Arc lengths of the vertices ``v`` (K, 2) and a C1 curve through them by arc length (Catmull-Rom
     tangents from the neighbours), returned as ``(u, curve(q) -> (..., 2))``."""
-    u = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(v, axis=0), axis=1))])
+    u = arc_length(v)
     m = np.empty_like(v)
     m[0] = (v[1] - v[0]) / (u[1] - u[0])
     m[-1] = (v[-1] - v[-2]) / (u[-1] - u[-2])
@@ -526,14 +538,8 @@ def load_malaga(extract_dir: str | Path, frame: GeoFrame | None = None,
     fix_xy = frame.to_map(np.stack([gps.lon, gps.lat], axis=-1))
     poses = track_poses(gps.times, fix_xy, pairs.times, cfg.heading_window_m, cfg.min_step_m, cfg.max_gap_s)
 
-    left_paths, right_paths = pairs.left, pairs.right
     stamps = pairs.times - pairs.times[0]
-
-    def read(i: int) -> Frame:
-        a, b = _read_pair(left_paths[i], right_paths[i])
-        p = poses[i]
-        return Frame(a, b, Pose2(p[0], p[1], p[2]) if np.all(np.isfinite(p)) else None, float(stamps[i]))
-
+    read = _PairReader(pairs.left, pairs.right, poses, stamps)
     meta = {
         "source": "malaga_urban",
         "geo_frame": frame.to_dict(),
