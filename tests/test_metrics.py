@@ -1,0 +1,158 @@
+"""satloc.metrics on hand-made cases whose answers are worked out by hand below."""
+import math
+
+import numpy as np
+import pytest
+
+from satloc import ConfigError
+from satloc.metrics import PRCurve, error_stats, pr_curve, precision_recall, select_threshold
+
+
+def test_error_stats_by_hand():
+    # errors 0.5, 1.0, 3.0, 20.0 and one failed query (NaN)
+    s = error_stats([0.5, 1.0, 3.0, 20.0, float("nan")])
+    assert s["count"] == 5 and s["failed"] == 1
+    assert s["mean"] == pytest.approx((0.5 + 1.0 + 3.0 + 20.0) / 4)          # 6.125
+    # population std: deviations -5.625, -5.125, -3.125, 13.875
+    var = (5.625 ** 2 + 5.125 ** 2 + 3.125 ** 2 + 13.875 ** 2) / 4
+    assert s["std"] == pytest.approx(math.sqrt(var))
+    assert s["median"] == pytest.approx((1.0 + 3.0) / 2)
+    assert s["max"] == 20.0
+    # within 1 m: 0.5 and 1.0 (<= counts) of all 5 queries, the failed one a miss; within 10 m: three of five
+    assert s["within_1m"] == pytest.approx(2 / 5)
+    assert s["within_10m"] == pytest.approx(3 / 5)
+
+
+def test_error_stats_edge_cases():
+    s = error_stats([])
+    assert s["count"] == 0 and s["failed"] == 0 and math.isnan(s["mean"]) and math.isnan(s["within_1m"])
+    s = error_stats([float("nan"), float("inf")])
+    assert s["failed"] == 2 and math.isnan(s["median"]) and s["within_10m"] == 0.0
+    with pytest.raises(ConfigError, match="errors"):
+        error_stats([[1.0, 2.0], [3.0, 4.0]])
+    with pytest.raises(ConfigError, match=">= 0"):
+        error_stats([1.0, -0.5])
+    with pytest.raises(ConfigError, match="errors"):
+        error_stats(["a", "b"])
+
+
+# six queries: four taken inside the map, two outside
+ERR = np.array([0.4, 2.0, 30.0, 5.0, 50.0, 80.0])
+SCORE = np.array([9.0, 7.0, 6.0, 2.0, 8.0, 1.0])
+INSIDE = np.array([True, True, True, True, False, False])
+
+
+def test_precision_recall_by_hand():
+    # threshold 5: declared inside q0 (9), q1 (7), q2 (6), q4 (8) -> 4 declared.
+    # true positives: declared, inside, within 10 m -> q0 and q1 (q2 is 30 m off, q4 is outside): TP = 2.
+    # precision 2 / 4; recall = TP / truly inside (4 queries) = 2 / 4
+    r = precision_recall(ERR, SCORE, 5.0, INSIDE)
+    assert (r["tp"], r["declared"], r["positives"]) == (2, 4, 4)
+    assert r["precision"] == pytest.approx(0.5) and r["recall"] == pytest.approx(0.5)
+    assert r["f1"] == pytest.approx(0.5)
+    # threshold 1.5: also q3 (2.0, inside, 5 m) -> TP 3 of 5 declared; recall 3 / 4
+    r = precision_recall(ERR, SCORE, 1.5, INSIDE)
+    assert (r["tp"], r["declared"]) == (3, 5)
+    assert r["precision"] == pytest.approx(3 / 5) and r["recall"] == pytest.approx(3 / 4)
+    # radius 1 m: only q0 counts
+    r = precision_recall(ERR, SCORE, 1.5, INSIDE, radius_m=1.0)
+    assert r["tp"] == 1
+    # a threshold above every score declares nothing: precision undefined, recall 0
+    r = precision_recall(ERR, SCORE, 100.0, INSIDE)
+    assert r["declared"] == 0 and math.isnan(r["precision"]) and r["recall"] == 0.0
+    # inside omitted: every query counts as inside -> 6 positives
+    assert precision_recall(ERR, SCORE, 5.0)["positives"] == 6
+
+
+def test_outside_queries_are_never_positives():
+    # q4 (outside) localized "within 10 m" of its true pose still is no true positive
+    err = ERR.copy()
+    err[4] = 1.0
+    r = precision_recall(err, SCORE, 7.5, INSIDE)   # declared: q0 (9), q4 (8)
+    assert (r["tp"], r["declared"]) == (1, 2)
+    assert r["precision"] == pytest.approx(0.5) and r["recall"] == pytest.approx(1 / 4)
+
+
+def test_nan_scores_and_errors():
+    # a NaN score is never declared inside; a NaN error is never within the radius
+    r = precision_recall([1.0, float("nan"), 1.0], [float("nan"), 5.0, 5.0], 0.0, [True, True, True])
+    assert (r["tp"], r["declared"], r["positives"]) == (1, 2, 3)
+
+
+def test_pr_curve_by_hand():
+    c = pr_curve(ERR, SCORE, INSIDE)
+    # distinct thresholds, highest first: 9 8 7 6 2 1
+    np.testing.assert_array_equal(c.thresholds, [9, 8, 7, 6, 2, 1])
+    # declared:          1  2  3  4  5  6
+    # TP (q0 q1 q3 good): 1  1  2  2  3  3
+    np.testing.assert_array_equal(c.declared, [1, 2, 3, 4, 5, 6])
+    np.testing.assert_array_equal(c.tp, [1, 1, 2, 2, 3, 3])
+    np.testing.assert_allclose(c.precision, [1, 1 / 2, 2 / 3, 2 / 4, 3 / 5, 3 / 6])
+    np.testing.assert_allclose(c.recall, [1 / 4, 1 / 4, 2 / 4, 2 / 4, 3 / 4, 3 / 4])
+    # F1 = 2PR / (P + R)
+    f1 = [2 * p * r / (p + r) for p, r in zip(c.precision, c.recall)]
+    np.testing.assert_allclose(c.f1, f1)
+    assert c.positives == 4 and len(c) == 6
+    # the curve agrees with precision_recall at every threshold
+    for t, p, r in zip(c.thresholds, c.precision, c.recall):
+        one = precision_recall(ERR, SCORE, t, INSIDE)
+        assert one["precision"] == pytest.approx(p) and one["recall"] == pytest.approx(r)
+
+
+def test_pr_curve_ties_and_nan():
+    # two queries share score 5: both declared at threshold 5 (one step on the curve)
+    c = pr_curve([1.0, 20.0, 1.0, 1.0], [5.0, 5.0, 3.0, float("nan")], [True] * 4)
+    np.testing.assert_array_equal(c.thresholds, [5.0, 3.0])
+    np.testing.assert_array_equal(c.declared, [2, 3])
+    np.testing.assert_array_equal(c.tp, [1, 2])
+    np.testing.assert_allclose(c.recall, [1 / 4, 2 / 4])   # the NaN-score query still counts as a positive
+    with pytest.raises(ConfigError, match="one value per query"):
+        pr_curve([1.0, 2.0], [1.0], [True, True])
+    with pytest.raises(ConfigError, match="boolean"):
+        pr_curve([1.0], [1.0], [1])
+    with pytest.raises(ConfigError, match="radius_m"):
+        pr_curve([1.0], [1.0], [True], radius_m=0)
+
+
+def test_select_threshold_max_f1_by_hand():
+    c = pr_curve(ERR, SCORE, INSIDE)
+    # F1 along the curve: t=9: P 1, R .25 -> .4; t=8: .5,.25 -> 1/3; t=7: 2/3,1/2 -> 4/7 (.571);
+    # t=6: .5,.5 -> .5; t=2: .6,.75 -> 2/3 (.667); t=1: .5,.75 -> .6.  Best: threshold 2.
+    s = select_threshold(c, "max_f1")
+    assert s["threshold"] == 2.0 and s["rule"] == "max_f1"
+    assert s["precision"] == pytest.approx(0.6) and s["recall"] == pytest.approx(0.75)
+    assert s["f1"] == pytest.approx(2 / 3)
+
+
+def test_select_threshold_recall_at_precision_by_hand():
+    c = pr_curve(ERR, SCORE, INSIDE)
+    # precision >= 0.6 at t = 9 (1.0), 7 (2/3), 2 (0.6); highest recall among them: t=2 (0.75)
+    s = select_threshold(c, "recall_at_precision", min_precision=0.6)
+    assert s["threshold"] == 2.0 and s["recall"] == pytest.approx(0.75)
+    # precision >= 0.65: t = 9 (R .25) and 7 (R .5) -> 7
+    s = select_threshold(c, "recall_at_precision", min_precision=0.65)
+    assert s["threshold"] == 7.0 and s["precision"] == pytest.approx(2 / 3) and s["recall"] == pytest.approx(0.5)
+    # precision 1.0: only t = 9
+    assert select_threshold(c, "recall_at_precision", min_precision=1.0)["threshold"] == 9.0
+
+
+def test_select_threshold_ties_and_unreachable():
+    # recall ties: t=8 and t=9 both have recall 1/4 at precision >= 0.5 -> the higher precision (t=9, P 1.0)
+    c = pr_curve(ERR, SCORE, INSIDE)
+    c2 = PRCurve(c.thresholds[:2], c.precision[:2], c.recall[:2], c.f1[:2], c.tp[:2], c.declared[:2],
+                 c.positives, c.radius_m)
+    assert select_threshold(c2, "recall_at_precision", min_precision=0.5)["threshold"] == 9.0
+    # equal F1 and precision: the higher threshold wins
+    c3 = PRCurve(np.array([3.0, 2.0]), np.array([0.5, 0.5]), np.array([0.5, 0.5]), np.array([0.5, 0.5]),
+                 np.array([1, 1]), np.array([2, 2]), 2, 10.0)
+    assert select_threshold(c3)["threshold"] == 3.0
+    # no threshold reaches the precision: declare nothing
+    bad = pr_curve([50.0, 50.0], [2.0, 1.0], [True, True])
+    s = select_threshold(bad, "recall_at_precision", min_precision=0.5)
+    assert s["threshold"] == math.inf and s["recall"] == 0.0 and math.isnan(s["precision"])
+    empty = pr_curve([1.0], [float("nan")], [True])
+    assert len(empty) == 0 and select_threshold(empty)["threshold"] == math.inf
+    with pytest.raises(ConfigError, match="rule"):
+        select_threshold(c, "best")
+    with pytest.raises(ConfigError, match="min_precision"):
+        select_threshold(c, "recall_at_precision", min_precision=90)
