@@ -62,7 +62,8 @@ def cmd_demo(args) -> int:
 
 
 def cmd_experiment(args) -> int:
-    from satloc_env.experiment import aliasing, markdown_table, table1
+    from satloc_env.compare import table1
+    from satloc_env.experiment import aliasing, markdown_table
 
     import yaml
 
@@ -73,6 +74,20 @@ def cmd_experiment(args) -> int:
             raise SatlocError(f"{p}: config file not found")
         config = yaml.safe_load(p.read_text()) or {}
     log = (lambda *a, **k: None) if args.quiet else (lambda m: print(m, file=sys.stderr, flush=True))
+    if args.which == "table2":
+        from satloc_env.compare import table2
+
+        table2(args.out, config, progress=not args.quiet, log=log)
+        print((Path(args.out) / "table2.md").read_text(), end="")
+        print(f"written: {Path(args.out) / 'table2.csv'}, {Path(args.out) / 'pr_curves.png'}")
+        return 0
+    if args.which == "sweep":
+        from satloc_env.compare import sweep
+
+        sweep(args.out, config, progress=not args.quiet, log=log)
+        print((Path(args.out) / "sweep.md").read_text(), end="")
+        print(f"written: {Path(args.out) / 'sweep.csv'}, {Path(args.out) / 'sweep.png'}")
+        return 0
     if args.which == "aliasing":
         aliasing(args.out, tuple(args.scenes), config, progress=not args.quiet, log=log)
         print((Path(args.out) / "aliasing.md").read_text(), end="")
@@ -224,12 +239,16 @@ def build_parser() -> argparse.ArgumentParser:
     d.add_argument("--quiet", action="store_true")
     d.set_defaults(func=cmd_demo)
 
-    ex = sub.add_parser("experiment", help="paper experiments on simulated scenes: table1; aliasing (how often "
-                                           "each single-image cue prefers a look-alike place)")
-    ex.add_argument("which", choices=["table1", "aliasing"])
+    ex = sub.add_parser("experiment", help="paper experiments on simulated scenes: table1; table2 (queries outside "
+                                           "the map, every method, PR curves); sweep (every method over aliasing x "
+                                           "occlusion x appearance); aliasing (how often each "
+                                           "single-image cue prefers a look-alike place)")
+    ex.add_argument("which", choices=["table1", "table2", "sweep", "aliasing"])
     ex.add_argument("--out", required=True)
     ex.add_argument("--scenes", nargs="+", default=["city", "residential"])
-    ex.add_argument("--config", help="YAML with ExperimentConfig fields (satloc_env/experiment.py)")
+    ex.add_argument("--config", help="YAML with ExperimentConfig fields (satloc_env/experiment.py); table2: "
+                                     "Table2Config, sweep: SweepConfig fields (satloc_env/compare.py; "
+                                     "--scenes is not used by either)")
     ex.add_argument("--quiet", action="store_true")
     ex.set_defaults(func=cmd_experiment)
 

@@ -3,9 +3,12 @@
 :func:`run_scene` records a scene's database and query passes (revisit mode: the query pass drives another
 lane, with other appearance and occluders), builds the dictionary, learns the projections, localizes the
 queries with the ablations GO, NP and full (single images, refined by bird's-eye alignment, and tracked
-over the query sequence with simulated odometry), and writes per-mode results and pictures. :func:`table1` runs it
-on several scenes and writes ``table1.csv`` (``method,scene,mean_m,std_m``). ``satloc demo`` and ``satloc
-experiment table1`` call these. :func:`aliasing` (``satloc experiment aliasing``) measures, on the same
+over the query sequence with simulated odometry), and writes per-mode results and pictures. :func:`table1` runs
+every method (the modes and the baselines FAB-MAP and EFM, :mod:`satloc_env.compare`) on several scenes under
+the protocols ``revisit`` (the above), ``city`` (a seeded random 40 % of the database pass is the database, the
+rest the queries) and ``residential`` (the database pass and a second pass, both at one frame per second; the
+projections learned on the full-rate pass) and writes ``table1.csv`` (``method,scene,mean_m,std_m,protocol``).
+``satloc demo`` and ``satloc experiment table1`` call these. :func:`aliasing` (``satloc experiment aliasing``) measures, on the same
 folders, how often each single-image cue scores a place more than 10 m away above the truth.
 
 Every stage's output is kept in the experiment folder and reused when the folder is run again with the same
@@ -24,6 +27,7 @@ from pathlib import Path
 
 import numpy as np
 
+from satloc.baselines import EfmConfig, FabMapConfig
 from satloc.config import from_dict, to_dict
 from satloc.context import ContextConfig
 from satloc.errors import ConfigError
@@ -47,6 +51,40 @@ METHOD_NAMES = {b + "".join("+" + s for s in suf): " + ".join([name] + [_SUFFIX_
                 for b, name in _BASE_NAMES.items() for suf in ((), ("align",), ("track",), ("track", "align"))}
 
 
+BASELINES = ("fabmap", "efm")
+BASELINE_NAMES = {"fabmap": "FAB-MAP", "efm": "EFM"}
+
+
+@dataclass
+class CompareConfig:
+    """The baselines' part of a comparison (:mod:`satloc_env.compare`; the method's part is an
+    :class:`ExperimentConfig`)."""
+
+    baselines: tuple[str, ...] = BASELINES
+    fabmap: FabMapConfig = field(default_factory=FabMapConfig)
+    efm: EfmConfig = field(default_factory=EfmConfig)
+    fabmap_train_scene: str | None = None   # None: residential for city, city for any other scene
+    fabmap_train_frames: int = 300
+    fabmap_train_spacing_m: float = 2.0
+
+    def __post_init__(self):
+        bad = [b for b in self.baselines if b not in BASELINES]
+        if bad:
+            raise ConfigError(f"baselines: unknown {bad}; expected a subset of {list(BASELINES)}")
+        if self.fabmap_train_frames < 2:
+            raise ConfigError(f"fabmap_train_frames: expected an integer >= 2, got {self.fabmap_train_frames}")
+        if self.fabmap_train_spacing_m <= 0:
+            raise ConfigError(f"fabmap_train_spacing_m: expected > 0, got {self.fabmap_train_spacing_m}")
+
+    def train_scene(self, test_scene: str) -> str:
+        if self.fabmap_train_scene is not None:
+            return self.fabmap_train_scene
+        return "residential" if scene_label(test_scene) == "city" else "city"
+
+
+PROTOCOLS = ("revisit", "city", "residential")
+
+
 @dataclass
 class ExperimentConfig:
     scene: str = "city"
@@ -66,8 +104,22 @@ class ExperimentConfig:
     odometry_noise: tuple[float, float] = (0.02, 0.01)  # tracked modes: simulated odometry between queries, std
                                                         # (fraction of the distance, radians)
     odometry_seed: int = 0
+    # table1: the protocols (revisit: the query pass above; city: a seeded random ``city_database_fraction`` of
+    # the database pass is the database, the rest the queries; residential: the database pass and a second
+    # pass, both one frame every speed x 1 s), and the baselines run beside the modes
+    protocols: tuple[str, ...] = PROTOCOLS
+    city_database_fraction: float = 0.4
+    split_seed: int = 0
+    compare: CompareConfig = field(default_factory=CompareConfig)
+    pictures: bool = True                   # draw errors_along_route.png and a few posteriors per mode
 
     def __post_init__(self):
+        bad = [p for p in self.protocols if p not in PROTOCOLS]
+        if bad:
+            raise ConfigError(f"protocols: unknown {bad}; expected a subset of {list(PROTOCOLS)}")
+        if not 0 < self.city_database_fraction < 1:
+            raise ConfigError(f"city_database_fraction: expected a fraction in (0, 1), got "
+                              f"{self.city_database_fraction}")
         if len(self.odometry_noise) != 2 or min(self.odometry_noise) < 0:
             raise ConfigError(f"odometry_noise: expected 2 non-negative numbers, got {list(self.odometry_noise)}")
         bad = [m for m in self.modes if m not in METHOD_NAMES]
@@ -204,6 +256,8 @@ def localize_and_report(cfg, label: str, db: Sequence, q: Sequence, sel: np.ndar
     summary = dict(head, database_frames=len(db), database_m=round(db.path_length(), 1), queries=int(len(sel)),
                    times_s={k: round(v, 1) for k, v in times.items()}, modes=results)
     write_json(out / "summary.json", summary)
+    if not getattr(cfg, "pictures", True):
+        return summary
     from satloc.plots import plot_errors_along_route, plot_posterior
 
     plot_errors_along_route(out, q, sel, cfg.modes, out / "errors_along_route.png")
@@ -244,33 +298,6 @@ def scene_labels(scenes) -> list[str]:
             raise ConfigError(f"scenes: {scenes[j]!r} and {scenes[i]!r} are both named {label!r}; their results "
                               "would be filed in one folder (give the scene files different names)")
     return labels
-
-
-def table1(out: str | Path, scenes: tuple[str, ...] = ("city", "residential"), config: dict | None = None,
-           progress: bool = True, log=print) -> list[dict]:
-    """Run :func:`run_scene` on each scene; write ``table1.csv`` (method,scene,mean_m,std_m), ``table1.md``
-    and ``table1.json`` into ``out``; return the rows."""
-    out = Path(out)
-    rows = []
-    for scene, label in zip(scenes, scene_labels(scenes)):
-        cfg = from_dict(ExperimentConfig, dict(config or {}, scene=scene), "experiment config")
-        s = run_scene(cfg, out / label, progress, log)
-        for mode in cfg.modes:
-            m = s["modes"][mode]
-            rows.append({"method": METHOD_NAMES[mode], "scene": label, "mean_m": round(m["mean_m"], 3),
-                         "std_m": round(m["std_m"], 3), "median_m": round(m["median_m"], 3),
-                         "within_1m": round(m["within_1m"], 3), "queries": m["queries"],
-                         "queries_per_s": m["queries_per_s"]})
-    with atomic_path(out / "table1.csv", suffix=".csv") as tmp:
-        with open(tmp, "w", newline="") as f:
-            w = csv.writer(f)
-            w.writerow(["method", "scene", "mean_m", "std_m"])
-            for r in rows:
-                w.writerow([r["method"], r["scene"], f"{r['mean_m']:.3f}", f"{r['std_m']:.3f}"])
-    write_json(out / "table1.json", {"format": "table1", "rows": rows})
-    with atomic_path(out / "table1.md", suffix=".md") as tmp:
-        tmp.write_text(markdown_table(rows))
-    return rows
 
 
 # single-image separability (``satloc experiment aliasing``): where does a cue put the truth against look-alikes?
@@ -379,16 +406,27 @@ def aliasing(out: str | Path, scenes: tuple[str, ...] = ("city", "residential"),
 
 
 def markdown_table(rows: list[dict]) -> str:
-    scenes = list(dict.fromkeys(r["scene"] for r in rows))
-    methods = list(dict.fromkeys(r["method"] for r in rows))
-    cell = {(r["method"], r["scene"]): r for r in rows}
-    lines = ["| method | " + " | ".join(f"{s}: mean (std) m | {s}: median m | {s}: within 1 m" for s in scenes) + " |",
-             "|---|" + "---|---|---|" * len(scenes)]
-    for m in methods:
-        parts = []
-        for s in scenes:
-            r = cell.get((m, s))
-            parts += ([f"{r['mean_m']:.2f} ({r['std_m']:.2f})", f"{r['median_m']:.2f}", f"{100 * r['within_1m']:.0f} %"]
-                      if r else ["", "", ""])
-        lines.append(f"| {m} | " + " | ".join(parts) + " |")
-    return "\n".join(lines) + "\n"
+    """Table I as Markdown: one table per protocol (rows without ``protocol``: one table), a column group per
+    scene: mean (std), median, within 1 m and seconds per query."""
+    out = []
+    for protocol in dict.fromkeys(r.get("protocol") for r in rows):
+        part = [r for r in rows if r.get("protocol") == protocol]
+        scenes = list(dict.fromkeys(r["scene"] for r in part))
+        methods = list(dict.fromkeys(r["method"] for r in part))
+        cell = {(r["method"], r["scene"]): r for r in part}
+        if protocol is not None:
+            out.append(f"Protocol **{protocol}**:\n")
+        lines = ["| method | " + " | ".join(f"{s}: mean (std) m | {s}: median m | {s}: within 1 m | {s}: s per query"
+                                           for s in scenes) + " |",
+                 "|---|" + "---|---|---|---|" * len(scenes)]
+        for m in methods:
+            parts = []
+            for s in scenes:
+                r = cell.get((m, s))
+                spq = r.get("s_per_query") if r else None
+                parts += ([f"{r['mean_m']:.2f} ({r['std_m']:.2f})", f"{r['median_m']:.2f}",
+                           f"{100 * r['within_1m']:.0f} %", "" if spq is None else f"{spq:.3f}"]
+                          if r else ["", "", "", ""])
+            lines.append(f"| {m} | " + " | ".join(parts) + " |")
+        out.append("\n".join(lines) + "\n")
+    return "\n".join(out)

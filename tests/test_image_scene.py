@@ -406,6 +406,7 @@ def test_shipped_suburb_spec_round_trips(tmp_path, suburb):
 def test_experiment_records_again_when_a_scene_file_changes(tmp_path, monkeypatch):
     """``satloc experiment`` reuses a scene's recorded passes only while the scene's files are unchanged (the
     YAML, the image and the road mask: what the auto-localizer's key hashes), not just its name or path."""
+    import satloc_env.compare as compare
     import satloc_env.experiment as experiment
 
     recorded = []
@@ -421,5 +422,5 @@ def test_experiment_records_again_when_a_scene_file_changes(tmp_path, monkeypatc
     experiment._stages(cfg, tmp_path / "out", False, lambda m: None)
     assert recorded == [str(p), str(p)]                            # a wider road: recorded again
     with pytest.raises(ConfigError, match="both named 'geo'"):
-        experiment.table1(tmp_path / "t", (str(p), str(write_scene(tmp_path, _base(tmp_path), {"main": {
+        compare.table1(tmp_path / "t", (str(p), str(write_scene(tmp_path, _base(tmp_path), {"main": {
             "trace": True}}, "other.yaml"))), progress=False)

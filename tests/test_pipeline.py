@@ -79,7 +79,8 @@ def test_localizer_lands_within_1m_on_a_small_scene(recording, tmp_path):
 
 
 def test_demo_and_table1_on_a_tiny_section(tmp_path, capsys):
-    from satloc_env.experiment import MODES, table1
+    from satloc_env.compare import table1
+    from satloc_env.experiment import MODES
 
     out = tmp_path / "demo"
     assert main(["demo", "--out", str(out), "--db-frames", "20", "--query-frames", "3", "--features", "rgb",
@@ -95,10 +96,11 @@ def test_demo_and_table1_on_a_tiny_section(tmp_path, capsys):
     # table1 on one scene reuses nothing from the demo folder and writes the csv with the documented columns
     # (two of the modes, to keep the test short; the demo above ran them all)
     small = {"database_frames": 20, "query_frames": 3, "features": "rgb", "modes": ["go", "full+track+align"],
-             "projection": {"max_anchors": 2000, "max_epochs": 2}}
+             "projection": {"max_anchors": 2000, "max_epochs": 2}, "protocols": ["revisit"],
+             "compare": {"baselines": []}}
     rows = table1(tmp_path / "t1", ("city",), small, progress=False, log=lambda m: None)
     lines = (tmp_path / "t1" / "table1.csv").read_text().splitlines()
-    assert lines[0] == "method,scene,mean_m,std_m" and len(lines) == 3 and len(rows) == 2
+    assert lines[0] == "method,scene,mean_m,std_m,protocol" and len(lines) == 3 and len(rows) == 2
     assert [ln.split(",")[0] for ln in lines[1:]] == ["Ours-GO", "Ours-full + track + BEV align"]
     # running again reuses the recorded and built stages (no new recording)
     stamp = (tmp_path / "t1" / "city" / "record.json").stat().st_mtime_ns

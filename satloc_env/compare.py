@@ -1,0 +1,523 @@
+"""The comparison harness: the method's modes and the published baselines on the same split, in one run.
+
+Every method reads the same database and query :class:`satloc.sequence.Sequence` objects and localizes the
+same query frames in the same process, one method after the other:
+
+* the method's modes (Ours-GO, Ours-NP, Ours-full, + BEV align, + track, ...) through
+  :func:`satloc_env.experiment.localize_and_report` (``localization_<mode>.npz``);
+* FAB-MAP (:class:`satloc.baselines.FabMap`) and EFM (:class:`satloc.baselines.Efm`), single image, each
+  query's left image: ``baseline_<name>.npz`` with the same arrays (frames, estimates, truth, errors,
+  inlier_score, inlier).
+
+FAB-MAP's vocabulary and Chow-Liu tree are trained on frames disjoint from the test scene: the database pass
+(route, lane -1.75 m, no occluders, reference appearance) of *another scene* (``fabmap_train_scene``; default
+``residential`` when testing on ``city`` and ``city`` otherwise), ``fabmap_train_frames`` frames every
+``fabmap_train_spacing_m`` metres. The training recording and the trained model are a stage of the
+experiment folder (``fabmap/``, stamped by ``fabmap_stage.json``, reused on rerun).
+
+Time per query is wall time of the query loop divided by the number of queries (frame reading included, for
+every method; the method's one-off localizer set-up and the baselines' database indexing are not included and
+are reported separately).
+
+:func:`table2` (``satloc experiment table2``) measures outside-the-map detection on ``loop``;
+:func:`sweep` (``satloc experiment sweep``) runs every method over aliasing x occlusion x appearance.
+Table I's protocols are in :func:`table1`.
+"""
+from __future__ import annotations
+
+import csv
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from satloc.baselines import Efm, FabMap
+from satloc.config import from_dict, to_dict
+from satloc.errors import ConfigError
+from satloc.metrics import error_stats, pr_curve, precision_recall, select_threshold
+from satloc.persist import atomic_path, load_npz, save_npz, write_json
+from satloc.satmap import SatelliteMap
+from satloc.sequence import Sequence
+
+from satloc.persist import read_json
+
+from .experiment import (BASELINE_NAMES, METHOD_NAMES, CompareConfig, ExperimentConfig,  # noqa: F401
+                         _covered, _stage_done, _stages, _stamp, build_and_learn, covered_queries,
+                         localize_and_report, markdown_table, scene_label, scene_labels)
+from .record import PassConfig, RecordConfig, make_env, record_pass
+
+def method_name(method: str) -> str:
+    """Display name of a mode of :data:`satloc_env.experiment.METHOD_NAMES` or a baseline."""
+    return BASELINE_NAMES.get(method) or METHOD_NAMES[method]
+
+
+def trained_fabmap(cc: CompareConfig, test_scene: str, out: Path, progress: bool = True, log=print) -> Path:
+    """Train FAB-MAP (vocabulary, Chow-Liu tree) on another scene's database pass into ``out/fabmap`` unless
+    the stage is there for the same configuration; returns the path of the trained model (``fabmap.npz``)."""
+    train_scene = cc.train_scene(test_scene)
+    if scene_label(train_scene) == scene_label(test_scene):
+        raise ConfigError(f"fabmap_train_scene: {train_scene!r} is the test scene; FAB-MAP's training images "
+                          "must be disjoint from the test images (give another scene)")
+    d = Path(out) / "fabmap"
+    from .autoloc import cache_key
+
+    stamp = {"train_scene": train_scene, "frames": cc.fabmap_train_frames, "spacing_m": cc.fabmap_train_spacing_m,
+             "fabmap": to_dict(cc.fabmap), "scene_sha256": cache_key(train_scene, None)["scene_sha256"]}
+    model = d / "fabmap.npz"
+    if _stage_done(Path(out) / "fabmap_stage.json", stamp) and model.is_file():
+        return model
+    log(f"[{test_scene}] training FAB-MAP on {cc.fabmap_train_frames} frames of {train_scene!r}")
+    p = PassConfig(spacing_m=cc.fabmap_train_spacing_m, max_frames=cc.fabmap_train_frames, depth=False)
+    env = make_env(scene=train_scene, resolution="half", depth=False, labels=False, localizer=None)
+    try:
+        env.reset(seed=0)
+        train = record_pass(env, p, env.scene.spec.database_route, d / "train", "fabmap_train", progress,
+                            {"source": "satloc_env", "scene": env.scene.name})
+    finally:
+        env.close()
+    fm = FabMap.train(train, cc.fabmap, progress)
+    fm.save(model)
+    _stamp(Path(out) / "fabmap_stage.json", stamp, training_images=len(train))
+    return model
+
+
+def run_baseline(name: str, cc: CompareConfig, test_scene: str, db: Sequence, q: Sequence, sel: np.ndarray,
+                 out: Path, progress: bool = True, log=print, fabmap_dir: Path | None = None) -> dict:
+    """Build baseline ``name`` on ``db``, localize the frames ``sel`` of ``q``; writes ``baseline_<name>.npz``
+    and returns its summary (with ``errors``, ``inlier_score``). FAB-MAP's training stage lives in
+    ``fabmap_dir`` (default ``out``)."""
+    t = time.perf_counter()
+    if name == "fabmap":
+        model = FabMap.load(trained_fabmap(cc, test_scene, Path(fabmap_dir or out), progress, log))
+        model.add_places(db, progress)
+        loc = model.localize
+    else:
+        model = Efm.build(db, cc.efm, progress)
+        loc = model.localize
+    t_index = time.perf_counter() - t
+    n = len(sel)
+    est, truth = np.full((n, 3), np.nan), np.array(q.poses[sel], np.float64).reshape(n, 3)
+    score, inl = np.full(n, np.nan), np.zeros(n, bool)
+    from tqdm import tqdm
+
+    t = time.perf_counter()
+    for i, qi in enumerate(tqdm(sel, desc=BASELINE_NAMES[name], unit="query", disable=not progress, leave=False)):
+        r = loc(q[int(qi)])
+        est[i], score[i], inl[i] = r.estimate.as_array(), r.inlier_score, r.inlier
+    secs = time.perf_counter() - t
+    err = np.hypot(est[:, 0] - truth[:, 0], est[:, 1] - truth[:, 1])
+    save_npz(Path(out) / f"baseline_{name}.npz", "localization",
+             {"frames": np.asarray(sel, np.int64), "estimates": est, "truth": truth, "errors": err,
+              "inlier_score": score, "inlier": inl}, {"baseline": name})
+    st = error_stats(err)
+    s = {"mode": name, "queries": n, "mean_m": st["mean"], "std_m": st["std"], "median_m": st["median"],
+         "within_1m": st["within_1m"], "within_10m": st["within_10m"], "index_s": round(t_index, 2),
+         "s_per_query": secs / n if n else float("nan"), "queries_per_s": round(n / secs, 2) if secs > 0 else None}
+    log(f"[{test_scene}] {BASELINE_NAMES[name]:9s} mean {s['mean_m']:.2f} m (std {s['std_m']:.2f}), median "
+        f"{s['median_m']:.2f} m, {100 * s['within_1m']:.0f} % within 1 m, {s['s_per_query']:.3f} s per query")
+    return dict(s, errors=err, inlier_score=score)
+
+
+def compare(cfg: ExperimentConfig, cc: CompareConfig, label: str, db: Sequence, q: Sequence, sel: np.ndarray,
+            bdir: Path, satmap: SatelliteMap, out: Path, head: dict, times: dict, progress: bool = True,
+            log=print, fabmap_dir: Path | None = None) -> dict:
+    """Every method on one split: the modes of ``cfg`` (:func:`localize_and_report`, which writes
+    ``summary.json``) then the baselines of ``cc``. Returns ``{method: summary}`` in that order; each summary
+    has ``mean_m, std_m, median_m, within_1m, within_10m, s_per_query``, and ``errors`` and ``inlier_score``
+    (arrays over ``sel``). FAB-MAP's trained model is a stage of ``fabmap_dir`` (default ``out``). Also
+    writes ``compare.json`` (the summaries without the arrays)."""
+    out = Path(out)
+    s = localize_and_report(cfg, label, db, q, sel, bdir, satmap, out, head, times, progress, log)
+    res: dict[str, dict] = {}
+    for mode in cfg.modes:
+        a, _ = load_npz(out / f"localization_{mode}.npz", "localization")
+        m = dict(s["modes"][mode])
+        m["s_per_query"] = 1.0 / m["queries_per_s"] if m.get("queries_per_s") else float("nan")
+        m.update(errors=a["errors"], inlier_score=np.where(np.isfinite(a["errors"]), a["inlier_score"], np.nan))
+        res[mode] = m
+    for b in cc.baselines:
+        res[b] = run_baseline(b, cc, label, db, q, sel, out, progress, log, fabmap_dir)
+    write_json(out / "compare.json", {"format": "compare", "head": head, "frames": [int(i) for i in sel],
+                                      "methods": {k: _plain(v) for k, v in res.items()}})
+    return res
+
+
+def _plain(s: dict) -> dict:
+    return {k: (None if isinstance(v, float) and not np.isfinite(v) else v) for k, v in s.items()
+            if not isinstance(v, np.ndarray)}
+
+
+# --- Table II: queries outside the map ---------------------------------------------------------------------------
+
+@dataclass
+class Table2Config:
+    """``satloc experiment table2``: on ``scene`` (a ring ``inside_route`` driven by the database, a
+    ``outside_route`` that leaves it) the database pass, a revisit of the ring and a pass on the branch."""
+
+    scene: str = "loop"
+    inside_route: str = "main"
+    outside_route: str = "branch"
+    experiment: ExperimentConfig = field(default_factory=lambda: ExperimentConfig(scene="loop"))  # its
+    # ``compare`` configures the baselines; its ``protocols`` are not used here
+    outside_frames: int | None = None     # branch queries (None: the whole branch)
+    radius_m: float = 10.0                # a true positive is declared inside, inside and within this
+    rule: str = "max_f1"                  # satloc.metrics.select_threshold's rule
+    min_precision: float = 0.9            # rule "recall_at_precision"
+
+    def __post_init__(self):
+        if self.rule not in ("max_f1", "recall_at_precision"):
+            raise ConfigError(f"rule: expected 'max_f1' or 'recall_at_precision', got {self.rule!r}")
+        if self.radius_m <= 0:
+            raise ConfigError(f"radius_m: expected > 0, got {self.radius_m}")
+
+
+def operating_point(errors, scores, inside, rule: str = "max_f1", min_precision: float = 0.9,
+                    radius_m: float = 10.0) -> dict:
+    """One method's Table II row: its PR curve over the queries (a true positive is declared inside, truly
+    ``inside`` and within ``radius_m``), the threshold picked by :func:`satloc.metrics.select_threshold`'s
+    ``rule`` and the counts at it (:func:`satloc.metrics.precision_recall`): ``precision, recall, threshold,
+    tp, declared, positives, curve``."""
+    curve = pr_curve(errors, scores, inside, radius_m)
+    pick = select_threshold(curve, rule, min_precision)
+    pr = precision_recall(errors, scores, pick["threshold"], inside, radius_m)
+    return {"precision": pr["precision"], "recall": pr["recall"], "threshold": pick["threshold"], "tp": pr["tp"],
+            "declared": pr["declared"], "positives": pr["positives"], "rule": rule, "curve": curve}
+
+
+def _record_table2(t2: Table2Config, out: Path, progress: bool, log) -> tuple[Sequence, Sequence, Sequence, dict]:
+    e = t2.experiment
+    rec = RecordConfig(scene=t2.scene, aliasing=e.aliasing,
+                       database=PassConfig(route=t2.inside_route, max_frames=e.database_frames),
+                       query=PassConfig(route=t2.inside_route, lane_offset_m=e.query_lane_m,
+                                        spacing_m=e.query_spacing_m, occlusion=e.occlusion, appearance=e.appearance, seed=1,
+                                        max_frames=e.query_frames))
+    branch = PassConfig(route=t2.outside_route, lane_offset_m=e.query_lane_m, spacing_m=e.query_spacing_m,
+                        occlusion=e.occlusion, appearance=e.appearance, seed=2, max_frames=t2.outside_frames)
+    from .autoloc import cache_key
+    from .record import record_passes
+
+    rc = dict(to_dict(rec), branch=to_dict(branch), scene_sha256=cache_key(t2.scene, e.aliasing)["scene_sha256"])
+    if not _stage_done(out / "record.json", rc):
+        log(f"[{t2.scene}] recording the database, revisit ({t2.inside_route}) and {t2.outside_route} passes")
+        record_passes(rec, out / "rec", progress)
+        env = make_env(scene=t2.scene, resolution=rec.resolution, aliasing=e.aliasing, speed_mps=rec.speed_mps,
+                       depth=branch.depth, labels=False, localizer=None)
+        try:
+            env.reset(seed=branch.seed)
+            record_pass(env, branch, t2.outside_route, out / "rec" / "outside", "outside", progress,
+                        {"source": "satloc_env", "scene": env.scene.name})
+        finally:
+            env.close()
+        _stamp(out / "record.json", rc)
+    return (Sequence.load(out / "rec" / "database"), Sequence.load(out / "rec" / "query"),
+            Sequence.load(out / "rec" / "outside"), rc)
+
+
+def table2(out: str | Path, config: dict | None = None, progress: bool = True, log=print) -> list[dict]:
+    """Outside-the-map detection (the paper's Table II). Records (stage-stamped) the database pass of
+    ``inside_route``, a revisit of it (the experiment's query lane, appearance and occluders) and a pass on
+    ``outside_route``; runs :func:`compare` on each query pass against the same build; a query is *inside*
+    when its true position lies within ``experiment.coverage_m`` of the database path (so branch frames
+    where the branch rejoins the ring are inside). Each method's threshold is picked on its PR curve over
+    all queries by :func:`operating_point`. Writes ``table2.csv`` (method,precision,recall,threshold),
+    ``table2.md``, ``table2.json`` and ``pr_curves.png`` into ``out``; returns the rows."""
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    t2 = from_dict(Table2Config, dict(config or {}), "table2 config")
+    e = t2.experiment
+    if scene_label(e.scene) != scene_label(t2.scene):
+        e = from_dict(ExperimentConfig, dict(to_dict(e), scene=t2.scene), "table2 config: experiment")
+    db, q_in, q_out, rc = _record_table2(t2, out, progress, log)
+    bdir, times = build_and_learn(e, t2.scene, db, out / "rec" / "map", out, {"record": rc}, progress, log)
+    satmap = SatelliteMap.load(out / "rec" / "map")
+    parts = []
+    for part, q in (("inside", q_in), ("outside", q_out)):
+        sel = np.arange(len(q))
+        inside = np.zeros(len(q), bool)
+        inside[covered_queries(db, q, e.coverage_m)] = True
+        (out / part).mkdir(exist_ok=True)
+        res = compare(e, e.compare, t2.scene, db, q, sel, bdir, satmap, out / part,
+                      {"scene": t2.scene, "part": part}, times, progress, log, fabmap_dir=out)
+        parts.append((inside, res))
+    inside = np.concatenate([p[0] for p in parts])
+    rows, curves = [], {}
+    for method in parts[0][1]:
+        err = np.concatenate([p[1][method]["errors"] for p in parts])
+        sc = np.concatenate([p[1][method]["inlier_score"] for p in parts])
+        op = operating_point(err, sc, inside, t2.rule, t2.min_precision, t2.radius_m)
+        curves[method_name(method)] = op.pop("curve")
+        spq = np.mean([p[1][method]["s_per_query"] for p in parts])
+        rows.append(dict({"method": method_name(method)}, **op, queries=int(len(err)),
+                         inside_queries=int(inside.sum()), s_per_query=float(spq)))
+        log(f"[table2] {method_name(method):22s} precision {op['precision']:.3f} recall {op['recall']:.3f} "
+            f"threshold {op['threshold']:.4g}")
+    _write_table2(out, rows, curves, t2)
+    return rows
+
+
+def _fmt(v: float, f: str = ".3f") -> str:
+    return "" if v is None or not np.isfinite(v) else format(v, f)
+
+
+def _write_table2(out: Path, rows: list[dict], curves: dict, t2: Table2Config) -> None:
+    with atomic_path(out / "table2.csv", suffix=".csv") as tmp:
+        with open(tmp, "w", newline="") as f:
+            w = csv.writer(f)
+            w.writerow(["method", "precision", "recall", "threshold"])
+            for r in rows:
+                w.writerow([r["method"], _fmt(r["precision"]), _fmt(r["recall"]), _fmt(r["threshold"], ".6g")])
+    rule = ("maximal F1 = 2PR/(P+R) on the method's PR curve" if t2.rule == "max_f1" else
+            f"the highest recall with precision >= {t2.min_precision:.0%}")
+    lines = [f"Queries: {rows[0]['queries']} ({rows[0]['inside_queries']} inside the map) on `{t2.scene}`; a true "
+             f"positive is declared inside and localized within {t2.radius_m:g} m. Threshold rule: {rule}.", "",
+             "| method | precision | recall | threshold | TP / declared / inside | s per query |",
+             "|---|---|---|---|---|---|"]
+    for r in rows:
+        p = "" if not np.isfinite(r["precision"]) else f"{100 * r['precision']:.1f} %"
+        lines.append(f"| {r['method']} | {p} | {100 * r['recall']:.1f} % | {_fmt(r['threshold'], '.4g')} | "
+                     f"{r['tp']} / {r['declared']} / {r['positives']} | {r['s_per_query']:.3f} |")
+    with atomic_path(out / "table2.md", suffix=".md") as tmp:
+        tmp.write_text("\n".join(lines) + "\n")
+    write_json(out / "table2.json", {"format": "table2", "config": to_dict(t2),
+                                     "rows": [_plain(r) for r in rows],
+                                     "curves": {k: c.to_dict() for k, c in curves.items()}})
+    plot_pr_curves(curves, rows, out / "pr_curves.png")
+
+
+def plot_pr_curves(curves: dict, rows: list[dict], path: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(6.5, 5))
+    for (name, c), r in zip(curves.items(), rows):
+        line, = ax.plot(c.recall, np.nan_to_num(c.precision, nan=1.0), "-", lw=1.2, label=name)
+        if np.isfinite(r["precision"]):
+            ax.plot([r["recall"]], [r["precision"]], "o", color=line.get_color(), ms=5)
+    ax.set_xlabel("recall")
+    ax.set_ylabel("precision")
+    ax.set_xlim(0, 1.02)
+    ax.set_ylim(0, 1.02)
+    ax.grid(alpha=0.3)
+    ax.set_title("inside/outside the map (dots: chosen thresholds)")
+    ax.legend(fontsize=7, loc="lower left")
+    fig.tight_layout()
+    with atomic_path(path, suffix=".png") as tmp:
+        fig.savefig(tmp, dpi=120)
+    plt.close(fig)
+
+
+# --- the sweep over the scene's knobs ----------------------------------------------------------------------------
+
+@dataclass
+class SweepConfig:
+    """``satloc experiment sweep``: every method of ``experiment`` (modes and ``compare.baselines``, revisit
+    protocol) on ``scene`` at every combination of the knobs. Each combination is its own experiment folder
+    ``a<aliasing>_o<occlusion>_p<appearance>`` (recorded and built there, reused on rerun). Seeds are fixed:
+    database pass 0, query pass 1 (the revisit recording of :mod:`satloc_env.experiment`),
+    ``experiment.odometry_seed`` and ``experiment.compare.fabmap.seed``."""
+
+    scene: str = "city"
+    aliasing: tuple[float, ...] = (0.0, 0.5, 1.0)
+    occlusion: tuple[float, ...] = (0.0, 0.3, 0.6)
+    appearance: tuple[float, ...] = (0.5,)
+    experiment: ExperimentConfig = field(default_factory=lambda: ExperimentConfig(
+        database_frames=150, modes=("go", "np", "full", "full+track"), pictures=False))
+
+    def __post_init__(self):
+        for name in ("aliasing", "occlusion", "appearance"):
+            v = getattr(self, name)
+            if not v or any(not 0 <= x <= 1 for x in v):
+                raise ConfigError(f"{name}: expected a non-empty list of values in [0, 1], got {list(v)}")
+
+
+def sweep(out: str | Path, config: dict | None = None, progress: bool = True, log=print) -> list[dict]:
+    """Mean error and 10 m recall (fraction of the queries localized within 10 m) of every method over
+    aliasing x occlusion x appearance. Writes ``sweep.csv``
+    (scene,aliasing,occlusion,appearance,method,mean_m,recall_10m,queries), ``sweep.md``, ``sweep.json`` (with
+    the seeds) and ``sweep.png`` into ``out``; returns the rows."""
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    sc = from_dict(SweepConfig, dict(config or {}), "sweep config")
+    rows = []
+    for a in sc.aliasing:
+        for o in sc.occlusion:
+            for p in sc.appearance:
+                cfg = from_dict(ExperimentConfig, dict(to_dict(sc.experiment), scene=sc.scene, aliasing=a,
+                                                       occlusion=o, appearance=p), "sweep config: experiment")
+                d = out / f"a{a:g}_o{o:g}_p{p:g}"
+                db, q, bdir, times = _stages(cfg, d, progress, log)
+                sel = _covered(cfg, db, q)
+                res = compare(cfg, cfg.compare, f"{sc.scene} a={a:g} o={o:g} p={p:g}", db, q, sel, bdir,
+                              SatelliteMap.load(d / "rec" / "map"), d, {"scene": sc.scene, "config": to_dict(cfg)},
+                              times, progress, log)
+                for m, r in res.items():
+                    rows.append({"scene": sc.scene, "aliasing": a, "occlusion": o, "appearance": p,
+                                 "method": method_name(m), "mean_m": round(float(r["mean_m"]), 3),
+                                 "recall_10m": round(float(r["within_10m"]), 3), "queries": int(r["queries"])})
+    cols = ["scene", "aliasing", "occlusion", "appearance", "method", "mean_m", "recall_10m", "queries"]
+    with atomic_path(out / "sweep.csv", suffix=".csv") as tmp:
+        with open(tmp, "w", newline="") as f:
+            w = csv.writer(f)
+            w.writerow(cols)
+            for r in rows:
+                w.writerow([r[c] for c in cols])
+    seeds = {"database_pass": 0, "query_pass": 1, "odometry": sc.experiment.odometry_seed,
+             "fabmap": sc.experiment.compare.fabmap.seed}
+    lines = [f"Scene `{sc.scene}`; seeds: {seeds}.", "",
+             "| aliasing | occlusion | appearance | method | mean m | within 10 m | queries |", "|---|---|---|---|---|---|---|"]
+    lines += [f"| {r['aliasing']:g} | {r['occlusion']:g} | {r['appearance']:g} | {r['method']} | {r['mean_m']:.2f} | "
+              f"{100 * r['recall_10m']:.0f} % | {r['queries']} |" for r in rows]
+    with atomic_path(out / "sweep.md", suffix=".md") as tmp:
+        tmp.write_text("\n".join(lines) + "\n")
+    write_json(out / "sweep.json", {"format": "sweep", "config": to_dict(sc), "seeds": seeds, "rows": rows})
+    plot_sweep(rows, out / "sweep.png")
+    return rows
+
+
+def plot_sweep(rows: list[dict], path: Path) -> None:
+    """Mean error (log) and 10 m recall against the knob combinations, one line per method."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    combos = list(dict.fromkeys((r["aliasing"], r["occlusion"], r["appearance"]) for r in rows))
+    labels = [f"a{a:g}\no{o:g}\np{p:g}" for a, o, p in combos]
+    fig, axes = plt.subplots(1, 2, figsize=(max(8, 1.2 * len(combos) + 4), 4.5))
+    for m in dict.fromkeys(r["method"] for r in rows):
+        by = {(r["aliasing"], r["occlusion"], r["appearance"]): r for r in rows if r["method"] == m}
+        x = np.arange(len(combos))
+        axes[0].semilogy(x, [max(by[c]["mean_m"], 1e-2) if c in by else np.nan for c in combos], "o-", label=m)
+        axes[1].plot(x, [by[c]["recall_10m"] if c in by else np.nan for c in combos], "o-", label=m)
+    for ax, yl in zip(axes, ("mean error (m)", "within 10 m")):
+        ax.set_xticks(np.arange(len(combos)))
+        ax.set_xticklabels(labels, fontsize=7)
+        ax.set_ylabel(yl)
+        ax.grid(alpha=0.3)
+    axes[1].set_ylim(0, 1.02)
+    axes[0].legend(fontsize=7)
+    fig.suptitle("knobs: a = aliasing, o = occlusion, p = appearance")
+    fig.tight_layout()
+    with atomic_path(path, suffix=".png") as tmp:
+        fig.savefig(tmp, dpi=110)
+    plt.close(fig)
+
+
+# --- Table I: every method under each protocol ------------------------------------------------------
+
+def _subset(seq: Sequence, index, name: str) -> Sequence:
+    """The frames ``index`` of ``seq`` as a lazy sequence (images, depth and labels as recorded)."""
+    index = np.asarray(index, np.int64)
+    return Sequence.lazy(seq.camera, seq.poses[index], seq.timestamps[index], lambda j: seq[int(index[j])],
+                         name=name, meta=dict(seq.meta, source_frames=[int(i) for i in index]))
+
+
+def protocol_split(protocol: str, n: int, fraction: float = 0.4, seed: int = 0, step: int = 8
+                   ) -> tuple[np.ndarray, np.ndarray | None]:
+    """Database frame indices of a Table I protocol over a database pass of ``n`` frames, and for ``city``
+    the query indices (the rest of the pass): ``city``: a random ``round(fraction * n)`` frames (seeded by
+    ``seed``), sorted; ``residential``: every ``step``-th frame from the first (queries: a second pass)."""
+    if protocol == "city":
+        perm = np.random.default_rng(seed).permutation(n)
+        k = int(round(fraction * n))
+        return np.sort(perm[:k]), np.sort(perm[k:])
+    if protocol == "residential":
+        return np.arange(0, n, max(1, int(step))), None
+    raise ConfigError(f"protocol: expected 'city' or 'residential', got {protocol!r}")
+
+
+def _protocol(cfg: ExperimentConfig, protocol: str, label: str, sdir: Path, db_full: Sequence, rc: dict,
+              progress: bool, log) -> dict:
+    """Table I's ``city`` or ``residential`` protocol on the scene folder ``sdir`` (its recorded database pass
+    and its full-rate build), in ``sdir/protocol_<protocol>``; returns :func:`satloc_env.compare.compare`."""
+    pdir = sdir / f"protocol_{protocol}"
+    pdir.mkdir(exist_ok=True)
+    speed = float(rc.get("speed_mps", RecordConfig().speed_mps))
+    spacing = float(rc.get("database", {}).get("spacing_m", PassConfig().spacing_m))
+    step = max(1, int(round(speed / spacing)))   # about one frame per second
+    dbi, qi = protocol_split(protocol, len(db_full), cfg.city_database_fraction, cfg.split_seed, step)
+    db = _subset(db_full, dbi, f"{protocol} protocol database")
+    source = {"record": rc, "protocol": protocol, "database_frames": [int(i) for i in dbi]}
+    if protocol == "city":
+        q, sel = _subset(db_full, qi, f"{protocol} protocol queries"), np.arange(len(qi))
+    else:
+        # a second pass over the database's route at one frame per second (the revisit pass's lane,
+        # appearance and occluders, another seed)
+        p = PassConfig(lane_offset_m=cfg.query_lane_m, spacing_m=speed, occlusion=cfg.occlusion,
+                       appearance=cfg.appearance, seed=2,
+                       max_frames=None if cfg.database_frames is None else
+                       int(np.ceil(db_full.path_length() / speed)) + 1)
+        prc = {"pass": to_dict(p), "record": rc}
+        if not _stage_done(pdir / "record.json", prc):
+            log(f"[{label}] recording the second pass (a frame every {speed:g} m)")
+            env = make_env(scene=cfg.scene, resolution=rc.get("resolution", "half"), aliasing=cfg.aliasing,
+                           speed_mps=speed, depth=p.depth, labels=False, localizer=None)
+            try:
+                env.reset(seed=p.seed)
+                route = rc.get("database", {}).get("route") or env.scene.spec.database_route
+                record_pass(env, p, route, pdir / "second", "second", progress, dict(db_full.meta))
+            finally:
+                env.close()
+            _stamp(pdir / "record.json", prc)
+        q = Sequence.load(pdir / "second")
+        sel = covered_queries(db_full, q, cfg.coverage_m)
+        if len(sel) == 0:
+            raise ConfigError(f"[{label}] residential protocol: no second-pass frame lies on the database path")
+    # the dictionary of the protocol's database; projections: those learned on the full-rate database pass
+    nofull = from_dict(ExperimentConfig, dict(to_dict(cfg), modes=[m for m in cfg.modes if not m.startswith("full")]
+                                              or ["go"]), "experiment config")
+    bdir, times = build_and_learn(nofull, f"{label} {protocol}", db, sdir / "rec" / "map", pdir, source, progress, log)
+    if any(m.startswith("full") for m in cfg.modes):
+        import shutil
+
+        src = sdir / "build" / "projections.pt"
+        if not (bdir / "projections.pt").is_file() or \
+                (bdir / "projections.pt").read_bytes() != src.read_bytes():
+            shutil.copyfile(src, bdir / "projections.pt")
+            for f in bdir.glob("satellite_table_full*.npz"):
+                f.unlink()
+    return compare(cfg, cfg.compare, label, db, q, sel, bdir, SatelliteMap.load(sdir / "rec" / "map"), pdir,
+                   {"scene": cfg.scene, "protocol": protocol, "config": to_dict(cfg)}, times, progress, log,
+                   fabmap_dir=sdir)
+
+
+def table1(out: str | Path, scenes: tuple[str, ...] = ("city", "residential"), config: dict | None = None,
+           progress: bool = True, log=print) -> list[dict]:
+    """Every method (the modes and the baselines of ``compare``) under each protocol of ``protocols`` on each
+    scene: ``revisit`` in ``out/<scene>`` (as :func:`run_scene`, same stages), ``city`` and ``residential`` in
+    ``out/<scene>/protocol_<name>`` (see :func:`protocol_split`). Writes ``table1.csv``
+    (method,scene,mean_m,std_m,protocol), ``table1.md`` and ``table1.json`` into ``out``; returns the rows."""
+    out = Path(out)
+    rows = []
+    for scene, label in zip(scenes, scene_labels(scenes)):
+        cfg = from_dict(ExperimentConfig, dict(config or {}, scene=scene), "experiment config")
+        sdir = out / label
+        db, q, bdir, times = _stages(cfg, sdir, progress, log)
+        results = {}
+        if "revisit" in cfg.protocols:
+            results["revisit"] = compare(cfg, cfg.compare, label, db, q, _covered(cfg, db, q), bdir,
+                                         SatelliteMap.load(sdir / "rec" / "map"), sdir,
+                                         {"scene": cfg.scene, "config": to_dict(cfg)}, times, progress, log)
+        rc = read_json(sdir / "record.json")["config"]
+        for protocol in cfg.protocols:
+            if protocol != "revisit":
+                results[protocol] = _protocol(cfg, protocol, label, sdir, db, rc, progress, log)
+        for protocol, res in results.items():
+            for method, m in res.items():
+                rows.append({"method": method_name(method), "scene": label, "protocol": protocol,
+                             "mean_m": round(m["mean_m"], 3), "std_m": round(m["std_m"], 3),
+                             "median_m": round(m["median_m"], 3), "within_1m": round(m["within_1m"], 3),
+                             "queries": m["queries"], "s_per_query": round(m["s_per_query"], 4)})
+    with atomic_path(out / "table1.csv", suffix=".csv") as tmp:
+        with open(tmp, "w", newline="") as f:
+            w = csv.writer(f)
+            w.writerow(["method", "scene", "mean_m", "std_m", "protocol"])
+            for r in rows:
+                w.writerow([r["method"], r["scene"], f"{r['mean_m']:.3f}", f"{r['std_m']:.3f}", r["protocol"]])
+    write_json(out / "table1.json", {"format": "table1", "rows": rows})
+    with atomic_path(out / "table1.md", suffix=".md") as tmp:
+        tmp.write_text(markdown_table(rows))
+    return rows

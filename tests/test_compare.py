@@ -1,0 +1,116 @@
+"""The comparison harness (satloc_env/compare.py): every method on one split, Table II's counting."""
+import json
+
+import numpy as np
+import pytest
+
+from satloc.errors import ConfigError
+from satloc.persist import load_npz
+from satloc_env.compare import CompareConfig, Table2Config, _write_table2, operating_point, trained_fabmap
+from satloc_env.experiment import ExperimentConfig
+from satloc.sequence import Sequence
+
+TINY_BASELINES = {"fabmap": {"vocabulary_size": 40, "max_features": 150, "new_place_samples": 5},
+                  "efm": {"features": 200}, "fabmap_train_frames": 6}
+
+
+def test_operating_point_counts_true_positives_on_a_hand_made_case():
+    # 6 queries: 4 inside the map, 2 outside
+    errors = np.array([0.5, 3.0, 25.0, 2.0, 1.0, 4.0])
+    scores = np.array([0.9, 0.8, 0.7, 0.2, 0.6, 0.1])
+    inside = np.array([True, True, True, True, False, False])
+    # thresholds 0.9, 0.8, 0.7, 0.6, 0.2, 0.1 -> TP 1, 2, 2, 2, 3, 3; declared 1..6; F1 best at 0.8 (2/2, 2/4)
+    op = operating_point(errors, scores, inside, "max_f1")
+    assert op["threshold"] == 0.8 and op["tp"] == 2 and op["declared"] == 2 and op["positives"] == 4
+    assert op["precision"] == 1.0 and op["recall"] == 0.5
+    # at least 70 % precision: threshold 0.2 declares 5, TP 3 (the 25 m query is inside but not within 10 m)
+    op = operating_point(errors, scores, inside, "recall_at_precision", 0.6)
+    assert op["threshold"] == 0.2 and op["tp"] == 3 and op["declared"] == 5
+    assert op["recall"] == 0.75 and op["precision"] == pytest.approx(0.6)
+    # a query outside the map declared inside never counts, however close its estimate
+    op = operating_point([0.1, 0.1], [1.0, 0.5], np.array([False, True]), "max_f1")
+    assert op["tp"] == 1 and op["threshold"] == 0.5
+
+
+def test_table2_files_and_headers(tmp_path):
+    e, s, ins = np.array([1.0, 20.0, 2.0]), np.array([3.0, 2.0, 1.0]), np.array([True, True, False])
+    op = operating_point(e, s, ins)
+    curve = op.pop("curve")
+    rows = [dict({"method": "A"}, **op, queries=3, inside_queries=2, s_per_query=0.1)]
+    _write_table2(tmp_path, rows, {"A": curve}, Table2Config())
+    lines = (tmp_path / "table2.csv").read_text().splitlines()
+    assert lines[0] == "method,precision,recall,threshold"
+    assert lines[1] == "A,1.000,0.500,3"
+    assert "| A | 100.0 % | 50.0 % |" in (tmp_path / "table2.md").read_text()
+    assert (tmp_path / "pr_curves.png").stat().st_size > 5000
+
+
+def test_config_errors(tmp_path):
+    with pytest.raises(ConfigError, match="baselines"):
+        CompareConfig(baselines=("netvlad",))
+    with pytest.raises(ConfigError, match="disjoint"):
+        trained_fabmap(CompareConfig(fabmap_train_scene="city"), "city", tmp_path, progress=False, log=lambda m: None)
+    with pytest.raises(ConfigError, match="rule"):
+        Table2Config(rule="best")
+
+
+def test_protocol_splits():
+    from satloc_env.compare import protocol_split
+
+    db, q = protocol_split("city", 50, 0.4, seed=3)
+    assert len(db) == 20 and len(q) == 30 and len(np.intersect1d(db, q)) == 0
+    assert sorted(np.concatenate([db, q]).tolist()) == list(range(50))
+    db2, q2 = protocol_split("city", 50, 0.4, seed=3)
+    assert np.array_equal(db, db2) and np.array_equal(q, q2)          # seeded: reproducible
+    assert not np.array_equal(db, protocol_split("city", 50, 0.4, seed=4)[0])
+    db, q = protocol_split("residential", 50, step=8)
+    assert db.tolist() == [0, 8, 16, 24, 32, 40, 48] and q is None
+    with pytest.raises(ConfigError, match="protocol"):
+        protocol_split("highway", 50)
+    with pytest.raises(ConfigError, match="protocols"):
+        ExperimentConfig(protocols=("revisit", "desert"))
+
+
+def test_table1_protocols_on_a_tiny_section(tmp_path):
+    from satloc_env.compare import table1
+
+    # every method on the same splits: two modes, FAB-MAP (a small vocabulary trained on a few frames of
+    # residential) and EFM (few features)
+    small = {"database_frames": 24, "query_frames": 3, "query_spacing_m": 6.0, "features": "rgb",
+             "modes": ["go", "np"], "compare": TINY_BASELINES, "pictures": False}
+    rows = table1(tmp_path, ("city",), small, progress=False, log=lambda m: None)
+    lines = (tmp_path / "table1.csv").read_text().splitlines()
+    assert lines[0] == "method,scene,mean_m,std_m,protocol"
+    assert [(r["protocol"], r["method"]) for r in rows] == [(p, m) for p in ("revisit", "city", "residential")
+                                                           for m in ("Ours-GO", "Ours-NP", "FAB-MAP", "EFM")]
+    assert all(np.isfinite(r["mean_m"]) and r["s_per_query"] > 0 for r in rows)
+    res = json.loads((tmp_path / "city" / "compare.json").read_text())["methods"]
+    assert list(res) == ["go", "np", "fabmap", "efm"] and all(m["failed"] == 0 for m in res.values() if "failed" in m)
+    for m in ("fabmap", "efm"):
+        a, _ = load_npz(tmp_path / "city" / f"baseline_{m}.npz", "localization")
+        assert np.all(np.isfinite(a["errors"])) and np.all(np.isfinite(a["inlier_score"]))
+    # FAB-MAP was trained on the other scene, once for the three protocols
+    stamp = json.loads((tmp_path / "city" / "fabmap_stage.json").read_text())
+    assert stamp["config"]["train_scene"] == "residential" and stamp["training_images"] == 6
+    by = {r["protocol"]: r for r in rows if r["method"] == "EFM"}
+    assert by["city"]["queries"] == 24 - round(0.4 * 24)
+    second = Sequence.load(tmp_path / "city" / "protocol_residential" / "second")
+    gaps = np.hypot(*np.diff(second.poses[:, :2], axis=0).T)
+    assert np.allclose(gaps, 8.0, atol=0.6)                  # one frame per second at 8 m/s
+    assert "Protocol **city**" in (tmp_path / "table1.md").read_text()
+    # rerun: every stage reused
+    stamps = {p: p.stat().st_mtime_ns for p in (tmp_path / "city").rglob("*_stage.json")}
+    stamps.update({p: p.stat().st_mtime_ns for p in (tmp_path / "city").rglob("record.json")})
+    table1(tmp_path, ("city",), small, progress=False, log=lambda m: None)
+    assert len(stamps) >= 5 and all(p.stat().st_mtime_ns == t for p, t in stamps.items())
+
+
+def test_sweep_config_and_figure(tmp_path):
+    from satloc_env.compare import SweepConfig, plot_sweep
+
+    with pytest.raises(ConfigError, match="occlusion"):
+        SweepConfig(occlusion=(0.0, 1.5))
+    rows = [{"aliasing": a, "occlusion": o, "appearance": 0.5, "method": m, "mean_m": e, "recall_10m": r}
+            for a in (0.0, 1.0) for o in (0.0, 0.6) for m, e, r in (("Ours-full", 0.5, 1.0), ("EFM", 3.0, 0.8))]
+    plot_sweep(rows, tmp_path / "sweep.png")
+    assert (tmp_path / "sweep.png").stat().st_size > 5000
