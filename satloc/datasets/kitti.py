@@ -111,15 +111,20 @@ class KittiRig:
 
 # --- calibration -----------------------------------------------------------------------------------------
 
+def _read_text(path: Path, what: str) -> str:
+    """The text of a ``what`` file; FormatError naming it when it is missing or unreadable."""
+    try:
+        return path.read_text()
+    except FileNotFoundError as e:
+        raise FormatError(f"{path}: {what} file not found") from e
+    except (OSError, UnicodeDecodeError) as e:
+        raise FormatError(f"{path}: not a readable text file ({e})") from e
+
+
 def read_calib_file(path: str | os.PathLike) -> dict[str, tuple[int, str]]:
     """``key: values`` lines of a KITTI calibration file as {key: (line number, raw value text)}."""
     path = Path(path)
-    if not path.is_file():
-        raise FormatError(f"{path}: calibration file not found")
-    try:
-        text = path.read_text()
-    except (OSError, UnicodeDecodeError) as e:
-        raise FormatError(f"{path}: not a readable text file ({e})") from e
+    text = _read_text(path, "calibration")
     out: dict[str, tuple[int, str]] = {}
     for n, line in enumerate(text.splitlines(), 1):
         if not line.strip():
@@ -223,12 +228,7 @@ def read_rig(date_dir: str | os.PathLike, camera: str = "color", imu_height: flo
 def read_oxts_file(path: str | os.PathLike) -> np.ndarray:
     """The 30 numbers (:data:`OXTS_FIELDS`) of one OXTS data file."""
     path = Path(path)
-    try:
-        text = path.read_text()
-    except FileNotFoundError as e:
-        raise FormatError(f"{path}: OXTS file not found") from e
-    except (OSError, UnicodeDecodeError) as e:
-        raise FormatError(f"{path}: not a readable text file ({e})") from e
+    text = _read_text(path, "OXTS")
     lines = [ln for ln in text.splitlines() if ln.strip()]
     if not lines:
         raise FormatError(f"{path} line 1: expected {len(OXTS_FIELDS)} numbers ({' '.join(OXTS_FIELDS[:3])} ...), "
@@ -258,12 +258,7 @@ def read_oxts_file(path: str | os.PathLike) -> np.ndarray:
 def read_timestamps(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray, list[str]]:
     """A KITTI ``timestamps.txt``: (whole seconds since 1970 (int64), nanoseconds (int64), the lines)."""
     path = Path(path)
-    try:
-        text = path.read_text()
-    except FileNotFoundError as e:
-        raise FormatError(f"{path}: timestamps file not found") from e
-    except (OSError, UnicodeDecodeError) as e:
-        raise FormatError(f"{path}: not a readable text file ({e})") from e
+    text = _read_text(path, "timestamps")
     lines = text.splitlines()
     while lines and not lines[-1].strip():
         lines.pop()
