@@ -228,7 +228,8 @@ class Sequence:
         """A lazy sequence of the frames ``index`` (default: all) with both images resampled into ``camera``
         (default: this sequence's): resized to its image size, then warped to its intrinsics (a rectified
         pinhole pair: an affine map), e.g. a drive at half resolution or a query drive in the database's
-        intrinsics. Depth and labels are not carried over. ``meta["source_frames"]`` lists the indices."""
+        intrinsics. Depth and labels are kept when the camera is unchanged, dropped when the images are
+        resampled. ``meta["source_frames"]`` lists the indices."""
         n = len(self)
         index = np.arange(n) if index is None else np.asarray(index, np.int64).reshape(-1)
         if len(index) and (index.min() < -n or index.max() >= n):
@@ -317,4 +318,6 @@ class _Resampled:
 
     def __call__(self, j: int) -> Frame:
         f = self.seq[int(self.index[j])]
+        if not self.resize and self.affine is None:
+            return f
         return Frame(self._image(f.left), self._image(f.right), f.pose, f.timestamp)

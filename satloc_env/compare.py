@@ -408,13 +408,6 @@ def plot_sweep(rows: list[dict], path: Path) -> None:
 
 # --- Table I: every method under each protocol ------------------------------------------------------
 
-def _subset(seq: Sequence, index, name: str) -> Sequence:
-    """The frames ``index`` of ``seq`` as a lazy sequence (images, depth and labels as recorded)."""
-    index = np.asarray(index, np.int64)
-    return Sequence.lazy(seq.camera, seq.poses[index], seq.timestamps[index], lambda j: seq[int(index[j])],
-                         name=name, meta=dict(seq.meta, source_frames=[int(i) for i in index]))
-
-
 def protocol_split(protocol: str, n: int, fraction: float = 0.4, seed: int = 0, step: int = 8
                    ) -> tuple[np.ndarray, np.ndarray | None]:
     """Database frame indices of a Table I protocol over a database pass of ``n`` frames, and for ``city``
@@ -439,10 +432,10 @@ def _protocol(cfg: ExperimentConfig, protocol: str, label: str, sdir: Path, db_f
     spacing = float(rc.get("database", {}).get("spacing_m", PassConfig().spacing_m))
     step = max(1, int(round(speed / spacing)))   # about one frame per second
     dbi, qi = protocol_split(protocol, len(db_full), cfg.city_database_fraction, cfg.split_seed, step)
-    db = _subset(db_full, dbi, f"{protocol} protocol database")
+    db = db_full.view(dbi, name=f"{protocol} protocol database")
     source = {"record": rc, "protocol": protocol, "database_frames": [int(i) for i in dbi]}
     if protocol == "city":
-        q, sel = _subset(db_full, qi, f"{protocol} protocol queries"), np.arange(len(qi))
+        q, sel = db_full.view(qi, name=f"{protocol} protocol queries"), np.arange(len(qi))
     else:
         # a second pass over the database's route at one frame per second (the revisit pass's lane,
         # appearance and occluders, another seed)
