@@ -269,7 +269,8 @@ class Localizer:
         """Posterior over candidate poses and the estimate for one stereo frame (``refine``: whether to refine
         the estimate by bird's-eye alignment; None: as configured). With a ``tracker`` (:mod:`satloc.track`,
         already moved by the odometry since its last frame) the frame's posterior is fused into its belief and
-        the answer (posterior, estimate, refinement peaks) is the fused one; the inlier score stays the frame's."""
+        the answer (posterior, estimate, refinement peaks) is the fused one, and the inlier score is the tracker's
+        probability of being on the mapped path (:attr:`satloc.track.Tracker.p_on`)."""
         with single_threaded_blas():  # see satloc._threads: spinning BLAS workers slow the network and stereo
             return self._score(self._observe(frame), candidates, refine, tracker)
 
@@ -428,7 +429,9 @@ class Localizer:
         else:
             post = scores / total
             inlier_score = float(scores.max() / scores.mean())
-        if tracker is not None:
+        inlier = inlier_score >= self.config.inlier_threshold
+        if tracker is not None:   # tracked: the inlier test is the tracker's P(on the mapped path)
             post = tracker.fuse(post)
-        return Localization(top_k_estimate(cands, post, self.config.top_k), cands, post, inlier_score,
-                            inlier_score >= self.config.inlier_threshold, n)
+            inlier_score = tracker.p_on
+            inlier = inlier_score >= tracker.config.inlier_threshold
+        return Localization(top_k_estimate(cands, post, self.config.top_k), cands, post, inlier_score, inlier, n)

@@ -15,6 +15,16 @@ image. :class:`Tracker` keeps a belief over the candidate poses of a :class:`sat
   locked onto a wrong place (or a vehicle moved without odometry) recovers once images disagree with it;
 * **fuse** (a frame's co-occurrence posterior P(L | I)): belief × (P(L | I) + ``floor`` / C), normalised.
   The floor keeps candidates the localizer did not score (vote pruning gives them 0) alive.
+* **off the map** (``off_map``, the default): probability that the odometry moves more than 3 sigma from every
+  candidate is not dropped but kept as *off-map hypotheses*: poses (at most ``off_map_hypotheses``, grouped
+  within 5 m) dead-reckoned by the odometry, their spread growing with the distance driven since they left
+  the map. Where such a pose comes back within 3 sigma of candidates (the vehicle rejoins the mapped path),
+  its probability moves onto them. A frame's evidence for an off-map hypothesis is that of an average
+  candidate, (1 + ``floor``) / C, the mean of the fused likelihood over the candidates, so images neither
+  favour nor disfavour leaving the map; the odometry does. :attr:`Tracker.p_on`, the probability of being on
+  the mapped path, is the tracked inlier score (a frame is declared inside when it reaches
+  ``inlier_threshold``): queries on a road the database never drove are recognised by the motion that led
+  there, which single images of look-alike streets cannot do.
 
 The first frame's belief is its own posterior. The localizer's estimate (top-3 average) and the bird's-eye
 refinement's peaks are then taken from the fused posterior: ``Localizer.localize(frame, tracker=...)`` and
@@ -47,6 +57,9 @@ class TrackConfig:
     floor: float = 0.05               # fuse: P(L | I) + floor / C, per candidate
     revive: float = 1e-6              # mass spread uniformly at each prediction
     prune: float = 1e-7               # candidates below this fraction of the best one are not moved
+    off_map: bool = True              # keep the belief that the odometry moves off the mapped path (see above)
+    off_map_hypotheses: int = 8       # at most this many off-map poses, the least probable merged
+    inlier_threshold: float = 0.5     # a tracked frame is declared inside the map when P(on the map) reaches this
 
     def __post_init__(self):
         if self.sigma_m <= 0 or self.sigma_frac < 0:
@@ -55,6 +68,10 @@ class TrackConfig:
             raise ConfigError(f"track.heading_gate_deg: expected in (0, 180], got {self.heading_gate_deg}")
         if self.floor < 0 or not 0 <= self.revive < 1 or not 0 <= self.prune < 1:
             raise ConfigError("track: floor >= 0, 0 <= revive < 1 and 0 <= prune < 1 are required")
+        if self.off_map_hypotheses < 1:
+            raise ConfigError(f"track.off_map_hypotheses: expected an integer >= 1, got {self.off_map_hypotheses}")
+        if not 0 < self.inlier_threshold <= 1:
+            raise ConfigError(f"track.inlier_threshold: expected a probability in (0, 1], got {self.inlier_threshold}")
 
 
 def relative_motion(a: Pose2, b: Pose2) -> np.ndarray:
@@ -97,11 +114,55 @@ class Tracker:
             raise ConfigError(f"tracker: candidates must be a non-empty (C, 3) array of poses, got {c.shape}")
         self.candidates, self.config = c, config
         self._tree = cKDTree(c[:, :2])
-        self.belief: np.ndarray | None = None
+        self.belief: np.ndarray | None = None   # over the candidates, given that the vehicle is on the map
+        self.p_on = 1.0                          # P(on the mapped path)
+        self.off = np.zeros((0, 5))              # off-map hypotheses: x, y, yaw, probability, metres since leaving
 
     def reset(self) -> None:
         """Forget: the next fused posterior starts a new belief."""
         self.belief = None
+        self.p_on = 1.0
+        self.off = np.zeros((0, 5))
+
+    def _spread(self, moved: np.ndarray, myaw: np.ndarray, sigma: np.ndarray):
+        """For poses ``moved`` (n, 2) with headings ``myaw`` (n,) and spreads ``sigma`` (n,): the (source, candidate,
+        share) triples of their Gaussian spread over the candidates within 3 sigma and the heading gate (shares of
+        a source sum to 1) and whether each source reached any candidate."""
+        c, cfg = self.candidates, self.config
+        near = [self._tree.query_ball_point(m, 3.0 * sg, return_sorted=False) for m, sg in zip(moved, sigma)] \
+            if np.ndim(sigma) else self._tree.query_ball_point(moved, 3.0 * float(sigma), return_sorted=False)
+        counts = np.fromiter((len(n) for n in near), np.int64, len(near))
+        src = np.repeat(np.arange(len(moved)), counts)
+        dst = np.concatenate([np.asarray(n, np.int64) for n in near]) if len(near) else np.zeros(0, np.int64)
+        d2 = ((c[dst, :2] - moved[src]) ** 2).sum(axis=1)
+        sg = np.broadcast_to(np.asarray(sigma, np.float64), (len(moved),))[src]
+        ok = np.cos(wrap_angle(c[dst, 2] - myaw[src])) >= math.cos(math.radians(cfg.heading_gate_deg))
+        w = np.where(ok, np.exp(-0.5 * d2 / sg ** 2), 0.0)
+        norm = np.bincount(src, weights=w, minlength=len(moved))
+        share = np.divide(w, norm[src], out=np.zeros_like(w), where=norm[src] > 0)
+        return src, dst, share, norm > 0
+
+    def _group(self, hyp: np.ndarray) -> np.ndarray:
+        """Off-map hypotheses (n, 5) grouped: the most probable first, those within 5 m and 45 degrees of it
+        added to it; at most ``off_map_hypotheses``, the rest added to the nearest kept one."""
+        if len(hyp) == 0:
+            return hyp
+        hyp = hyp[np.argsort(-hyp[:, 3], kind="stable")]
+        left = np.ones(len(hyp), bool)
+        kept: list[np.ndarray] = []
+        while left.any() and len(kept) < self.config.off_map_hypotheses:
+            i = int(np.flatnonzero(left)[0])
+            close = left & (np.hypot(hyp[:, 0] - hyp[i, 0], hyp[:, 1] - hyp[i, 1]) <= 5.0) \
+                & (np.cos(wrap_angle(hyp[:, 2] - hyp[i, 2])) >= math.cos(math.radians(45.0)))
+            h = hyp[i].copy()
+            h[3], h[4] = hyp[close, 3].sum(), hyp[close, 4].max()
+            kept.append(h)
+            left &= ~close
+        out = np.array(kept)
+        for i in np.flatnonzero(left):
+            j = int(np.argmin(np.hypot(out[:, 0] - hyp[i, 0], out[:, 1] - hyp[i, 1])))
+            out[j, 3] += hyp[i, 3]
+        return out
 
     def predict(self, odometry: np.ndarray | None) -> None:
         """Move the belief by ``odometry`` (dx, dy, dyaw); nothing before the first frame. ``None`` or a
@@ -119,19 +180,38 @@ class Tracker:
         cy, sy = np.cos(c[live, 2]), np.sin(c[live, 2])
         moved = np.stack([c[live, 0] + cy * o[0] - sy * o[1], c[live, 1] + sy * o[0] + cy * o[1]], 1)
         myaw = c[live, 2] + o[2]
-        near = self._tree.query_ball_point(moved, 3.0 * sigma, return_sorted=False)
-        counts = np.fromiter((len(n) for n in near), np.int64, len(near))
-        src = np.repeat(np.arange(len(live)), counts)
-        dst = np.concatenate([np.asarray(n, np.int64) for n in near]) if len(near) else np.zeros(0, np.int64)
-        d2 = ((c[dst, :2] - moved[src]) ** 2).sum(axis=1)
-        ok = np.cos(wrap_angle(c[dst, 2] - myaw[src])) >= math.cos(math.radians(cfg.heading_gate_deg))
-        w = np.where(ok, np.exp(-0.5 * d2 / sigma ** 2), 0.0)
-        norm = np.bincount(src, weights=w, minlength=len(live))
-        share = np.divide(w, norm[src], out=np.zeros_like(w), where=norm[src] > 0)
-        new = np.bincount(dst, weights=share * b[live][src], minlength=len(c))
-        total = new.sum()
-        new = new / total if total > 0 else np.full(len(c), 1.0 / len(c))
-        self.belief = (1.0 - cfg.revive) * new + cfg.revive / len(c)
+        src, dst, share, landed = self._spread(moved, myaw, sigma)
+        bl = b[live] / b[live].sum()
+        on = np.bincount(dst, weights=share * bl[src], minlength=len(c)) * self.p_on
+        if not cfg.off_map:
+            total = on.sum()
+            new = on / total if total > 0 else np.full(len(c), 1.0 / len(c))
+            self.belief = (1.0 - cfg.revive) * new + cfg.revive / len(c)
+            return
+        # off-map hypotheses: the old ones dead-reckoned (and landed where they meet the map again) ...
+        off = self.off.copy()
+        if len(off):
+            cy, sy = np.cos(off[:, 2]), np.sin(off[:, 2])
+            off[:, 0], off[:, 1] = off[:, 0] + cy * o[0] - sy * o[1], off[:, 1] + sy * o[0] + cy * o[1]
+            off[:, 2] = wrap_angle(off[:, 2] + o[2])
+            off[:, 4] += dist
+            s2, d2, sh2, back = self._spread(off[:, :2], off[:, 2], np.hypot(cfg.sigma_m, cfg.sigma_frac * off[:, 4]))
+            on += np.bincount(d2, weights=sh2 * off[s2, 3], minlength=len(c))
+            off = off[~back]
+        # ... and the probability the odometry has just moved off the map
+        gone = ~landed & (bl * self.p_on > 0)
+        if gone.any():
+            new_off = np.column_stack([moved[gone], wrap_angle(myaw[gone]), bl[gone] * self.p_on,
+                                       np.full(int(gone.sum()), dist)])
+            off = self._group(np.vstack([off, new_off]))
+        total = on.sum() + off[:, 3].sum()
+        if total <= 0:
+            self.belief, self.p_on, self.off = np.full(len(c), 1.0 / len(c)), 1.0, np.zeros((0, 5))
+            return
+        on, off[:, 3] = on / total * (1.0 - cfg.revive) + cfg.revive / len(c), off[:, 3] / total * (1.0 - cfg.revive)
+        self.p_on = float(on.sum())
+        self.belief = on / self.p_on if self.p_on > 0 else np.full(len(c), 1.0 / len(c))   # (revive 0: all off)
+        self.off = off
 
     def fuse(self, posterior: np.ndarray) -> np.ndarray:
         """The belief times ``posterior`` (one frame's P(L | I), plus the floor), normalised; it becomes the
@@ -144,9 +224,15 @@ class Tracker:
             raise ConfigError("tracker: the posterior must be finite and non-negative")
         own = p / p.sum() if p.sum() > 0 else np.full(len(p), 1.0 / len(p))
         if self.belief is None:
-            self.belief = own
+            self.belief, self.p_on, self.off = own, 1.0, np.zeros((0, 5))
             return self.belief.copy()
-        f = self.belief * (own + self.config.floor / len(p))
-        total = f.sum()
-        self.belief = f / total if total > 0 else own   # no overlap at all (floor 0): start from this frame
+        f = self.belief * self.p_on * (own + self.config.floor / len(p))
+        f_off = self.off[:, 3] * (1.0 + self.config.floor) / len(p)   # an off-map place: an average candidate
+        on, total = f.sum(), f.sum() + f_off.sum()
+        if on <= 0:   # no overlap at all (floor 0): start from this frame
+            self.belief, self.p_on, self.off = own, 1.0, np.zeros((0, 5))
+            return self.belief.copy()
+        self.belief, self.p_on = f / on, float(on / total)
+        self.off = self.off.copy()
+        self.off[:, 3] = f_off / total
         return self.belief.copy()

@@ -84,10 +84,13 @@ def trained_fabmap(cc: CompareConfig, test_scene: str, out: Path, progress: bool
 
 def run_baseline(name: str, cc: CompareConfig, test_scene: str, db: Sequence, q: Sequence, sel: np.ndarray,
                  out: Path, progress: bool = True, log=print, fabmap_dir: Path | None = None) -> dict:
-    """Build baseline ``name`` on ``db``, localize the frames ``sel`` of ``q``; writes ``baseline_<name>.npz``
+    """Build baseline ``name`` on ``db`` (every ``cc.database_step``-th frame of it), localize the frames ``sel``
+    of ``q``; writes ``baseline_<name>.npz``
     and returns its summary (with ``errors``, ``inlier_score``). FAB-MAP's training stage lives in
     ``fabmap_dir`` (default ``out``)."""
     t = time.perf_counter()
+    if cc.database_step > 1:
+        db = db.view(np.arange(0, len(db), cc.database_step))
     if name == "fabmap":
         model = FabMap.load(trained_fabmap(cc, test_scene, Path(fabmap_dir or out), progress, log))
         model.add_places(db, progress)

@@ -66,8 +66,12 @@ class CompareConfig:
     fabmap_train_scene: str | None = None   # None: residential for city, city for any other scene
     fabmap_train_frames: int = 300
     fabmap_train_spacing_m: float = 2.0
+    database_step: int = 1                  # the baselines' database: every this many database frames (EFM's
+                                            # time per query grows with the database's image count)
 
     def __post_init__(self):
+        if self.database_step < 1:
+            raise ConfigError(f"database_step: expected an integer >= 1, got {self.database_step}")
         bad = [b for b in self.baselines if b not in BASELINES]
         if bad:
             raise ConfigError(f"baselines: unknown {bad}; expected a subset of {list(BASELINES)}")

@@ -123,6 +123,62 @@ def test_a_belief_locked_on_the_wrong_place_recovers():
     assert recovered is not None and recovered <= 3
 
 
+def detour():
+    """Poses along the candidate line, a detour off it (north, east, south) and back onto it further on."""
+    h = math.pi / 2
+    return np.array([(20, 0, 0), (30, 0, 0), (40, 0, 0), (50, 0, 0), (55, 10, h), (55, 20, h), (55, 30, h),
+                     (65, 35, 0), (75, 35, 0), (85, 30, -h), (85, 20, -h), (85, 10, -h), (95, 0, 0), (105, 0, 0),
+                     (115, 0, 0)], float)
+
+
+def run_detour(config):
+    """Track the detour with noise-free odometry: on the line each frame shows the truth and a look-alike,
+    off it only a look-alike (a street like the mapped one). Returns (p_on, argmax x, on the line) per frame."""
+    cands, poses = line_candidates(), detour()
+    rng = np.random.default_rng(1)
+    t = Tracker(cands, config)
+    out = []
+    for k, pose in enumerate(poses):
+        on_line = abs(pose[1]) < 1e-9
+        alias = 130.0 + 60.0 * rng.random()
+        if k:
+            t.predict(relative_motion(Pose2(*poses[k - 1]), Pose2(*pose)))
+        b = t.fuse(peaks(cands, [pose[0], alias] if on_line else [alias]))
+        out.append((t.p_on, argmax_x(b, cands), on_line))
+    return out
+
+
+def test_leaving_the_map_is_recognised_by_the_odometry_and_the_return_is_found():
+    out = run_detour(TrackConfig())
+    poses = detour()
+    for (p_on, x, on_line), pose in zip(out, poses):
+        if on_line:
+            assert p_on > 0.99, pose                      # on the mapped line: inside ...
+            assert abs(x - pose[0]) <= 0.5, pose          # ... and at the truth, the look-alike rejected
+        else:
+            assert p_on < 0.01, pose                      # off it, although every image shows a look-alike
+    # without off-map hypotheses the lost probability is dropped: P(on the map) stays 1, and after the
+    # detour the belief starts again from the images alone
+    plain = run_detour(TrackConfig(off_map=False))
+    assert all(p == 1.0 for p, _, _ in plain)
+
+
+def test_off_map_hypotheses_are_grouped_and_bounded():
+    cands = line_candidates()
+    t = Tracker(cands, TrackConfig(off_map_hypotheses=2, revive=0.0))
+    t.fuse(peaks(cands, [20.0, 60.0, 100.0, 140.0]))        # four separate peaks ...
+    t.predict(np.array([0.0, 10.0, 0.0]))                    # ... all moved 10 m sideways, off the line
+    assert len(t.off) == 2 and t.p_on == pytest.approx(0.0, abs=1e-9)
+    assert t.off[:, 3].sum() == pytest.approx(1.0)
+    assert t.belief.sum() == pytest.approx(1.0) and np.all(np.isfinite(t.belief))
+    t.predict(np.array([0.0, -10.0, 0.0]))                   # straight back: both groups land again
+    assert len(t.off) == 0 and t.p_on == pytest.approx(1.0)
+    with pytest.raises(ConfigError, match="off_map_hypotheses"):
+        TrackConfig(off_map_hypotheses=0)
+    with pytest.raises(ConfigError, match="inlier_threshold"):
+        TrackConfig(inlier_threshold=0.0)
+
+
 def test_tracker_errors():
     cands = line_candidates()
     with pytest.raises(ConfigError, match="sigma_m"):
@@ -164,7 +220,9 @@ def test_localizer_tracks_a_stream_like_single_calls():
     for a, b in zip(manual, streamed):
         assert a.estimate == b.estimate and np.array_equal(a.posterior, b.posterior)
     single = loc.localize(frames[-1])
-    assert single.inlier_score == manual[-1].inlier_score             # the inlier test stays the frame's
+    # tracked, the inlier test is the tracker's P(on the map): the frames follow the database path
+    assert manual[-1].inlier_score == t.p_on and t.p_on > 0.99 and manual[-1].inlier
+    assert single.inlier_score != manual[-1].inlier_score             # single-image: peak / mean score
     # the answer is the belief times the frame's posterior (plus the floor), renormalised
     t_before = loc.tracker()
     for f, o in zip(frames[:-1], odo[:-1]):
