@@ -114,3 +114,13 @@ def bench_localize(sizes_km=(0.25, 1.0, 4.0), work=None, scene: str = "loop", qu
                "localizer_init_s": round(t3 - t2, 1), "peak_rss_mb": round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024, 1),
                "load_avg_1m": round(os.getloadavg()[0], 2)}    # above the cores used: timings shared the CPU
         del loc
+
+
+def bench_soak(steps: int = 20000, queries: int = 2000, scene: str = "city", emit=None, **kw) -> dict:
+    """The soak benchmark (:mod:`satloc_env.soak`): RSS and open file descriptors over ``steps`` env steps with
+    the localizer and tracking, then over ``queries`` queries of ``localize_stream``. ``emit`` receives every
+    sample and summary as it comes (a JSON-able dict); ``kw`` are further :class:`satloc_env.soak.SoakConfig`
+    fields. Returns the summaries and samples (see :func:`satloc_env.soak.soak`)."""
+    from .soak import SoakConfig, soak
+
+    return soak(SoakConfig(steps=steps, queries=queries, scene=scene, **kw), emit=emit)

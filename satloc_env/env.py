@@ -2,7 +2,9 @@
 
 Configuration is :class:`EnvConfig` (``SatLocEnv.default_config()`` as a dict); any field can be given as a
 keyword to ``gymnasium.make`` and the per-episode ones (see :data:`EPISODE_KEYS`) again in
-``reset(options={...})``. Unknown keys raise :class:`satloc.ConfigError`.
+``reset(options={...})``. Unknown keys, wrong types and out-of-range values raise :class:`satloc.ConfigError`;
+actions that are not 2 finite numbers raise :class:`ActionError` (a ValueError), finite ones are clipped to
+the action space (see :class:`SatLocEnv`).
 
 With a localizer (``localizer=``: ``"auto"``, the default, a build directory or a
 :class:`satloc.localizer.Localizer`), every ``localize_every`` steps the stereo pair the agent sees is
@@ -16,7 +18,7 @@ import os
 import weakref
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Literal
+from typing import Any, Literal, Mapping
 
 import cv2
 import gymnasium as gym
@@ -24,9 +26,10 @@ import numpy as np
 from gymnasium import spaces
 
 from satloc.config import from_dict, override, to_dict
-from satloc.errors import ConfigError
+from satloc.errors import ConfigError, FormatError
 from satloc.geometry import Pose2, StereoCamera
 from satloc.labels import NUM_CLASSES
+from satloc.persist import read_json
 from satloc.satmap import SatelliteMap
 from satloc.sequence import Frame
 from satloc.track import compose_motion
@@ -64,6 +67,51 @@ class EnvConfig:
                                             # observations (satloc.track); a new episode starts a new belief
     localize_every: int = 1                 # localize at the steps that are multiples of this (reset: step 0)
     reward: Literal["none", "neg_error"] = "none"  # neg_error: minus the localization error (metres)
+
+    def __post_init__(self):
+        # types are checked by satloc.config.from_dict; here the values (NaN and inf included), so that a bad
+        # value fails when the env is made or reset, naming the field, instead of giving NaN poses later
+        limits = VehicleParams()
+        _check_finite(self, "lane_offset_m")
+        _check_finite(self, "start_s_m", lo=0.0)   # its upper bound (the route's length) is checked at reset
+        _check_finite(self, "speed_mps", lo=0.0, hi=limits.max_speed_mps)
+        _check_finite(self, "dt", lo=0.0, lo_open=True)
+        _check_finite(self, "zfar_m", lo=1.0)
+        _check_noise(self.odometry_noise)
+        for k in ("aliasing", "occlusion", "appearance"):
+            v = getattr(self, k)
+            if v is not None and not 0.0 <= v <= 1.0:   # False for NaN
+                raise ConfigError(f"{k}: expected a value in [0, 1] (or None: the scene's), got {v}")
+        for k in ("max_steps", "anisotropy", "localize_every"):
+            if getattr(self, k) < 1:
+                raise ConfigError(f"{k}: expected an integer >= 1, got {getattr(self, k)}")
+        if not self.scene:
+            raise ConfigError("scene: expected a shipped scene name, a scene YAML or a saved scene directory, got ''")
+
+
+def _check_finite(cfg, name: str, lo: float | None = None, hi: float | None = None, lo_open: bool = False) -> None:
+    """``cfg.name`` must be finite and within [lo, hi] (``lo_open``: above ``lo``); else :class:`ConfigError`."""
+    v = getattr(cfg, name)
+    below = lo is not None and (v <= lo if lo_open else v < lo)
+    if not math.isfinite(v) or below or (hi is not None and v > hi):
+        if lo is None and hi is None:
+            rng = "a finite number"
+        elif hi is None:
+            rng = f"a finite number {'>' if lo_open else '>='} {lo:g}"
+        else:
+            rng = f"a finite number in [{lo:g}, {hi:g}]"
+        raise ConfigError(f"{name}: expected {rng}, got {v}")
+
+
+def _check_noise(noise) -> None:
+    if len(noise) != 2 or not all(math.isfinite(v) and v >= 0 for v in noise):
+        raise ConfigError(f"odometry_noise: expected 2 non-negative numbers (finite): the std as a fraction of the "
+                          f"distance and in radians per step, got {tuple(noise)}")
+
+
+class ActionError(ValueError):
+    """An action the environment cannot apply (wrong shape or type, NaN or inf); the message says what was
+    expected. A ValueError, as gymnasium's own checks raise for bad actions."""
 
 
 #: the value of ``EnvConfig.localizer`` when a :class:`satloc.localizer.Localizer` instance was passed.
@@ -145,6 +193,30 @@ def _split_localizer(config: dict, owner: str = "SatLocEnv", allow_auto: bool = 
     return config, value
 
 
+def check_reset_options(options: Any, episode_keys: frozenset, cls: type) -> dict:
+    """``reset(options=...)`` as a dict of per-episode keys; :class:`ConfigError` naming the keys that are unknown
+    (not a field of ``cls``) or fixed when the env is made. Values are checked by the caller (``override``)."""
+    if options is None:
+        return {}
+    if not isinstance(options, Mapping):
+        raise ConfigError(f"reset options: expected a dict of per-episode keys {sorted(episode_keys)}, got "
+                          f"{type(options).__name__} {options!r}")
+    options = dict(options)
+    bad_type = [k for k in options if not isinstance(k, str)]
+    if bad_type:
+        raise ConfigError(f"reset options: keys must be strings, got {bad_type}")
+    fields = {f.name for f in dataclasses.fields(cls)}
+    unknown = sorted(k for k in options if k not in fields)
+    fixed = sorted(k for k in options if k in fields and k not in episode_keys)
+    if unknown:
+        raise ConfigError(f"reset options: {unknown} cannot change per episode: unknown key(s) (not a field of "
+                          f"{cls.__name__}); the per-episode keys are {sorted(episode_keys)}")
+    if fixed:
+        raise ConfigError(f"reset options: {fixed} cannot change per episode: fixed when the env is made "
+                          f"(give them to gymnasium.make); the per-episode keys are {sorted(episode_keys)}")
+    return options
+
+
 def check_localizer_config(cfg, have_instance: bool, allow_auto: bool = True):
     """``cfg`` (an env config dataclass with the fields ``localizer``, ``localizer_track``, ``localize_every`` and
     ``reward``) with ``localizer`` normalised ("none" -> None, a build directory -> its path); raises
@@ -175,20 +247,104 @@ def check_localizer_config(cfg, have_instance: bool, allow_auto: bool = True):
     return cfg
 
 
-def check_localizer_map(localizer, satmap, what: str) -> None:
-    """Refuse a localizer whose satellite map (size, resolution, origin) is not ``satmap`` (the map of
-    ``what``)."""
+def build_identity(build_dir: str | os.PathLike) -> dict:
+    """What a build directory tells of the data it was built from, as far as it is known: ``scene`` and
+    ``aliasing`` (a simulated database pass's ``meta``, or an auto cache entry's key), ``geo_frame`` (a real-data
+    database's frame, as a dict) and always ``source``, the build described in words for messages."""
+    b = Path(build_dir)
+    out: dict = {"source": f"the build {str(b)!r}"}
+    meta: dict = {}
+    try:
+        db = read_json(b / "build.json", "build").get("database")
+        if db and (Path(db) / "sequence.json").is_file():
+            meta = read_json(Path(db) / "sequence.json", "sequence").get("meta") or {}
+        if "scene" not in meta and (b / "autoloc.json").is_file():
+            key = read_json(b / "autoloc.json", "autoloc_cache").get("key") or {}
+            meta = {**meta, **{k: key[k] for k in ("scene", "aliasing") if k in key}}
+    except (FormatError, OSError, AttributeError):  # an unreadable record only loses the description
+        pass
+    for k in ("scene", "aliasing", "geo_frame"):
+        if meta.get(k) is not None:
+            out[k] = meta[k]
+    if isinstance(out.get("scene"), str):
+        out["source"] += f" of scene {out['scene']!r}" + (f" (aliasing {out['aliasing']:g})"
+                                                           if isinstance(out.get("aliasing"), (int, float)) else "")
+    return out
+
+
+def _describe_map(shape, mpp: float, origin) -> str:
+    return f"{shape[1]}x{shape[0]} px at {mpp:g} m/px, top-left corner ({origin[0]:g}, {origin[1]:g}) m"
+
+
+#: the content check of :func:`check_localizer_map`: the two maps are compared in cells of this many pixels a
+#: side; a cell differs when its mean colour differs by more than MAP_CELL_LEVELS grey levels, and the maps
+#: differ when more than MAP_MAX_DIFFERING of the cells do. Measured: the same map 0 % (bilateral filtering and
+#: float16 storage move a cell's mean by under 1 level); city against city with aliasing 0.5, 22 %; two
+#: one-block scenes of different seeds, 43 %.
+MAP_CELL_PX = 8
+MAP_CELL_LEVELS = 20.0
+MAP_MAX_DIFFERING = 0.02
+
+
+def _rgb_channels(extractor) -> slice | None:
+    """The channels of the localizer's satellite features that are the map's (bilateral-filtered) colours in
+    [0, 1], or None when it has none (the ``semantic`` feature set)."""
+    from satloc.features import BilateralRGB, FeatureStack
+
+    if isinstance(extractor, BilateralRGB):
+        return slice(0, 3)
+    if (isinstance(extractor, FeatureStack) and extractor.extractors
+            and isinstance(extractor.extractors[0], BilateralRGB) and extractor.weights[0] == 1.0):
+        return slice(0, 3)
+    return None
+
+
+def map_difference(localizer, satmap: SatelliteMap) -> float | None:
+    """The fraction of cells in which the colours of the map the localizer was built on (its satellite features'
+    RGB channels) differ from ``satmap``'s image (see :data:`MAP_CELL_PX`); None when they cannot be compared (no
+    RGB channels, or maps of different sizes)."""
+    sf = localizer.satfeat
+    rgb = _rgb_channels(localizer.extractor)
+    img = satmap.image
+    if rgb is None or sf.features.shape[:2] != img.shape[:2] or sf.features.shape[2] < 3 or img.ndim != 3:
+        return None
+    c = MAP_CELL_PX
+    h, w = (img.shape[0] // c) * c, (img.shape[1] // c) * c
+    if h == 0 or w == 0:
+        return None
+    diff = np.zeros((h // c, w // c), np.float64)
+    for ch in range(3):  # one channel at a time: a float32 copy of one channel of the map, not of all features
+        a = sf.features[:h, :w, rgb.start + ch].astype(np.float32).reshape(h // c, c, w // c, c).mean((1, 3)) * 255
+        b = img[:h, :w, ch].astype(np.float32).reshape(h // c, c, w // c, c).mean((1, 3))
+        diff += np.abs(a - b) / 3
+    return float(np.mean(diff > MAP_CELL_LEVELS))
+
+
+def check_localizer_map(localizer, satmap, what: str, source: str = "the localizer") -> float | None:
+    """Refuse a localizer whose satellite map is not ``satmap`` (the map of ``what``): another size, resolution or
+    origin, or (where the localizer's features hold the map's colours) other content. ``source`` names the
+    localizer in the message (e.g. its build directory and scene). Returns :func:`map_difference` (None: the
+    content could not be compared)."""
     sf = getattr(localizer, "satfeat", None)
     if sf is None:
-        return
+        return None
     sm = satmap
     same = (sf.features.shape[:2] == sm.image.shape[:2]
             and abs(sf.meters_per_pixel - sm.meters_per_pixel) < 1e-9
             and np.allclose(sf.origin, sm.origin, atol=1e-6))
     if not same:
-        raise ConfigError(f"localizer: its satellite map ({sf.features.shape[1]}x{sf.features.shape[0]} px at "
-                          f"{sf.meters_per_pixel} m/px) is not the map of {what} "
-                          f"({sm.image.shape[1]}x{sm.image.shape[0]} px at {sm.meters_per_pixel} m/px)")
+        raise ConfigError(f"localizer: {source} was built on a satellite map "
+                          f"({_describe_map(sf.features.shape, sf.meters_per_pixel, sf.origin)}) that is not the map "
+                          f"of {what} ({_describe_map(sm.image.shape, sm.meters_per_pixel, sm.origin)}); a localizer "
+                          "localizes only on the map it was built on")
+    frac = map_difference(localizer, sm)
+    if frac is not None and frac > MAP_MAX_DIFFERING:
+        raise ConfigError(f"localizer: {source} was built on a satellite map of the same size as the map of {what} "
+                          f"({_describe_map(sm.image.shape, sm.meters_per_pixel, sm.origin)}) but with other content "
+                          f"({frac:.0%} of its {MAP_CELL_PX}x{MAP_CELL_PX}-pixel cells differ by more than "
+                          f"{MAP_CELL_LEVELS:g} grey levels): it is not the map of {what}; a localizer localizes only "
+                          "on the map it was built on")
+    return frac
 
 
 class LocalizationState:
@@ -279,18 +435,19 @@ class LocalizationState:
         return out
 
 
-def check_localizer_camera(localizer, camera: StereoCamera, what: str) -> None:
-    """Refuse a localizer built for another camera than ``camera`` (``what`` names where it comes from)."""
+def check_localizer_camera(localizer, camera: StereoCamera, what: str, source: str = "the localizer") -> None:
+    """Refuse a localizer built for another camera than ``camera`` (``what`` names where it comes from, ``source``
+    the localizer); the message gives both cameras' differing fields."""
     c = localizer.camera
     if (c.width, c.height) != (camera.width, camera.height):
-        raise ConfigError(f"localizer: built for {c.width}x{c.height} images, but {what} has "
+        raise ConfigError(f"localizer: {source} was built for {c.width}x{c.height} images, but {what} has "
                           f"{camera.width}x{camera.height} images")
     diff = [f"{f.name} {getattr(c, f.name):g} vs {getattr(camera, f.name):g}"
             for f in dataclasses.fields(StereoCamera)
             if not math.isclose(getattr(c, f.name), getattr(camera, f.name), rel_tol=1e-6, abs_tol=1e-6)]
     if diff:
-        raise ConfigError(f"localizer: built for another camera than that of {what} (localizer vs {what}: "
-                          + ", ".join(diff) + ")")
+        raise ConfigError(f"localizer: {source} was built for another camera than that of {what} (localizer vs "
+                          f"{what}: " + ", ".join(diff) + ")")
 
 
 class SatLocEnv(SharedSpecMixin, gym.Env):
@@ -300,8 +457,25 @@ class SatLocEnv(SharedSpecMixin, gym.Env):
     motion since the previous step in the previous vehicle frame, with noise; ``depth`` (float32 metres, 0 =
     nothing) and ``labels`` (uint8 class ids) when enabled.
 
-    Action: Box [speed m/s, yaw rate rad/s], applied through a kinematic bicycle model. ``autopilot_action()``
-    returns the route follower's action for scripts.
+    Action: Box [speed m/s, yaw rate rad/s] = ``[0, -1]`` to ``[20, 1]``, applied through a kinematic bicycle
+    model. ``autopilot_action()`` returns the route follower's action for scripts.
+
+    * An action must be 2 finite numbers of shape (2,) (a list, a tuple or an integer or float array). Another
+      shape, a non-numeric dtype (strings, booleans, objects), NaN or inf raise :class:`ActionError` (a
+      ``ValueError``) naming what was expected; the episode is left as it was.
+    * Finite values outside the Box are **clipped** to it, each component on its own: a speed below 0 is 0 (the
+      car does not reverse), above 20 is 20 m/s; a yaw rate beyond +-1 rad/s is +-1. The bicycle model then
+      limits the steering angle to +-0.6 rad (wheelbase 2.7 m), so the yaw rate actually applied is at most
+      ``speed * tan(0.6) / 2.7`` (and 0 at standstill). ``info["odometry_true"]`` shows the motion that resulted.
+
+    Configuration errors (:class:`satloc.ConfigError`, naming the field): unknown keys, wrong types (a string
+    where a number is expected, a bool for a number), NaN or inf in any number, and values out of range:
+    ``speed_mps`` in [0, 20], ``dt`` > 0, ``start_s_m`` in [0, route length] (checked at reset),
+    ``max_steps``, ``localize_every`` and ``anisotropy`` >= 1, the knobs in [0, 1], ``odometry_noise`` two
+    non-negative numbers. ``reset(options=...)`` must be a dict of keys in :data:`EPISODE_KEYS`; a key that is
+    unknown, or fixed when the env is made (``resolution``, ``localizer``, ...), is named in the error. Options
+    hold for one episode only. After a reset that raised, ``step`` raises ``RuntimeError`` until a reset
+    succeeds.
 
     ``info``: ``pose`` (x, y, yaw), ``odometry_true``, ``route_s``, ``off_road``, ``route_complete``,
     ``step`` - all fixed-shape numpy values.
@@ -327,6 +501,16 @@ class SatLocEnv(SharedSpecMixin, gym.Env):
     odometry observations move between localizations (:mod:`satloc.track`): the posterior, estimate and
     error are then the tracked ones. The belief starts again at every reset. A Localizer instance whose
     ``config.track`` is set is tracked too.
+
+    A localizer given as a build directory or an instance is checked when the env is made, and again whenever
+    ``reset(options={"scene": ...})`` changes the scene: :class:`satloc.ConfigError` if it was built for
+    another camera (image size, intrinsics, baseline, mounting height or pitch: both cameras' values are given)
+    or on another satellite map than the scene's: another size, resolution or origin, or the same size but
+    other content (the localizer's features hold the map's colours for the ``rgb`` and ``default`` feature
+    sets; more than :data:`MAP_MAX_DIFFERING` of 8x8-pixel cells differing by 20 grey levels, e.g. the same
+    scene at another ``aliasing``). For the ``semantic`` feature set, whose features hold no colours, a build
+    directory's recorded scene and aliasing are compared instead. The message names the localizer (its build
+    directory and the scene it records, where known) and the scene. ``"auto"`` always builds for the scene.
 
     A frame in which no grid sample has valid stereo depth (e.g. a wall fills the view) has no result: the
     localizer raises :class:`satloc.ConfigError`, which is caught; ``estimate`` and ``error_m`` are NaN,
@@ -373,8 +557,12 @@ class SatLocEnv(SharedSpecMixin, gym.Env):
         self.pose = Pose2()
         self._last_obs: dict | None = None
         self._last_depth: np.ndarray | None = None
+        self._ready = False                    # True after a successful reset
+        self._preloaded: tuple | None = None   # (scene key, Scene) loaded by __init__ for the localizer check
+        self._loc_identity: dict = {"source": "the localizer"}   # what is known of the localizer's data
         if instance is not None:
             self.localizer = instance
+            self._loc_identity = {"source": "the Localizer instance"}
             self.config = dataclasses.replace(self.config, localizer_mode=instance.config.mode,
                                               localizer_refine=instance.config.refine,
                                               localizer_track=self.config.localizer_track or instance.config.track)
@@ -383,8 +571,14 @@ class SatLocEnv(SharedSpecMixin, gym.Env):
 
             self.localizer = load_cached_localizer(self.config.localizer, self.config.localizer_mode,
                                                    self.config.localizer_refine)
+            self._loc_identity = build_identity(self.config.localizer)
         if self.localizer is not None:
             self._check_localizer_camera()
+            # a localizer of another scene fails here, when the env is made, not at the first reset
+            key = (self.config.scene, self.config.aliasing)
+            scene = load_scene(*key)
+            self._check_localizer_map(scene)
+            self._preloaded = (key, scene)
         self._loc.track = self.config.localizer_track
 
     # --- localization state (kept in self._loc, shared code with the replay environment) ----------------
@@ -415,14 +609,26 @@ class SatLocEnv(SharedSpecMixin, gym.Env):
         self.config = check_localizer_config(self.config, have_instance, allow_auto=True)
 
     def _check_localizer_camera(self) -> None:
-        c, e = self.localizer.camera, self.camera
-        if (c.width, c.height) != (e.width, e.height):
-            raise ConfigError(f"localizer: built for {c.width}x{c.height} images, but the environment renders "
-                              f"{e.width}x{e.height} (resolution {self.config.resolution!r})")
+        """Refuse a localizer built for another camera: other image size, intrinsics, baseline, mounting."""
+        check_localizer_camera(self.localizer, self.camera, f"the environment (resolution {self.config.resolution!r})",
+                               self._loc_identity["source"])
 
     def _check_localizer_map(self, scene: Scene) -> None:
-        """A build directory or instance is tied to one satellite map: refuse a scene with another one."""
-        check_localizer_map(self.localizer, scene.satmap, f"scene {scene.name!r}")
+        """A build directory or instance is tied to one satellite map: refuse a scene with another one (size,
+        resolution, origin; content where the localizer's features hold the map's colours, else the scene and
+        aliasing its build directory records)."""
+        spec = getattr(scene, "spec", None)
+        aliasing = getattr(getattr(spec, "knobs", None), "aliasing", None)
+        what = f"scene {scene.name!r}" + (f" (aliasing {aliasing:g})" if aliasing is not None else "")
+        ident = self._loc_identity
+        compared = check_localizer_map(self.localizer, scene.satmap, what, ident["source"]) is not None
+        if not compared and isinstance(ident.get("scene"), str):
+            other = (ident["scene"] != scene.name
+                     or (aliasing is not None and isinstance(ident.get("aliasing"), (int, float))
+                         and not math.isclose(ident["aliasing"], aliasing, abs_tol=1e-9)))
+            if other:
+                raise ConfigError(f"localizer: {ident['source']} is not a build of {what}; a localizer localizes only "
+                                  "on the map it was built on")
 
     @property
     def scene(self) -> Scene:
@@ -434,7 +640,11 @@ class SatLocEnv(SharedSpecMixin, gym.Env):
         key = (cfg.scene, cfg.aliasing)
         if key == self._scene_key:
             return
-        scene = load_scene(cfg.scene, cfg.aliasing)
+        if self._preloaded is not None and self._preloaded[0] == key:
+            scene = self._preloaded[1]       # loaded and checked by __init__
+        else:
+            scene = load_scene(cfg.scene, cfg.aliasing)
+        self._preloaded = None
         from .render import StereoRenderer
 
         if self.config.localizer == "auto":
@@ -442,6 +652,7 @@ class SatLocEnv(SharedSpecMixin, gym.Env):
 
             self.localizer = auto_localizer(cfg.scene, cfg.aliasing, cfg.resolution, cfg.localizer_mode,
                                             refine=cfg.localizer_refine)
+            self._loc_identity = {"source": f"the auto localizer of scene {scene.name!r}"}
             self._check_localizer_camera()
         elif self.localizer is not None:
             self._check_localizer_map(scene)
@@ -454,25 +665,25 @@ class SatLocEnv(SharedSpecMixin, gym.Env):
     # --- gym API ----------------------------------------------------------------------------------
     def reset(self, *, seed: int | None = None, options: dict | None = None):
         super().reset(seed=seed)
-        options = dict(options or {})
-        bad = sorted(set(options) - EPISODE_KEYS)
-        if bad:
-            known = sorted(EPISODE_KEYS)
-            raise ConfigError(f"reset options: {bad} cannot change per episode (or are unknown); allowed: {known}")
+        self._ready = False                    # until this reset succeeds, step() refuses
+        options = check_reset_options(options, EPISODE_KEYS, EnvConfig)
         cfg = override(self.config, options, "reset options")
-        self._episode = cfg
         self._ensure_scene(cfg)
         scene = self.scene
         route_name = cfg.route or scene.spec.database_route
         if route_name not in scene.routes:
             raise ConfigError(f"route: {route_name!r} is not a route of scene {scene.name!r} ({sorted(scene.routes)})")
-        self.route = scene.routes[route_name]
+        route = scene.routes[route_name]
+        if not cfg.random_start and cfg.start_s_m > route.length:
+            raise ConfigError(f"start_s_m: expected a position along route {route_name!r} of scene {scene.name!r}, in "
+                              f"[0, {route.length:.1f}] m, got {cfg.start_s_m:g}")
         knobs = scene.spec.knobs
         occ = knobs.occlusion if cfg.occlusion is None else cfg.occlusion
         app = knobs.appearance if cfg.appearance is None else cfg.appearance
         for k, val in (("occlusion", occ), ("appearance", app)):
             if not 0.0 <= val <= 1.0:
                 raise ConfigError(f"{k}: expected a value in [0, 1], got {val}")
+        self._episode, self.route = cfg, route
         rng = self.np_random
         s0 = float(rng.uniform(0, self.route.length * 0.9)) if cfg.random_start else cfg.start_s_m
         self.pose = self.route.pose_at(s0, cfg.lane_offset_m)
@@ -483,12 +694,13 @@ class SatLocEnv(SharedSpecMixin, gym.Env):
         self._loc.reset()                      # tracking (localizer_track): a new belief each episode
         obs = self._observe(np.zeros(3, np.float32))
         self._localize()
+        self._ready = True
         return obs, self._info(np.zeros(3), off_road=False)
 
     def step(self, action):
-        a = np.asarray(action, dtype=np.float64).reshape(-1)
-        if a.shape != (2,) or not np.all(np.isfinite(a)):
-            raise ValueError(f"action: expected 2 finite values [speed, yaw_rate], got {action!r}")
+        if not self._ready:
+            raise RuntimeError("call reset() first" + (" (the last reset raised an error)" if self._scene else ""))
+        a = self._check_action(action)
         cfg = self._episode
         prev = self.pose
         self.pose, _, _ = step_bicycle(prev, a[0], a[1], cfg.dt, self.vehicle)
@@ -510,6 +722,25 @@ class SatLocEnv(SharedSpecMixin, gym.Env):
         if self.config.reward == "neg_error" and np.isfinite(info["error_m"]):
             reward = -float(info["error_m"])
         return obs, reward, terminated, truncated, info
+
+    def _check_action(self, action) -> np.ndarray:
+        """The action as 2 float64 values clipped to the action space; :class:`ActionError` for an action of
+        another shape or type or with NaN/inf."""
+        box = self.action_space
+        what = (f"an action of shape (2,): [speed m/s in [{box.low[0]:g}, {box.high[0]:g}], yaw rate rad/s in "
+                f"[{box.low[1]:g}, {box.high[1]:g}]], finite numbers (out-of-range values are clipped to that range)")
+        try:
+            a = np.asarray(action)
+        except (ValueError, TypeError) as e:   # ragged nested lists
+            raise ActionError(f"action: expected {what}; got {action!r} ({e})") from None
+        if a.dtype.kind not in "iuf":
+            raise ActionError(f"action: expected {what}; got {action!r} of dtype {a.dtype}")
+        if a.shape != (2,):
+            raise ActionError(f"action: expected {what}; got shape {a.shape}: {action!r}")
+        a = a.astype(np.float64)
+        if not np.all(np.isfinite(a)):
+            raise ActionError(f"action: expected {what}; got non-finite values {a.tolist()}")
+        return np.clip(a, box.low.astype(np.float64), box.high.astype(np.float64))
 
     def autopilot_action(self) -> np.ndarray:
         """The route follower's action for the current pose (a scripted driver)."""

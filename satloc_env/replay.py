@@ -38,8 +38,9 @@ from satloc.persist import read_json
 from satloc.satmap import SatelliteMap
 from satloc.sequence import Sequence
 
-from .env import (LOCALIZER_INSTANCE, PANEL_M, LocalizationState, SharedSpecMixin, _split_localizer,
-                  check_localizer_camera, check_localizer_config, compose_view, unshare)
+from .env import (LOCALIZER_INSTANCE, PANEL_M, ActionError, LocalizationState, SharedSpecMixin, _check_noise,
+                  _split_localizer, build_identity, check_localizer_camera, check_localizer_config,
+                  check_reset_options, compose_view, unshare)
 
 #: the value of ``ReplayConfig.sequence`` / ``.map`` when an object (a Sequence, a SatelliteMap) was passed.
 INSTANCE = "<instance>"
@@ -71,6 +72,18 @@ class ReplayConfig:
     localize_every: int = 1                 # localize at reset and at the steps that are multiples of this
     reward: Literal["none", "neg_error"] = "none"  # neg_error: minus the localization error (metres)
 
+    def __post_init__(self):
+        # types are checked by satloc.config.from_dict; here the values that do not depend on the data (the
+        # frame indices are checked against the sequence by SatLocReplayEnv)
+        for k in ("stride", "max_skip", "localize_every"):
+            if getattr(self, k) < 1:
+                raise ConfigError(f"{k}: expected an integer >= 1, got {getattr(self, k)}")
+        if self.start_frame < 0:
+            raise ConfigError(f"start_frame: expected an index >= 0, got {self.start_frame}")
+        if self.end_frame is not None and self.end_frame < 1:
+            raise ConfigError(f"end_frame: expected an index >= 1 or None, got {self.end_frame}")
+        _check_noise(self.odometry_noise)
+
 
 #: keys that ``reset(options=...)`` may change; the others fix the spaces, the data or the localizer.
 EPISODE_KEYS = frozenset({"start_frame", "end_frame", "random_start", "stride", "odometry_noise"})
@@ -97,8 +110,17 @@ class SatLocReplayEnv(SharedSpecMixin, gym.Env):
     (call ``reset``). ``terminated`` is always False: a replay cannot leave the road.
 
     **Action.** ``Discrete(max_skip, start=1)``: a skip count, the number of strides to advance. With the
-    default ``max_skip=1`` the only action is 1 (one stride per step, whatever the agent wants). A skip that
-    would run past the last frame stops at the last frame reachable in whole strides.
+    default ``max_skip=1`` the only action is 1 (one stride per step). A skip that would run past the last frame
+    stops at the last frame reachable in whole strides. An action must be an integer (a Python or numpy integer,
+    or an integer array of one element) in [1, ``max_skip``]: anything else (0 or above ``max_skip``, a float
+    such as 1.0 or NaN, inf, a bool, a string, an array of another size) raises
+    :class:`satloc_env.env.ActionError` (a ValueError) naming the range, and the step is not taken. Unlike
+    SatLoc-v0's Box, a Discrete action out of range is not clipped.
+
+    **Configuration errors** (:class:`satloc.ConfigError`, naming the field): unknown keys, wrong types,
+    ``stride``, ``max_skip`` and ``localize_every`` below 1, frame indices outside the sequence,
+    ``odometry_noise`` not two finite non-negative numbers. ``reset(options=...)`` must be a dict of keys in
+    :data:`EPISODE_KEYS`; an unknown key, or one fixed when the env is made, is named in the error.
 
     **Observation** (Dict), as SatLoc-v0's: ``left``, ``right`` uint8 RGB images of the frame; ``odometry``
     float32 (dx, dy, dyaw), the motion from the previous step's frame to this one in the previous frame's
@@ -122,8 +144,13 @@ class SatLocReplayEnv(SharedSpecMixin, gym.Env):
 
     **Localizer**: None (default), a build directory (``satloc build`` + ``satloc train-projection``, loaded in
     ``localizer_mode``, once per process) or a :class:`satloc.localizer.Localizer` (its own mode holds). It
-    must have been built for the sequence's camera (every :class:`StereoCamera` field); ``"auto"`` is refused
-    (it builds from a simulated scene).
+    must have been built for the sequence's camera (every :class:`StereoCamera` field; the message gives both
+    cameras' differing values) and for the sequence's data: :class:`satloc.ConfigError`, naming the localizer
+    (its build directory and recorded scene where known) and the sequence, when the two record different
+    geographic frames (``meta["geo_frame"]`` of the sequence and of the build's database) or different
+    simulated scenes or aliasing (``meta["scene"]``, ``meta["aliasing"]`` of a recording; an auto cache
+    entry's key), or when none of the sequence's poses lies on the localizer's satellite map. ``"auto"`` is
+    refused (it builds from a simulated scene).
 
     **Reward**: 0, or with ``reward="neg_error"`` minus ``error_m`` (0 while there is no finite error).
 
@@ -160,8 +187,10 @@ class SatLocReplayEnv(SharedSpecMixin, gym.Env):
             raise ConfigError(f"sequence {self.sequence.name!r}: has {len(self.sequence)} frame(s); a replay needs "
                               "at least 2")
         # the localizer
+        self._loc_identity: dict = {"source": "the localizer"}   # what is known of the localizer's data
         if loc_instance is not None:
             self._loc.localizer = loc_instance
+            self._loc_identity = {"source": "the Localizer instance"}
             c = loc_instance.config
             cfg = dataclasses.replace(cfg, localizer_mode=c.mode, localizer_refine=c.refine,
                                       localizer_track=cfg.localizer_track or c.track)
@@ -169,6 +198,7 @@ class SatLocReplayEnv(SharedSpecMixin, gym.Env):
             from .autoloc import load_cached_localizer
 
             self._loc.localizer = load_cached_localizer(cfg.localizer, cfg.localizer_mode, cfg.localizer_refine)
+            self._loc_identity = build_identity(cfg.localizer)
         self._loc.track = cfg.localizer_track
         self._seq_dir = getattr(self.sequence, "_dir", None)   # a recording's folder (its map/ is beside it)
         if self.localizer is not None:
@@ -179,7 +209,9 @@ class SatLocReplayEnv(SharedSpecMixin, gym.Env):
         self.config = cfg
         self._episode = self._check_episode(cfg, "SatLocReplayEnv config")
         if self.localizer is not None:
-            check_localizer_camera(self.localizer, self.camera, f"sequence {self.sequence.name!r}")
+            check_localizer_camera(self.localizer, self.camera, f"sequence {self.sequence.name!r}",
+                                   self._loc_identity["source"])
+            self._check_localizer_data()
             if self._loc.needs_frame_depth and self.sequence[self._episode.start_frame].depth is None:
                 raise ConfigError(f"localizer: its depth_source is 'frame', but sequence {self.sequence.name!r} has "
                                   "no depth channel")
@@ -238,9 +270,41 @@ class SatLocReplayEnv(SharedSpecMixin, gym.Env):
             raise ConfigError(f"{where}: start_frame: expected an index in [0, {end - cfg.stride - 1}], leaving at "
                               f"least one stride ({cfg.stride}) before the end (frame {end - 1}), got "
                               f"{cfg.start_frame}")
-        if len(cfg.odometry_noise) != 2 or min(cfg.odometry_noise) < 0:
-            raise ConfigError(f"{where}: odometry_noise: expected 2 non-negative numbers, got {cfg.odometry_noise}")
         return cfg
+
+    def _check_localizer_data(self) -> None:
+        """Refuse a localizer built for other data than the sequence: another geographic frame or simulated scene
+        (where both record theirs), or a satellite map that none of the sequence's poses lies on."""
+        seq, ident, loc = self.sequence, self._loc_identity, self.localizer
+        src = ident["source"]
+        frame, theirs = seq.geo_frame, ident.get("geo_frame")
+        if frame is not None and isinstance(theirs, dict):
+            from satloc.geoframe import GeoFrame
+
+            other = GeoFrame.from_dict(theirs, f"{src}: database meta.geo_frame")
+            if not (math.isclose(frame.lon0, other.lon0, abs_tol=1e-9)
+                    and math.isclose(frame.lat0, other.lat0, abs_tol=1e-9)):
+                raise ConfigError(f"localizer: {src} was built in the geographic frame (lon0 {other.lon0}, lat0 "
+                                  f"{other.lat0}), not in that of sequence {seq.name!r} (lon0 {frame.lon0}, lat0 "
+                                  f"{frame.lat0}); read the sequence in the build's frame")
+        scene, alias = seq.meta.get("scene"), seq.meta.get("aliasing")
+        if isinstance(scene, str) and isinstance(ident.get("scene"), str):
+            a, b = ident.get("aliasing"), alias
+            if scene != ident["scene"] or (isinstance(a, (int, float)) and isinstance(b, (int, float))
+                                           and not math.isclose(a, b, abs_tol=1e-9)):
+                what = f"scene {scene!r}" + (f" (aliasing {b:g})" if isinstance(b, (int, float)) else "")
+                raise ConfigError(f"localizer: {src} is not a build of {what}, where sequence {seq.name!r} was "
+                                  "recorded; a localizer localizes only on the map it was built on")
+        xy = self._poses[np.all(np.isfinite(self._poses[:, :2]), axis=1), :2]
+        sf = getattr(loc, "satfeat", None)
+        if len(xy) and sf is not None and not sf.pixel_index(xy)[1].any():
+            h, w = sf.features.shape[:2]
+            x0, y1 = sf.origin
+            x1, y0 = x0 + w * sf.meters_per_pixel, y1 - h * sf.meters_per_pixel
+            lo, hi = xy.min(0), xy.max(0)
+            raise ConfigError(f"localizer: none of the {len(xy)} poses of sequence {seq.name!r} (x {lo[0]:.1f} to "
+                              f"{hi[0]:.1f} m, y {lo[1]:.1f} to {hi[1]:.1f} m) lies on the satellite map {src} was "
+                              f"built on (x {x0:.1f} to {x1:.1f} m, y {y0:.1f} to {y1:.1f} m): a build of other data")
 
     def _resolve_map(self) -> SatelliteMap:
         cfg, seq = self.config, self.sequence
@@ -297,11 +361,7 @@ class SatLocReplayEnv(SharedSpecMixin, gym.Env):
     # --- gym API ----------------------------------------------------------------------------------
     def reset(self, *, seed: int | None = None, options: dict | None = None):
         super().reset(seed=seed)
-        options = dict(options or {})
-        bad = sorted(set(options) - EPISODE_KEYS)
-        if bad:
-            raise ConfigError(f"reset options: {bad} cannot change per episode (or are unknown); allowed: "
-                              f"{sorted(EPISODE_KEYS)}")
+        options = check_reset_options(options, EPISODE_KEYS, ReplayConfig)
         cfg = self._check_episode(override(self.config, options, "reset options"), "reset options")
         self._episode = cfg
         start = cfg.start_frame
@@ -443,10 +503,17 @@ def _in_camera(seq: Sequence, camera) -> Sequence:
 
 
 def _skip_count(action, max_skip: int) -> int:
-    """The action as a skip count in [1, ``max_skip``] (an integer, a numpy integer or a 1-element array)."""
-    a = np.asarray(action)
+    """The action as a skip count in [1, ``max_skip``] (an integer, a numpy integer or a 1-element integer
+    array); anything else raises :class:`satloc_env.env.ActionError` (a ValueError): a Discrete action out of
+    range is not clipped."""
+    try:
+        a = np.asarray(action)
+    except (ValueError, TypeError):
+        a = np.asarray(None)
     if a.size != 1 or not np.issubdtype(a.dtype, np.integer) or not 1 <= int(a.reshape(())) <= max_skip:
-        raise ValueError(f"action: expected an integer skip count in [1, {max_skip}], got {action!r}")
+        raise ActionError(f"action: expected an integer skip count in [1, {max_skip}], got {action!r} (a skip count "
+                          "is a Python or numpy integer, or an integer array of one element, not a float, bool or "
+                          "string; out-of-range counts are not clipped)")
     return int(a.reshape(()))
 
 
