@@ -493,8 +493,9 @@ class SatLocEnv(SharedSpecMixin, gym.Env):
       localizations it grows with the motion since ``localized_step``; the estimate is not propagated);
     * ``posterior_poses`` (K, 3) and ``posterior_probs`` (K,) float64: the K most probable candidate poses
       and their probabilities (zero-padded);
-    * ``inlier`` np.bool_ and ``inlier_score`` float64 (peak / mean score; False means "probably outside
-      the mapped area");
+    * ``inlier`` np.bool_ and ``inlier_score`` float64 (single images: the peak / mean score; tracked: the
+      probability of being on the mapped path, :attr:`satloc.track.Tracker.p_on`; False means "probably
+      outside the mapped area");
     * ``localized_step`` int64: the step the result was computed at.
 
     With ``localizer_track`` each localization is fused into a belief over the candidate poses that the
