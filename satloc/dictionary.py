@@ -18,7 +18,7 @@ from .context import ContextConfig, ground_context, satellite_context
 from .errors import ConfigError, FormatError
 from .features import FeatureExtractor
 from .geometry import StereoCamera
-from .persist import load_npz, save_npz
+from .persist import ArraySpec, header_number, header_point, load_npz, nonfinite_path, save_npz
 from .satmap import SatelliteMap
 from .sequence import Frame, Sequence
 from .stereo import StereoConfig, StereoDepth
@@ -111,10 +111,16 @@ class SatelliteFeatures:
 
     @staticmethod
     def load(path: str | Path) -> "SatelliteFeatures":
-        a, m = load_npz(path, "satellite_features")
-        if "features" not in a or a["features"].ndim != 3:
-            raise FormatError(f"{path}: missing or malformed 'features' array")
-        return SatelliteFeatures(a["features"], float(m["meters_per_pixel"]), tuple(m["origin"]), m.get("name", ""))
+        a, m = load_npz(path, "satellite_features", {"features": ArraySpec("f", (None, None, None))})
+        f = a["features"]
+        if min(f.shape) < 1:
+            raise FormatError(f"{path}: array 'features': expected (H, W, D) with H, W, D >= 1, got {f.shape}")
+        mpp = header_number(m, "meters_per_pixel", path, positive=True)
+        origin = header_point(m, "origin", path)
+        name = m.get("name", "")
+        if not isinstance(name, str):
+            raise FormatError(f"{path}: field 'name': expected a string, got {str(name)[:60]!r}")
+        return SatelliteFeatures(f, float(mpp), origin, name)
 
 
 @dataclass
@@ -145,13 +151,29 @@ class Dictionary:
 
     @staticmethod
     def load(path: str | Path) -> "Dictionary":
-        a, m = load_npz(path, "dictionary")
-        missing = [k for k in ("g", "s", "loc", "frame", "poses") if k not in a]
-        if missing:
-            raise FormatError(f"{path}: missing arrays {missing}")
-        return Dictionary(a["g"], a["s"], a["loc"], a["frame"], a["poses"],
-                          from_dict(GridConfig, m.get("grid", {}), f"{path}: grid"), m.get("feature_name", ""),
-                          from_dict(ContextConfig, m.get("context", {"scales_m": []}), f"{path}: context"))
+        a, m = load_npz(path, "dictionary", {
+            "g": ArraySpec("f", ("N", "Dg")), "s": ArraySpec("f", ("N", "Ds")), "loc": ArraySpec("f", ("N", 2)),
+            "frame": ArraySpec("iu", ("N",), min=0), "poses": ArraySpec("f", ("F", 3))})
+        if min(a["g"].shape[1], a["s"].shape[1]) < 1:
+            raise FormatError(f"{path}: arrays 'g' and 's' need at least one feature channel, got "
+                              f"{a['g'].shape} and {a['s'].shape}")
+        if len(a["frame"]) and a["frame"].max() >= len(a["poses"]):
+            raise FormatError(f"{path}: array 'frame': index {a['frame'].max()} out of range for the "
+                              f"{len(a['poses'])} database poses")
+        bad = nonfinite_path({k: m.get(k) for k in ("grid", "context")})
+        if bad is not None:
+            raise FormatError(f"{path}: header field {bad}: expected a finite number")
+        name = m.get("feature_name", "")
+        if not isinstance(name, str):
+            raise FormatError(f"{path}: field 'feature_name': expected a string, got {str(name)[:60]!r}")
+        try:
+            grid = from_dict(GridConfig, m.get("grid", {}), f"{path}: grid")
+            context = from_dict(ContextConfig, m.get("context", {"scales_m": []}), f"{path}: context")
+        except ConfigError as e:
+            raise FormatError(str(e)) from e
+        if not 0 <= grid.row_start_frac < 1:
+            raise FormatError(f"{path}: grid.row_start_frac: expected a fraction in [0, 1), got {grid.row_start_frac}")
+        return Dictionary(a["g"], a["s"], a["loc"], a["frame"], a["poses"], grid, name, context)
 
 
 class FrameDepth:

@@ -44,7 +44,7 @@ from torch import nn
 from .errors import ConfigError, FormatError
 from .extractor import View, check_image
 from .labels import CLASSES, NUM_CLASSES
-from .persist import atomic_path, check_header, header
+from .persist import atomic_path, check_header, check_zip, header
 
 FORMAT = "satloc_fcn"
 VIEWS: tuple[str, ...] = ("ground", "satellite")
@@ -164,6 +164,7 @@ def load_fcn(path: str | os.PathLike = DEFAULT_WEIGHTS) -> tuple[dict[str, ViewN
     path = Path(path)
     if not path.is_file():
         raise FormatError(f"{path}: FCN weights file not found")
+    check_zip(path)  # torch.load does not check the CRCs: a flipped bit would load as another weight
     try:
         data = torch.load(path, map_location="cpu", weights_only=True)
     except Exception as e:  # torch.load raises many types on damaged or foreign input; all mean the same here
@@ -171,23 +172,52 @@ def load_fcn(path: str | os.PathLike = DEFAULT_WEIGHTS) -> tuple[dict[str, ViewN
                           f"{str(e).splitlines()[0] if str(e) else ''})") from e
     check_header(data, FORMAT, path)
     if data.get("num_classes") != NUM_CLASSES or data.get("classes") != list(CLASSES):
-        raise FormatError(f"{path}: trained for classes {data.get('classes')!r}; satloc has {list(CLASSES)}")
+        raise FormatError(f"{path}: trained for classes {str(data.get('classes'))[:200]}; satloc has {list(CLASSES)}")
     views = data.get("views")
     if not isinstance(views, dict) or not views or not set(views) <= set(VIEWS):
         raise FormatError(f"{path}: 'views' must map a subset of {list(VIEWS)} to networks")
     out = {}
     for view, v in views.items():
         try:
-            net = SegEdgeNet(NUM_CLASSES, v["widths"])
-            net.load_state_dict({k: t.float() if t.is_floating_point() else t for k, t in v["state_dict"].items()})
-            scale = float(v["input_scale"])
-        except (KeyError, TypeError, AttributeError, RuntimeError, ConfigError) as e:
-            raise FormatError(f"{path}: bad '{view}' network ({type(e).__name__}: {e})") from e
+            net = SegEdgeNet(NUM_CLASSES, _checked_widths(v))
+            state, model = v["state_dict"], net.state_dict()
+            for k, t in state.items():
+                want = model.get(k)
+                if want is not None and (not isinstance(t, torch.Tensor) or t.is_complex()
+                                         or t.is_floating_point() != want.is_floating_point()
+                                         or (not want.is_floating_point() and t.dtype != want.dtype)
+                                         or t.shape != want.shape):
+                    raise TypeError(f"tensor {k!r} of {getattr(t, 'dtype', type(t).__name__)}, expected {want.dtype}")
+                if isinstance(t, torch.Tensor) and t.is_floating_point() and not bool(torch.isfinite(t).all()):
+                    raise ValueError(f"tensor {k!r} has non-finite values")
+            net.load_state_dict({k: t.float() if t.is_floating_point() else t for k, t in state.items()})
+            scale = v["input_scale"]
+            if isinstance(scale, bool) or not isinstance(scale, (int, float)):
+                raise TypeError(f"input_scale {str(scale)[:40]!r} is not a number")
+        except (KeyError, TypeError, AttributeError, RuntimeError, ValueError, ConfigError) as e:
+            raise FormatError(f"{path}: bad '{view}' network ({type(e).__name__}: {str(e)[:300]})") from e
         if not 0.0 < scale <= 4.0:
             raise FormatError(f"{path}: '{view}' input_scale {scale} outside (0, 4]")
-        out[view] = ViewNet(net.eval(), scale)
+        out[view] = ViewNet(net.eval(), float(scale))
     training = data.get("training")
     return out, dict(training) if isinstance(training, dict) else {}
+
+
+def _checked_widths(v: Mapping[str, Any]) -> list[int]:
+    """A view's ``widths``, checked against its state_dict's encoder tensors before any network is built (a
+    damaged width must not allocate a huge network)."""
+    widths, state = v["widths"], v["state_dict"]
+    if not isinstance(widths, list) or not isinstance(state, dict) or not all(
+            isinstance(w, int) and not isinstance(w, bool) and w >= 1 for w in widths):
+        raise TypeError(f"widths {str(widths)[:60]} (a list of positive integers) and a state_dict are needed")
+    prev = 3
+    for i, w in enumerate(widths):
+        t = state.get(f"encoder.{i}.0.0.weight")
+        if not isinstance(t, torch.Tensor) or tuple(t.shape) != (w, prev, 3, 3):
+            raise ValueError(f"widths {widths}: level {i} needs encoder.{i}.0.0.weight of shape {(w, prev, 3, 3)}, "
+                             f"got {tuple(t.shape) if isinstance(t, torch.Tensor) else None}")
+        prev = w
+    return widths
 
 
 # --- inference ------------------------------------------------------------------------------------------

@@ -84,17 +84,20 @@ def load_map(path: str | os.PathLike, mpp: float | None = None, frame: GeoFrame 
     frame, frame_crs, mpp, src_gsd, (x0, y0, x1, y1) = _plan(src, mpp, frame, region)
     width, height = int(round((x1 - x0) / mpp)), int(round((y1 - y0) / mpp))
     if width < 1 or height < 1:
-        raise ConfigError(f"{src.path}: the image covers less than one {mpp:g} m pixel of the frame")
+        raise ConfigError(f"{src.where}: the image covers less than one {mpp:g} m pixel of the frame")
     if width * height > 20000 * 20000:
-        raise ConfigError(f"{src.path}: a {width}x{height} px map at {mpp:g} m/px is too large; "
+        raise ConfigError(f"{src.where}: a {width}x{height} px map at {mpp:g} m/px is too large; "
                           f"pass a larger mpp or a region")
     dst_transform = Affine(mpp, 0.0, x0, 0.0, -mpp, y1)
     src_rgb, src_transform = src.read_for(_src_window(src, frame_crs, (x0, y0, x1, y1), mpp / src_gsd))
     out = np.zeros((3, height, width), np.uint8)
     resampling = Resampling.average if mpp > _AVERAGE_ABOVE * src_gsd else Resampling.bilinear
-    reproject(src_rgb, out, src_transform=src_transform, src_crs=src.crs, src_nodata=None,
-              dst_transform=dst_transform, dst_crs=frame_crs, dst_nodata=None, resampling=resampling,
-              num_threads=1)
+    try:
+        reproject(src_rgb, out, src_transform=src_transform, src_crs=src.crs, src_nodata=None,
+                  dst_transform=dst_transform, dst_crs=frame_crs, dst_nodata=None, resampling=resampling,
+                  num_threads=1)
+    except _gdal_error() as e:
+        raise FormatError(f"{src.where}: could not be reprojected ({str(e)[:200]})") from e
     return SatelliteMap(np.ascontiguousarray(out.transpose(1, 2, 0)), float(mpp), (x0, y1), None, frame)
 
 
@@ -294,6 +297,10 @@ class _Source:
     width: int
     height: int
     read: Callable[[int, int, int, int], np.ndarray]  # (col0, row0, cols, rows) -> (3, rows, cols) uint8 RGB
+    where: str = ""  # how messages name the source: the path, and the world file that georeferences it
+
+    def __post_init__(self):
+        self.where = self.where or str(self.path)
 
     def read_for(self, window: tuple[int, int, int, int]):
         from affine import Affine
@@ -322,11 +329,11 @@ def _plan(src: _Source, mpp: float | None, frame: GeoFrame | None, region):
 
     if frame is None:
         centre = _apply(src.transform, src.width / 2, src.height / 2)
-        lon, lat = _transform_points(src.crs, CRS.from_epsg(4326), *centre)
+        lon, lat = _transform_points(src.crs, CRS.from_epsg(4326), *centre, where=src.where)
         try:
             frame = GeoFrame(float(lon[0]), float(lat[0]))
         except ConfigError as e:
-            raise FormatError(f"{src.path}: the image centre is not a valid map origin ({e})") from e
+            raise FormatError(f"{src.where}: the image centre is not a valid map origin ({e})") from e
     frame_crs = CRS.from_proj4(frame.proj4)
     src_gsd = _ground_resolution(src, frame_crs)
     if mpp is None:
@@ -342,6 +349,11 @@ def _file_source(path: Path, user_crs) -> _Source:
     if suffix not in IMAGE_SUFFIXES:
         raise FormatError(f"{path}: expected a GeoTIFF (.tif, .tiff), an image with a world file "
                           f"({', '.join(IMAGE_SUFFIXES)}) or a folder of XYZ tiles")
+    world = next((c for c in world_file_candidates(path) if c.is_file()), None)
+    world_transform = None
+    if world is not None and suffix not in (".tif", ".tiff"):  # a plain image: its world file is its georeference
+        world_transform = read_world_file(world)
+    _check_integrity(path)
     try:
         with _quiet(), rasterio.Env(GDAL_GEOREF_SOURCES="PAM,INTERNAL"):  # world files: read here, with line errors
             with rasterio.open(path) as ds:
@@ -349,18 +361,24 @@ def _file_source(path: Path, user_crs) -> _Source:
                 own_transform = None if ds.transform.is_identity else ds.transform
                 own_crs = ds.crs
                 info = _band_info(ds, path)
-    except RasterioIOError as e:
-        raise FormatError(f"{path}: not a readable image ({e})") from e
+    except (RasterioIOError, _gdal_error()) as e:
+        sidecars = ", ".join(p.name for p in input_files(path)[1:])
+        raise FormatError(f"{path}: not a readable image{f' (or sidecar {sidecars})' if sidecars else ''} "
+                          f"({type(e).__name__}: {str(e)[:200]})") from e
+    from_world = False
     if own_transform is None or driver != "GTiff":  # PNG/JPEG: GDAL would apply a world file; we read it
-        world = next((c for c in world_file_candidates(path) if c.is_file()), None)
+        from_world = world is not None
         if world is None:
             if own_transform is None:
                 raise FormatError(
                     f"{path}: not georeferenced: no geotransform in the file and no world file beside it "
                     f"(looked for {', '.join(c.name for c in world_file_candidates(path)[::2])})")
         else:
-            own_transform = read_world_file(world)
+            own_transform = world_transform if world_transform is not None else read_world_file(world)
+    _check_transform(own_transform, width, height, world if from_world else path)
     src_crs = _resolve_crs(path, own_crs, user_crs)
+    prj = path.with_suffix(".prj")
+    sidecars = ([world] if from_world else []) + ([prj] if own_crs is None and user_crs is None else [])
 
     def read(c0, r0, w, h):
         from rasterio.windows import Window
@@ -368,11 +386,12 @@ def _file_source(path: Path, user_crs) -> _Source:
         try:
             with _quiet(), rasterio.Env(GDAL_GEOREF_SOURCES="NONE"), rasterio.open(path) as ds:
                 arr = ds.read(window=Window(c0, r0, w, h))
-        except RasterioIOError as e:
-            raise FormatError(f"{path}: not a readable image ({e})") from e
+        except (RasterioIOError, _gdal_error()) as e:
+            raise FormatError(f"{path}: not a readable image ({type(e).__name__}: {str(e)[:200]})") from e
         return _to_rgb(arr, info, path)
 
-    return _Source(path, src_crs, own_transform, width, height, read)
+    where = f"{path} (georeferenced by {' and '.join(map(str, sidecars))})" if sidecars else ""
+    return _Source(path, src_crs, own_transform, width, height, read, where)
 
 
 def _scan_tiles(root: Path) -> dict[int, dict[tuple[int, int], Path]]:
@@ -414,12 +433,13 @@ def _tile_source(root: Path, zoom: int | None) -> _Source:
     tx0, ty0 = min(xs), min(ys)
     nx, ny = max(xs) - tx0 + 1, max(ys) - ty0 + 1
     first = level[(xs[0], ys[0])]
+    _check_integrity(first, "tile image")
     try:
         with _quiet(), rasterio.open(first) as ds:
             size = ds.width
             square = ds.width == ds.height
-    except RasterioIOError as e:
-        raise FormatError(f"{first}: not a readable tile image ({e})") from e
+    except (RasterioIOError, _gdal_error()) as e:
+        raise FormatError(f"{first}: not a readable tile image ({type(e).__name__}: {str(e)[:200]})") from e
     if not square:
         raise FormatError(f"{first}: expected a square tile, got a non-square image")
     half = _web_mercator_half_extent()
@@ -435,17 +455,19 @@ def _tile_source(root: Path, zoom: int | None) -> _Source:
                 f = level.get(key)
                 if f is None:
                     raise FormatError(
-                        f"{root}: tile {zoom}/{key[0]}/{key[1]} is missing inside the area to load (tiles x "
+                        f"{root}: tile {zoom}/{key[0]}/{key[1]} is missing inside the area to load "
+                        f"({zoom}/{key[0]}/{key[1]}.png or .jpg; tiles x "
                         f"{tx0 + c0 // size}..{tx0 + (c0 + w - 1) // size}, y {ty0 + r0 // size}.."
                         f"{ty0 + (r0 + h - 1) // size} at zoom {zoom}); download it or pass a smaller region")
+                _check_integrity(f, "tile image")
                 try:
                     with _quiet(), rasterio.Env(GDAL_GEOREF_SOURCES="NONE"), rasterio.open(f) as ds:
                         if (ds.width, ds.height) != (size, size):
                             raise FormatError(f"{f}: tile of {ds.width}x{ds.height} px; the folder's tiles "
-                                              f"are {size}x{size}")
+                                              f"are {size}x{size} (as {first})")
                         rgb = _to_rgb(ds.read(), _band_info(ds, f), f)
-                except RasterioIOError as e:
-                    raise FormatError(f"{f}: not a readable tile image ({e})") from e
+                except (RasterioIOError, _gdal_error()) as e:
+                    raise FormatError(f"{f}: not a readable tile image ({type(e).__name__}: {str(e)[:200]})") from e
                 # the part of this tile inside the window
                 a0, b0 = max(c0, tx * size), max(r0, ty * size)
                 a1, b1 = min(c0 + w, (tx + 1) * size), min(r0 + h, (ty + 1) * size)
@@ -469,9 +491,9 @@ def _check_args(mpp, frame, region, zoom):
             r = [float(v) for v in region]
         except (TypeError, ValueError):
             r = []
-        if len(r) != 4 or not all(map(math.isfinite, r)) or not (r[0] < r[2] and r[1] < r[3]):
+        if len(r) != 4 or not all(abs(v) <= MAX_COORD for v in r) or not (r[0] < r[2] and r[1] < r[3]):
             raise ConfigError(f"region: expected (x_min, y_min, x_max, y_max) in metres with x_min < x_max "
-                              f"and y_min < y_max, got {region!r}")
+                              f"and y_min < y_max, each within +-{MAX_COORD:g}, got {region!r}")
     if zoom is not None and (isinstance(zoom, bool) or not isinstance(zoom, int) or not 0 <= zoom <= 30):
         raise ConfigError(f"zoom: expected an integer zoom level in [0, 30], got {zoom!r}")
     return mpp
@@ -564,11 +586,62 @@ def _to_rgb(arr: np.ndarray, info: dict, path: Path) -> np.ndarray:
     return np.ascontiguousarray(rgb)
 
 
-def _transform_points(src_crs, dst_crs, xs, ys):
+MAX_COORD = 1e10  # |coordinate| of a georeference: GDAL's transformer loops for ages on values near 1e20
+
+
+def _gdal_error():
+    """GDAL's own error type as rasterio raises it for some damaged inputs (besides RasterioIOError)."""
+    from rasterio._err import CPLE_BaseError
+
+    return CPLE_BaseError
+
+
+def _check_integrity(path: Path, what: str = "image") -> None:
+    """Damage that GDAL's PNG and JPEG drivers let through (chunk CRCs, a truncated JPEG, content of another
+    kind than the suffix says)."""
+    from .satmap import check_image_bytes
+
+    suffix = path.suffix.lower()
+    if suffix not in IMAGE_SUFFIXES:
+        return
+    try:
+        if suffix == ".png":  # every chunk's CRC: the whole file
+            data = path.read_bytes()
+        else:  # the magic number, and a JPEG's end-of-image marker: the head and the tail suffice
+            with open(path, "rb") as f:
+                data = f.read(4)
+                if suffix != ".tif" and suffix != ".tiff":
+                    f.seek(max(4, f.seek(0, os.SEEK_END) - 1024))
+                    data += f.read()
+    except OSError as e:
+        raise FormatError(f"{path}: not a readable {what} ({e})") from e
+    check_image_bytes(data, path, what)
+
+
+def _check_transform(tr, width: int, height: int, path: Path) -> None:
+    """A georeference whose pixels have an area and whose corners lie at finite, sane coordinates (GDAL's
+    coordinate transformer can loop for ages on huge ones)."""
+    if tr is None:
+        return
+    x, y = _apply(tr, np.array([0.0, width, 0.0, width]), np.array([0.0, 0.0, height, height]))
+    vals = np.concatenate([[tr.a, tr.b, tr.d, tr.e], x, y])
+    if not (np.isfinite(vals).all() and np.abs(vals).max() <= MAX_COORD):
+        raise FormatError(f"{path}: georeference out of range (pixel size {tr.a:g}, {tr.e:g}, corners x "
+                          f"{x.min():g}..{x.max():g}, y {y.min():g}..{y.max():g}; expected within +-{MAX_COORD:g})")
+    if tr.a * tr.e - tr.b * tr.d == 0.0:
+        raise FormatError(f"{path}: degenerate georeference (pixels have no area)")
+
+
+def _transform_points(src_crs, dst_crs, xs, ys, where: str = "coordinates"):
+    """Points from one CRS to another; FormatError naming ``where`` when GDAL refuses them (outside the
+    projection's domain)."""
     from rasterio.warp import transform
 
     xs, ys = np.atleast_1d(np.asarray(xs, np.float64)), np.atleast_1d(np.asarray(ys, np.float64))
-    ox, oy = transform(src_crs, dst_crs, xs.ravel(), ys.ravel())
+    try:
+        ox, oy = transform(src_crs, dst_crs, xs.ravel(), ys.ravel())
+    except _gdal_error() as e:
+        raise FormatError(f"{where}: points outside the coordinate system's domain ({str(e)[:200]})") from e
     return np.asarray(ox, np.float64).reshape(xs.shape), np.asarray(oy, np.float64).reshape(ys.shape)
 
 
@@ -576,12 +649,12 @@ def _ground_resolution(src: _Source, frame_crs) -> float:
     """Frame metres per source pixel at the image centre: sqrt of the area of one pixel."""
     cu, cv = src.width / 2, src.height / 2
     corners = _apply(src.transform, np.array([cu, cu + 1, cu]), np.array([cv, cv, cv + 1]))
-    x, y = _transform_points(src.crs, frame_crs, *corners)
+    x, y = _transform_points(src.crs, frame_crs, *corners, where=src.where)
     if not np.isfinite(x).all() or not np.isfinite(y).all():
-        raise FormatError(f"{src.path}: the image centre does not project into the map frame")
+        raise FormatError(f"{src.where}: the image centre does not project into the map frame")
     area = abs((x[1] - x[0]) * (y[2] - y[0]) - (x[2] - x[0]) * (y[1] - y[0]))
     if not area > 0:
-        raise FormatError(f"{src.path}: degenerate georeference (pixels have no area on the ground)")
+        raise FormatError(f"{src.where}: degenerate georeference (pixels have no area on the ground)")
     return math.sqrt(area)
 
 
@@ -606,9 +679,10 @@ def _output_bounds(src: _Source, frame_crs, mpp: float, region, src_gsd: float):
         # the largest north-up box inside the footprint: innermost of each edge's extreme
         edges = {}
         for name, uv in _edge_samples(src.width, src.height).items():
-            edges[name] = _transform_points(src.crs, frame_crs, *_apply(src.transform, uv[:, 0], uv[:, 1]))
+            edges[name] = _transform_points(src.crs, frame_crs, *_apply(src.transform, uv[:, 0], uv[:, 1]),
+                                             where=src.where)
         if not all(np.isfinite(np.concatenate(v)).all() for v in edges.values()):
-            raise FormatError(f"{src.path}: the image does not project into the map frame")
+            raise FormatError(f"{src.where}: the image does not project into the map frame")
         # which image edge faces which way in the frame (the transform may flip or rotate the image)
         by_x = sorted(edges, key=lambda k: np.mean(edges[k][0]))
         by_y = sorted(edges, key=lambda k: np.mean(edges[k][1]))
@@ -618,7 +692,7 @@ def _output_bounds(src: _Source, frame_crs, mpp: float, region, src_gsd: float):
         x0, x1 = math.ceil(bx0 / mpp - 1e-6) * mpp, math.floor(bx1 / mpp + 1e-6) * mpp
         y0, y1 = math.ceil(by0 / mpp - 1e-6) * mpp, math.floor(by1 / mpp + 1e-6) * mpp
         if not (x0 < x1 and y0 < y1):
-            raise ConfigError(f"{src.path}: the image covers less than one {mpp:g} m pixel of the frame")
+            raise ConfigError(f"{src.where}: the image covers less than one {mpp:g} m pixel of the frame")
         return x0, y0, x1, y1
     r = [float(v) for v in region]
     x0, x1 = math.floor(r[0] / mpp + 1e-6) * mpp, math.ceil(r[2] / mpp - 1e-6) * mpp
@@ -627,7 +701,7 @@ def _output_bounds(src: _Source, frame_crs, mpp: float, region, src_gsd: float):
     h = 0.5 * mpp
     box = np.concatenate([v for v in _edge_samples(x1 - x0 - 2 * h, y1 - y0 - 2 * h).values()])
     fx, fy = x0 + h + box[:, 0], y0 + h + box[:, 1]
-    sx, sy = _transform_points(frame_crs, src.crs, fx, fy)
+    sx, sy = _transform_points(frame_crs, src.crs, fx, fy, where=src.where)
     cu, cv = _apply(~src.transform, sx, sy)
     tol = h / src_gsd + 1e-6  # source pixels
     ok = (np.isfinite(cu) & np.isfinite(cv) & (cu >= -tol) & (cu <= src.width + tol)
@@ -635,7 +709,7 @@ def _output_bounds(src: _Source, frame_crs, mpp: float, region, src_gsd: float):
     if not ok.all():
         cover = _output_bounds(src, frame_crs, mpp, None, src_gsd)
         raise ConfigError(
-            f"region: ({r[0]:.1f}, {r[1]:.1f}, {r[2]:.1f}, {r[3]:.1f}) m is not covered by {src.path}, which "
+            f"region: ({r[0]:.1f}, {r[1]:.1f}, {r[2]:.1f}, {r[3]:.1f}) m is not covered by {src.where}, which "
             f"covers x [{cover[0]:.1f}, {cover[2]:.1f}] y [{cover[1]:.1f}, {cover[3]:.1f}] m of the frame")
     return x0, y0, x1, y1
 
@@ -644,7 +718,7 @@ def _src_window(src: _Source, frame_crs, bounds, ratio: float) -> tuple[int, int
     """(col0, row0, cols, rows) of the source pixels that the output grid ``bounds`` needs, with a margin."""
     x0, y0, x1, y1 = bounds
     pts = np.concatenate(list(_edge_samples(x1 - x0, y1 - y0).values()))
-    sx, sy = _transform_points(frame_crs, src.crs, x0 + pts[:, 0], y0 + pts[:, 1])
+    sx, sy = _transform_points(frame_crs, src.crs, x0 + pts[:, 0], y0 + pts[:, 1], where=src.where)
     cu, cv = _apply(~src.transform, sx, sy)
     pad = 2 + int(math.ceil(max(ratio, 1.0)))
     c0 = max(0, int(math.floor(np.nanmin(cu))) - pad)
@@ -652,7 +726,7 @@ def _src_window(src: _Source, frame_crs, bounds, ratio: float) -> tuple[int, int
     c1 = min(src.width, int(math.ceil(np.nanmax(cu))) + pad)
     r1 = min(src.height, int(math.ceil(np.nanmax(cv))) + pad)
     if c1 <= c0 or r1 <= r0:
-        raise ConfigError(f"{src.path}: the area to load lies outside the image")
+        raise ConfigError(f"{src.where}: the area to load lies outside the image")
     return c0, r0, c1 - c0, r1 - r0
 
 

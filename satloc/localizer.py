@@ -39,7 +39,7 @@ from tqdm import tqdm
 from .align import AlignConfig, BevAligner, posterior_peaks
 from .dictionary import Dictionary, FrameDepth, SatelliteFeatures, ground_features, ground_samples
 from .errors import ConfigError, FormatError
-from .persist import load_npz, save_npz
+from .persist import ArraySpec, check_arrays, header_number, load_npz, save_npz
 from .features import FeatureExtractor
 from .geometry import Pose2, StereoCamera, arc_length
 from .nn import NNIndex
@@ -227,15 +227,36 @@ class Localizer:
             try:
                 a, m = load_npz(cache, "satellite_table")
                 if m.get("key") == key:
-                    self.pixel_row, self.sat_ids, self.sat_w = a["pixel_row"], a["ids"], a["weights"]
-                    self.eps_s = float(m["eps_s"])
+                    self.pixel_row, self.sat_ids, self.sat_w, self.eps_s = self._checked_table(a, m, cache)
                     return
             except FormatError:
-                pass  # damaged or foreign: recompute and overwrite
+                pass  # damaged, foreign or inconsistent: recompute and overwrite
         self._build_satellite_table(progress)
         if cache is not None:
             save_npz(cache, "satellite_table", {"pixel_row": self.pixel_row, "ids": self.sat_ids,
                                                 "weights": self.sat_w}, {"key": key, "eps_s": self.eps_s})
+
+    def _checked_table(self, a: dict, m: dict, path) -> tuple[np.ndarray, np.ndarray, np.ndarray, float]:
+        """A cached table's arrays and eps_s, after checking that they are one as the builder writes it
+        (dtypes, shapes, a row index, ids of dictionary entries, weights 1 / max(distance, eps_s));
+        FormatError otherwise."""
+        h, w = self.satfeat.features.shape[:2]
+        m_nn = self.config.neighbors
+        sizes = check_arrays(a, {"pixel_row": ArraySpec("iu", (h * w,), min=-1),
+                                 "ids": ArraySpec("iu", ("R", m_nn), min=0, max=len(self.dictionary) - 1),
+                                 "weights": ArraySpec("f", ("R", m_nn))}, path)
+        eps_s = header_number(m, "eps_s", path, positive=True)
+        rows, row = sizes["R"], a["pixel_row"]
+        if not np.array_equal(row[row >= 0], np.arange(rows)):
+            raise FormatError(f"{path}: array 'pixel_row' is not an index of the table's {rows} rows")
+        wts = a["weights"]
+        if wts.size and not (wts.min() > 0 and wts.max() <= np.float32(1.0 / eps_s) * (1 + 1e-6)):
+            raise FormatError(f"{path}: array 'weights' outside (0, 1 / eps_s]")
+        dtypes = (np.int32 if rows < 2**31 else np.int64, np.int32, np.float32)  # as the builder writes them
+        if any(a[k].dtype != t for k, t in zip(("pixel_row", "ids", "weights"), dtypes)):
+            raise FormatError(f"{path}: arrays of dtypes {[str(a[k].dtype) for k in ('pixel_row', 'ids', 'weights')]}, "
+                              f"expected {[np.dtype(t).name for t in dtypes]}")
+        return row, a["ids"], wts, float(eps_s)
 
     def _build_satellite_table(self, progress: bool = False) -> None:
         """M nearest dictionary entries (projected satellite features) of every map pixel near a candidate."""

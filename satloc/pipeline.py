@@ -5,6 +5,14 @@
 3. :func:`localize`: ``BUILD/`` + query sequence -> per-query estimates, posteriors' top candidates, errors.
 
 The command line (``satloc build | train-projection | localize``) calls these functions.
+
+Interrupted stages: every file is written atomically, and a build directory is complete when its
+``build.json`` is there, written last. :func:`build` computes first and only then replaces the directory's
+build: it removes ``build.json`` and what was derived from the earlier build (projections, their summary and
+loss plot, cached satellite tables) before writing the new files, so a build interrupted at any point is
+either the earlier build, untouched, or has no ``build.json`` (:func:`load_localizer` refuses it), never a mix.
+:func:`train_projection` writes ``projections.pt`` (whole, for this build) and then its summary
+``projection.json``. Running an interrupted stage again starts it over.
 """
 from __future__ import annotations
 
@@ -19,14 +27,13 @@ from tqdm import tqdm
 from .config import from_dict, to_dict
 from .context import ContextConfig
 from .dictionary import Dictionary, GridConfig, SatelliteFeatures, build_dictionary
-from .errors import ConfigError
-from .features import make_extractor
-from .geometry import StereoCamera
+from .errors import ConfigError, FormatError
+from .features import FEATURE_SETS, make_extractor
 from .localizer import Localization, Localizer, LocalizerConfig
-from .persist import read_json, save_npz, write_json, header
+from .persist import header, nonfinite_path, read_json, save_npz, write_json
 from .projection import ProjectionConfig, Projections, plot_loss, train_projections
 from .satmap import SatelliteMap
-from .sequence import Sequence
+from .sequence import Sequence, camera_from_dict
 
 
 @dataclass(frozen=True)
@@ -66,6 +73,7 @@ def build(database: str | Path | Sequence, satmap: str | Path | SatelliteMap, ou
     t1 = time.perf_counter()
     d = build_dictionary(db, sf, ext, config.grid, config.depth_source, progress, config.context)
     t2 = time.perf_counter()
+    _invalidate_build(out)
     sf.save(out / "satellite_features.npz")
     d.save(out / "dictionary.npz")
     summary = dict(header("build"), config=to_dict(config), camera=db.camera.to_dict(),
@@ -77,9 +85,34 @@ def build(database: str | Path | Sequence, satmap: str | Path | SatelliteMap, ou
     return summary
 
 
+#: the files of a build directory that derive from its build (removed when it is built again)
+DERIVED_FILES = ("projections.pt", "projection.json", "projection_loss.png")
+
+
+def _invalidate_build(out: Path) -> None:
+    """Unmark ``out``'s build as complete (``build.json`` first), then remove what derives from it."""
+    (out / "build.json").unlink(missing_ok=True)
+    for f in DERIVED_FILES:
+        (out / f).unlink(missing_ok=True)
+    if out.is_dir():
+        for f in out.glob("satellite_table_*.npz"):
+            f.unlink(missing_ok=True)
+
+
 def _load_build(build_dir: str | Path) -> tuple[dict, BuildConfig]:
-    meta = read_json(Path(build_dir) / "build.json", "build")
-    return meta, from_dict(BuildConfig, meta.get("config", {}), f"{Path(build_dir) / 'build.json'}: config")
+    b = Path(build_dir)
+    if not (b / "build.json").is_file() and (b / "dictionary.npz").is_file():
+        raise FormatError(f"{b / 'build.json'}: missing: the build in {b} is incomplete (interrupted?); run "
+                          "satloc build again")
+    meta = read_json(b / "build.json", "build")
+    bad = nonfinite_path(meta.get("config"))
+    if bad is not None:
+        raise FormatError(f"{b / 'build.json'}: config.{bad}: expected a finite number")
+    bc = from_dict(BuildConfig, meta.get("config", {}), f"{Path(build_dir) / 'build.json'}: config")
+    if bc.features not in FEATURE_SETS:
+        raise ConfigError(f"{b / 'build.json'}: config.features: expected one of {list(FEATURE_SETS)}, got "
+                          f"{bc.features[:60]!r}")
+    return meta, bc
 
 
 def train_projection(build_dir: str | Path, config: ProjectionConfig = ProjectionConfig(),
@@ -90,6 +123,7 @@ def train_projection(build_dir: str | Path, config: ProjectionConfig = Projectio
     d = Dictionary.load(b / "dictionary.npz")
     t0 = time.perf_counter()
     p = train_projections(d, config, progress)
+    (b / "projection.json").unlink(missing_ok=True)   # describes projections.pt: absent until it matches again
     p.save(b / "projections.pt")
     plot_loss(p.loss_curve, b / "projection_loss.png", p.val_curve, p.best_epoch)
     write_json(b / "projection.json", dict(header("projection_training"), config=to_dict(config),
@@ -113,8 +147,9 @@ def load_localizer(build_dir: str | Path, config: LocalizerConfig = LocalizerCon
         if not (b / "projections.pt").is_file():
             raise ConfigError(f"{b}: no projections.pt; run train-projection first or use mode 'np' / 'go'")
         proj = Projections.load(b / "projections.pt")
+    camera = camera_from_dict(meta.get("camera"), f"{b / 'build.json'}: camera")
     return Localizer(Dictionary.load(b / "dictionary.npz"), SatelliteFeatures.load(b / "satellite_features.npz"),
-                     make_extractor(bc.features), StereoCamera(**meta["camera"]), proj, config,
+                     make_extractor(bc.features), camera, proj, config,
                      b / f"satellite_table_{config.mode}.npz" if cache_table else None, progress)
 
 

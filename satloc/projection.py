@@ -36,9 +36,10 @@ from tqdm import tqdm
 from .dictionary import Dictionary
 from .errors import ConfigError, FormatError
 from .nn import NNIndex
-from .persist import FORMAT_VERSION, atomic_path
+from .persist import FORMAT_VERSION, atomic_path, check_header, check_zip
 
 FORMAT = "projections"
+MAX_NORM = 1e12  # of a loaded W (trained ones have sqrt(D)): projected float32 distances stay finite
 
 
 @dataclass(frozen=True)
@@ -100,18 +101,40 @@ class Projections:
         path = Path(path)
         if not path.is_file():
             raise FormatError(f"{path}: file not found")
+        check_zip(path)  # torch.load does not check the CRCs: a flipped bit would load as another weight
         try:
             obj = torch.load(path, weights_only=True, map_location="cpu")
         except Exception as e:  # torch raises several types for damaged or non-torch files
-            raise FormatError(f"{path}: damaged or not a torch file ({type(e).__name__}: {e})") from e
+            raise FormatError(f"{path}: damaged or not a torch file ({type(e).__name__}: {str(e)[:200]})") from e
         if not isinstance(obj, dict) or obj.get("format") != FORMAT:
             raise FormatError(f"{path}: not a satloc '{FORMAT}' file")
-        if obj.get("version") != FORMAT_VERSION:
-            raise FormatError(f"{path}: '{FORMAT}' file of version {obj.get('version')!r}; this satloc reads "
-                              f"version {FORMAT_VERSION}")
-        return Projections(obj["W_g"].numpy(), obj["W_s"].numpy(), list(obj.get("loss_curve", [])),
-                           bool(obj.get("converged", False)), list(obj.get("val_curve", [])),
-                           int(obj.get("best_epoch", -1)))
+        check_header(obj, FORMAT, path)
+        w = {}
+        for k in ("W_g", "W_s"):
+            t = obj.get(k)
+            if not isinstance(t, torch.Tensor) or t.dtype not in (torch.float32, torch.float64) or t.dim() != 2 \
+                    or t.shape[0] != t.shape[1] or t.shape[0] < 1:
+                got = f"{t.dtype} {tuple(t.shape)}" if isinstance(t, torch.Tensor) else type(t).__name__
+                raise FormatError(f"{path}: '{k}': expected a square float32 (or float64) matrix, got {got}")
+            if not bool(torch.isfinite(t).all()):
+                raise FormatError(f"{path}: '{k}': non-finite values")
+            # training keeps ||W||_F at its initial sqrt(D); far beyond, float32 feature distances overflow
+            if float(torch.linalg.norm(t.double())) > MAX_NORM:
+                raise FormatError(f"{path}: '{k}': Frobenius norm {float(torch.linalg.norm(t.double())):.3g} above "
+                                  f"{MAX_NORM:g} (feature distances would overflow)")
+            w[k] = t.numpy().astype(np.float32)
+        curves = {}
+        for k in ("loss_curve", "val_curve"):
+            v = obj.get(k, [])
+            if not isinstance(v, list) or not all(isinstance(x, (int, float)) and not isinstance(x, bool)
+                                                  and math.isfinite(x) for x in v):
+                raise FormatError(f"{path}: '{k}': expected a list of finite numbers, got {str(v)[:60]}")
+            curves[k] = [float(x) for x in v]
+        converged, best = obj.get("converged", False), obj.get("best_epoch", -1)
+        if not isinstance(converged, bool) or isinstance(best, bool) or not isinstance(best, int) or best < -1:
+            raise FormatError(f"{path}: 'converged' must be true/false and 'best_epoch' an integer >= -1, got "
+                              f"{converged!r}, {best!r}")
+        return Projections(w["W_g"], w["W_s"], curves["loss_curve"], converged, curves["val_curve"], best)
 
 
 def validation_split(d: Dictionary, cfg: ProjectionConfig) -> tuple[np.ndarray, np.ndarray]:

@@ -12,6 +12,7 @@ before the key existed loads with no frame.
 from __future__ import annotations
 
 import math
+import zlib
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -20,7 +21,7 @@ import numpy as np
 
 from .errors import ConfigError, FormatError
 from .geoframe import GeoFrame
-from .persist import atomic_path, read_json, header, write_json
+from .persist import atomic_path, header, header_number, header_point, read_json, write_json
 
 
 @dataclass
@@ -149,32 +150,103 @@ class SatelliteMap:
     @staticmethod
     def load(directory: str | Path) -> "SatelliteMap":
         d = Path(directory)
-        meta = read_json(d / "map.json", "satellite_map")
-        for k in ("meters_per_pixel", "origin", "image"):
-            if k not in meta:
-                raise FormatError(f"{d / 'map.json'}: missing field '{k}'")
-        img = read_image(d / meta["image"])
-        if (img.shape[1], img.shape[0]) != (meta.get("width", img.shape[1]), meta.get("height", img.shape[0])):
-            raise FormatError(f"{d / meta['image']}: size {img.shape[1]}x{img.shape[0]} differs from map.json")
+        mj = d / "map.json"
+        meta = read_json(mj, "satellite_map")
+        mpp = header_number(meta, "meters_per_pixel", mj, positive=True)
+        origin = header_point(meta, "origin", mj)
+        names = {}
+        for k, required in (("image", True), ("labels", False)):
+            v = meta.get(k)
+            if v is None and not required:
+                continue
+            if not isinstance(v, str) or not v or Path(v).name != v:
+                raise FormatError(f"{mj}: field '{k}': expected the name of an image file in {d}, got {str(v)[:60]!r}")
+            names[k] = v
+        size = [header_number(meta, k, mj, positive=True, integer=True, default=None) for k in ("width", "height")]
+        try:
+            img = read_image(d / names["image"])
+        except FormatError as e:
+            raise FormatError(f"{mj}: image {names['image']!r}: {e}") from e
+        if any(s is not None and s != n for s, n in zip(size, (img.shape[1], img.shape[0]))):
+            raise FormatError(f"{d / names['image']}: size {img.shape[1]}x{img.shape[0]} differs from {mj} "
+                              f"({size[0]}x{size[1]})")
+        if not all(math.isfinite(v) for v in (origin[0] + img.shape[1] * mpp, origin[1] - img.shape[0] * mpp)):
+            raise FormatError(f"{mj}: origin {list(origin)} and meters_per_pixel {mpp} put the map beyond finite "
+                              f"coordinates")
         labels = None
-        if meta.get("labels"):
-            labels = read_image(d / meta["labels"], grayscale=True)
+        if "labels" in names:
+            lp = d / names["labels"]
+            try:
+                labels = read_image(lp, grayscale=True)
+            except FormatError as e:
+                raise FormatError(f"{mj}: labels {names['labels']!r}: {e}") from e
+            if labels.dtype != np.uint8 or labels.shape != img.shape[:2]:
+                raise FormatError(f"{lp}: expected 8-bit class ids of the map's size {img.shape[1]}x{img.shape[0]}, "
+                                  f"got {labels.dtype} {labels.shape[1::-1]}")
+            from .labels import NUM_CLASSES
+
+            if labels.max() >= NUM_CLASSES:
+                raise FormatError(f"{lp}: class id {labels.max()} >= {NUM_CLASSES} (satloc.labels.CLASSES)")
         frame = None
         if meta.get("geo_frame") is not None:  # absent in map.json written before maps had a geo frame
             try:
                 frame = GeoFrame.from_dict(meta["geo_frame"], where="geo_frame")
             except ConfigError as e:
-                raise FormatError(f"{d / 'map.json'}: {e}") from e
-        return SatelliteMap(img, float(meta["meters_per_pixel"]), tuple(meta["origin"]), labels, frame)
+                raise FormatError(f"{mj}: {e}") from e
+        return SatelliteMap(img, float(mpp), origin, labels, frame)
+
+
+_PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
+
+
+def check_image_bytes(data: bytes, path: str | Path, what: str = "image") -> None:
+    """Integrity of an image file's bytes where the decoders are lenient: content of the kind its suffix
+    names (``.png``, ``.jpg``/``.jpeg``, ``.tif``/``.tiff``: decoders go by content, so a foreign image under
+    the right name would load), a PNG's chunks (lengths and CRC-32s, up to IEND) and a JPEG's end-of-image
+    marker (a truncated JPEG otherwise decodes with a grey bottom, and GDAL ignores PNG CRCs). The decoder
+    judges the rest. FormatError ``<path>: not a readable <what>: <why>``."""
+    def bad(why: str):
+        raise FormatError(f"{path}: not a readable {what}: {why}")
+
+    suffix = Path(path).suffix.lower()
+    tiff = (b"II*\x00", b"MM\x00*", b"II+\x00", b"MM\x00+")
+    magic = {".png": (_PNG_SIGNATURE,), ".jpg": (b"\xff\xd8",), ".jpeg": (b"\xff\xd8",), ".tif": tiff, ".tiff": tiff}
+    if suffix in magic and not data.startswith(magic[suffix]):
+        bad(f"no {suffix[1:].upper()} content (a file of another kind, or damaged)")
+    if data[:8] == _PNG_SIGNATURE:
+        pos = 8
+        while True:
+            if pos + 12 > len(data):
+                bad(f"damaged PNG (truncated at byte {len(data)}, no IEND chunk)")
+            n = int.from_bytes(data[pos:pos + 4], "big")
+            kind = data[pos + 4:pos + 8]
+            end = pos + 12 + n
+            if n > 2**31 - 1 or end > len(data):
+                bad(f"damaged PNG (chunk {kind!r} at byte {pos} runs past the end of the file)")
+            if zlib.crc32(data[pos + 4:pos + 8 + n]) != int.from_bytes(data[end - 4:end], "big"):
+                bad(f"damaged PNG (CRC mismatch in chunk {kind!r} at byte {pos})")
+            if kind == b"IEND":
+                return
+            pos = end
+    if data[:2] == b"\xff\xd8" and not data.rstrip(b"\x00").endswith(b"\xff\xd9"):
+        bad("damaged JPEG (truncated: no end-of-image marker)")
 
 
 def read_image(path: str | Path, grayscale: bool = False) -> np.ndarray:
-    """Read an image file as RGB uint8 (or single-channel); clear error if missing or unreadable."""
+    """Read an image file as RGB uint8 (or single-channel); clear error if missing, damaged or unreadable."""
     path = Path(path)
-    if not path.is_file():
-        raise FormatError(f"{path}: image file not found")
+    try:
+        if not path.is_file():
+            raise FormatError(f"{path}: image file not found")
+        data = path.read_bytes()
+    except OSError as e:  # a name too long, a permission, ...
+        raise FormatError(f"{path}: not readable ({e})") from e
+    check_image_bytes(data, path)
     flag = cv2.IMREAD_UNCHANGED if grayscale else cv2.IMREAD_COLOR
-    img = cv2.imread(str(path), flag)
+    try:
+        img = cv2.imdecode(np.frombuffer(data, np.uint8), flag) if data else None
+    except cv2.error as e:
+        raise FormatError(f"{path}: not a readable image ({str(e).strip()[:200]})") from e
     if img is None:
         raise FormatError(f"{path}: not a readable image")
     if grayscale:

@@ -15,6 +15,7 @@ Sequences are written to a temporary directory and renamed into place only when 
 """
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable, Iterator, Sequence as Seq
@@ -22,10 +23,11 @@ from typing import Callable, Iterator, Sequence as Seq
 import cv2
 import numpy as np
 
-from .errors import FormatError
+from .errors import ConfigError, FormatError
 from .geoframe import GeoFrame
 from .geometry import Pose2, StereoCamera
-from .persist import atomic_dir, load_npz, read_json, save_npz, write_json, header
+from .labels import NUM_CLASSES
+from .persist import ArraySpec, atomic_dir, header, header_number, load_npz, read_json, save_npz, write_json
 from .satmap import read_image
 
 DEPTH_SCALE = 256.0  # depth PNG units per metre
@@ -257,40 +259,97 @@ class Sequence:
         d = Path(path)
         if not d.is_dir():
             raise FormatError(f"{d}: sequence directory not found")
-        info = read_json(d / "sequence.json", "sequence")
-        try:
-            camera = StereoCamera(**info["camera"])
-            n = int(info["num_frames"])
-        except (KeyError, TypeError) as e:
-            raise FormatError(f"{d / 'sequence.json'}: bad or missing field ({e})") from e
-        arrays, _ = load_npz(d / "frames.npz", "sequence_frames")
-        for k in ("poses", "timestamps", "has_pose"):
-            if k not in arrays:
-                raise FormatError(f"{d / 'frames.npz'}: missing array '{k}'")
-        if arrays["poses"].shape != (n, 3) or arrays["timestamps"].shape != (n,):
-            raise FormatError(f"{d / 'frames.npz'}: arrays do not match num_frames={n}")
-        seq = Sequence(camera, None, info.get("name", d.name), info.get("meta", {}))
+        sj = d / "sequence.json"
+        info = read_json(sj, "sequence")
+        camera = camera_from_dict(info.get("camera"), f"{sj}: camera")
+        n = header_number(info, "num_frames", sj, integer=True)
+        if n < 0:
+            raise FormatError(f"{sj}: field 'num_frames': expected an integer >= 0, got {n}")
+        name = info.get("name", d.name)
+        meta = info.get("meta", {})
+        channels = info.get("channels", [])
+        if not isinstance(name, str):
+            raise FormatError(f"{sj}: field 'name': expected a string, got {str(name)[:60]!r}")
+        if not isinstance(meta, dict):
+            raise FormatError(f"{sj}: field 'meta': expected a mapping, got {type(meta).__name__}")
+        if not isinstance(channels, list) or not all(isinstance(c, str) for c in channels) \
+                or not set(channels) <= set(_CHANNELS) or len(set(channels)) != len(channels):
+            raise FormatError(f"{sj}: field 'channels': expected a list of {list(_CHANNELS)}, got {str(channels)[:60]}")
+        if meta.get("geo_frame") is not None:
+            try:
+                GeoFrame.from_dict(meta["geo_frame"], "meta.geo_frame")
+            except ConfigError as e:
+                raise FormatError(f"{sj}: {e}") from e
+        arrays, _ = load_npz(d / "frames.npz", "sequence_frames", {
+            "poses": ArraySpec("f", ("N", 3), finite=False), "timestamps": ArraySpec("f", ("N",)),
+            "has_pose": ArraySpec("b", ("N",))}, {"N": (n, f"num_frames in {sj}")})
+        poses, has_pose = arrays["poses"].astype(np.float64), arrays["has_pose"]
+        bad = np.flatnonzero(has_pose & ~np.isfinite(poses).all(axis=1))
+        if len(bad):
+            raise FormatError(f"{d / 'frames.npz'}: frame {bad[0]} has a pose (has_pose) with non-finite values "
+                              f"{poses[bad[0]].tolist()}")
+        seq = Sequence(camera, None, name, meta)
         seq._dir = d
-        seq._poses = np.where(arrays["has_pose"][:, None], arrays["poses"], np.nan)
-        seq._stamps = arrays["timestamps"]
-        seq._channels = list(info.get("channels", []))
+        seq._poses = np.where(has_pose[:, None], poses, np.nan)
+        seq._stamps = arrays["timestamps"].astype(np.float64)
+        seq._channels = list(channels)
         for i in (0, n - 1) if n else ():
             if not (d / "left" / f"{i:06d}.png").is_file():
-                raise FormatError(f"{d / 'left' / f'{i:06d}.png'}: missing frame image")
+                raise FormatError(f"{d / 'left' / f'{i:06d}.png'}: missing frame image ({n} frames in {sj})")
         return seq
 
     def _read_frame(self, i: int) -> Frame:
         d, name = self._dir, f"{i:06d}.png"
-        depth = labels = None
-        if "depth" in self._channels:
-            depth = decode_depth(read_image(d / "depth" / name, grayscale=True))
-        if "labels" in self._channels:
-            labels = read_image(d / "labels" / name, grayscale=True)
+        cam = self.camera
+        want = (cam.height, cam.width)
+        imgs = {}
+        for c in ("left", "right") + tuple(self._channels):
+            p = d / c / name
+            img = read_image(p, grayscale=c in _CHANNELS)
+            dtype = np.uint16 if c == "depth" else np.uint8
+            if img.shape[:2] != want or img.dtype != dtype:
+                raise FormatError(f"{p}: expected a {cam.width}x{cam.height} {np.dtype(dtype).name} image (the "
+                                  f"camera's size in {d / 'sequence.json'}), got {img.dtype} "
+                                  f"{img.shape[1]}x{img.shape[0]}")
+            if c == "labels" and img.max() >= NUM_CLASSES:
+                raise FormatError(f"{p}: class id {img.max()} >= {NUM_CLASSES} (satloc.labels.CLASSES)")
+            imgs[c] = img
+        depth = decode_depth(imgs["depth"]) if "depth" in imgs else None
         pose = Pose2.from_array(self._poses[i]) if np.all(np.isfinite(self._poses[i])) else None
-        f = Frame(read_image(d / "left" / name), read_image(d / "right" / name), pose, float(self._stamps[i]),
-                  depth, labels)
-        f.check(self.camera, where=f"{d} frame {i}")
-        return f
+        return Frame(imgs["left"], imgs["right"], pose, float(self._stamps[i]), depth, imgs.get("labels"))
+
+
+_CHANNELS = ("depth", "labels")
+
+
+#: the ranges of a saved camera's fields that :func:`camera_from_dict` accepts: (low, high], a plausible rig
+CAMERA_RANGES = {"width": (0, 100_000), "height": (0, 100_000), "fx": (0.0, 1e7), "fy": (0.0, 1e7),
+                 "cx": (-1e7, 1e7), "cy": (-1e7, 1e7), "baseline": (0.0, 100.0), "mount_height": (0.0, 100.0),
+                 "pitch": (-math.pi / 2, math.pi / 2 - 1e-9)}
+
+
+def camera_from_dict(d, where: str) -> StereoCamera:
+    """A :class:`StereoCamera` from its saved fields (``to_dict()``), every field checked: integers for the
+    image size, and every value within :data:`CAMERA_RANGES` (finite; positive focal lengths, baseline and
+    mounting height; pitch within +-90 degrees). :class:`FormatError` naming ``where`` (the file and field)
+    otherwise."""
+    from .config import from_dict
+
+    try:
+        cam = from_dict(StereoCamera, d, where)
+    except ConfigError as e:
+        raise FormatError(str(e)) from e
+    return check_camera_ranges(cam, where)
+
+
+def check_camera_ranges(cam: StereoCamera, where: str) -> StereoCamera:
+    """``cam`` if every field lies in :data:`CAMERA_RANGES`, else :class:`FormatError` naming ``where`` (the
+    file the camera was read from) and the field."""
+    for k, (lo, hi) in CAMERA_RANGES.items():
+        v = getattr(cam, k)
+        if not (math.isfinite(v) and lo < v <= hi):
+            raise FormatError(f"{where}.{k}: expected a value in ({lo:g}, {hi:g}], got {v!r}")
+    return cam
 
 
 class _Resampled:

@@ -63,7 +63,8 @@ import yaml
 from satloc.config import from_dict, to_dict
 from satloc.errors import ConfigError, FormatError
 from satloc.labels import CLASS_ID, DRIVABLE, NUM_CLASSES
-from satloc.persist import atomic_dir, load_npz, save_npz, write_json, read_json, header
+from satloc.persist import (ArraySpec, atomic_dir, header, header_number, load_npz, nonfinite_path, read_json,
+                            save_npz, write_json)
 from satloc.satmap import SatelliteMap, read_image
 
 from .generator import GridParams, generate_grid
@@ -220,6 +221,60 @@ class SceneSpec:
         raise ConfigError(f"{where}: generator.type: expected 'grid' or 'image', got {kind!r}")
 
 
+MAX_GROUND_PX = 20000 * 20000  # the largest ground raster a scene may ask for (as satloc.georef's maps)
+MAX_LAPS = 1000
+
+
+def check_spec(spec: SceneSpec, where: str) -> None:
+    """The spec's numbers within their ranges (a scene file may be damaged or hand-edited): resolutions,
+    seed, laps, lighting, and hand-placed objects of positive size and valid colours; ConfigError naming
+    ``where`` and the field."""
+    def need(ok: bool, field_: str, what: str, value) -> None:
+        if not ok:
+            raise ConfigError(f"{where}: {field_}: expected {what}, got {value!r}")
+
+    need(spec.meters_per_pixel > 0, "meters_per_pixel", "> 0", spec.meters_per_pixel)
+    need(spec.ground_mpp > 0, "ground_mpp", "> 0", spec.ground_mpp)
+    need(spec.seed >= 0, "seed", "an integer >= 0", spec.seed)
+    for k, r in spec.routes.items():
+        need(r.laps <= MAX_LAPS, f"routes.{k}.laps", f"at most {MAX_LAPS}", r.laps)
+    need(0 < spec.lighting.sun_elevation_deg <= 90, "lighting.sun_elevation_deg", "degrees in (0, 90]",
+         spec.lighting.sun_elevation_deg)
+    rgb_ok = lambda c: all(0 <= v <= 255 for v in c)  # noqa: E731
+    for i, b in enumerate(spec.objects.buildings):
+        f = f"objects.buildings[{i}]"
+        need(len(b.footprint) >= 3, f"{f}.footprint", "a polygon of >= 3 points", b.footprint)
+        need(b.height > 0, f"{f}.height", "metres > 0", b.height)
+        need(b.facade >= 0, f"{f}.facade", "a style index >= 0", b.facade)
+        need(rgb_ok(b.roof_rgb), f"{f}.roof_rgb", "[r, g, b] in 0..255", b.roof_rgb)
+    for i, t in enumerate(spec.objects.trees):
+        f = f"objects.trees[{i}]"
+        need(t.canopy_radius > 0, f"{f}.canopy_radius", "metres > 0", t.canopy_radius)
+        need(0 <= t.canopy_bottom < t.canopy_top, f"{f}.canopy_bottom/canopy_top", "0 <= bottom < top",
+             [t.canopy_bottom, t.canopy_top])
+    for i, c in enumerate(spec.objects.cars):
+        need(rgb_ok(c.rgb), f"objects.cars[{i}].rgb", "[r, g, b] in 0..255", c.rgb)
+
+
+def _check_size(width_m: float, height_m: float, mpp: float, where: str, what: str) -> None:
+    px = (width_m / mpp) * (height_m / mpp)
+    if not (math.isfinite(px) and 1 <= px <= MAX_GROUND_PX and width_m > 0 and height_m > 0):
+        raise ConfigError(f"{where}: {what}: a {width_m:g} m x {height_m:g} m ground at {mpp:g} m per pixel is "
+                          f"{px:.3g} pixels; expected 1 to {MAX_GROUND_PX:.3g}")
+
+
+def _check_objects_inside(spec: SceneSpec, width_m: float, height_m: float, where: str) -> None:
+    """Hand-placed objects lie on the tile (as routes must)."""
+    for kind, objs in (("buildings", spec.objects.buildings), ("trees", spec.objects.trees),
+                       ("cars", spec.objects.cars)):
+        for i, o in enumerate(objs):
+            pts = o.footprint if kind == "buildings" else [o.center]
+            for x, y in pts:
+                if not (0 <= x <= width_m and 0 <= y <= height_m):
+                    raise ConfigError(f"{where}: objects.{kind}[{i}]: point [{x}, {y}] lies outside the tile, which "
+                                      f"covers x in [0, {width_m}] and y in [0, {height_m}] metres")
+
+
 def scene_path(name_or_path: str | os.PathLike) -> Path:
     """Resolve a shipped scene name (``city``) or a path to a YAML file."""
     p = Path(name_or_path)
@@ -242,10 +297,16 @@ def load_spec(name_or_path: str | os.PathLike) -> tuple[SceneSpec, Path]:
     if not path.is_file():
         raise ConfigError(f"{path}: scene file not found")
     try:
-        data = yaml.safe_load(path.read_text())
-    except yaml.YAMLError as e:
-        raise ConfigError(f"{path}: not valid YAML ({e})") from e
+        data = yaml.safe_load(path.read_bytes().decode("utf-8"))
+    except (yaml.YAMLError, UnicodeDecodeError, RecursionError) as e:
+        raise ConfigError(f"{path}: not valid YAML text ({type(e).__name__}: {str(e)[:300]})") from e
+    except OSError as e:
+        raise ConfigError(f"{path}: not readable ({e})") from e
+    bad = nonfinite_path(data)
+    if bad is not None:
+        raise ConfigError(f"{path}: {bad}: expected a finite number")
     spec = from_dict(SceneSpec, data, f"{path}:")
+    check_spec(spec, str(path))
     spec.generator_spec(str(path))
     for k in ("database_route", "query_route"):
         if getattr(spec, k) not in spec.routes:
@@ -334,20 +395,66 @@ class Scene:
     @staticmethod
     def load(path: str | os.PathLike) -> "Scene":
         d = Path(path)
-        meta = read_json(d / "scene.json", "scene")
-        spec = from_dict(SceneSpec, meta.get("spec"), f"{d / 'scene.json'}: spec")
-        a, m = load_npz(d / "layout.npz", "scene_layout")
+        sj, lz = d / "scene.json", d / "layout.npz"
+        meta = read_json(sj, "scene")
+        bad = nonfinite_path(meta.get("spec"))
+        if bad is not None:
+            raise FormatError(f"{sj}: spec.{bad}: expected a finite number")
         try:
-            verts = np.split(a["bld_verts"], np.cumsum(a["bld_nverts"])[:-1]) if len(a["bld_nverts"]) else []
-            buildings = [Building(v, float(p[0]), int(p[1]), tuple(int(c) for c in p[2:5]))
-                         for v, p in zip(verts, a["bld_params"])]
-            trees = [Tree((t[0], t[1]), t[2], t[3], t[4], int(t[5])) for t in a["trees"]]
-            cars = [Car((c[0], c[1]), c[2], c[3], c[4], c[5], tuple(int(v) for v in c[6:9])) for c in a["cars"]]
-            lay = Layout(m["width_m"], m["height_m"], m["ground_mpp"], a["ground_rgb"], a["ground_labels"],
-                         buildings, trees, cars, m["sun_azimuth"], m["sun_elevation"])
-        except KeyError as e:
-            raise FormatError(f"{d / 'layout.npz'}: missing entry {e}") from e
-        return Scene(spec, lay, SatelliteMap.load(d / "tile"), a["alias_source"])
+            spec = from_dict(SceneSpec, meta.get("spec"), f"{sj}: spec")
+            spec.generator_spec(f"{sj}: spec")
+            check_spec(spec, f"{sj}: spec")
+        except ConfigError as e:
+            raise FormatError(str(e)) from e
+        a, m = load_npz(lz, "scene_layout", {
+            "ground_rgb": ArraySpec("u", ("H", "W", 3)), "ground_labels": ArraySpec("u", ("H", "W")),
+            "alias_source": ArraySpec("iu", (None,), min=0), "bld_nverts": ArraySpec("iu", ("B",), min=3),
+            "bld_verts": ArraySpec("f", (None, 2)), "bld_params": ArraySpec("f", ("B", 5)),
+            "trees": ArraySpec("f", (None, 6)), "cars": ArraySpec("f", (None, 9))})
+        if a["ground_rgb"].dtype != np.uint8 or a["ground_labels"].dtype != np.uint8 or min(a["ground_rgb"].shape) < 1:
+            raise FormatError(f"{lz}: ground_rgb and ground_labels must be non-empty uint8 rasters, got "
+                              f"{a['ground_rgb'].dtype} {a['ground_rgb'].shape}, {a['ground_labels'].dtype}")
+        if a["ground_labels"].max() >= NUM_CLASSES:
+            raise FormatError(f"{lz}: array 'ground_labels': class id {a['ground_labels'].max()} >= {NUM_CLASSES}")
+        w_m, h_m, mpp = (header_number(m, k, lz, positive=True) for k in ("width_m", "height_m", "ground_mpp"))
+        az, el = header_number(m, "sun_azimuth", lz), header_number(m, "sun_elevation", lz)
+        hp, wp = a["ground_rgb"].shape[:2]
+        if abs(wp * mpp - w_m) > mpp or abs(hp * mpp - h_m) > mpp or not 0 < el <= math.pi / 2:
+            raise FormatError(f"{lz}: a {wp}x{hp} px ground at {mpp} m per pixel does not cover width_m {w_m}, "
+                              f"height_m {h_m}, or sun_elevation {el} is outside (0, pi/2]")
+        nv, verts, bp, tr, ca = (a[k] for k in ("bld_nverts", "bld_verts", "bld_params", "trees", "cars"))
+        if int(nv.sum()) != len(verts):
+            raise FormatError(f"{lz}: array 'bld_verts' has {len(verts)} vertices, 'bld_nverts' sums to "
+                              f"{int(nv.sum())}")
+        for key, arr, cols, what in (("bld_params", bp, [0], "height"), ("trees", tr, [2], "canopy radius"),
+                                     ("cars", ca, [3, 4, 5], "size")):
+            if len(arr) and not (arr[:, cols] > 0).all():
+                raise FormatError(f"{lz}: array '{key}': every {what} must be > 0")
+        colours = [bp[:, 2:5], ca[:, 6:9], bp[:, 1:2], tr[:, 5:6]]
+        if any(len(c) and not ((c >= 0).all() and (c == np.round(c)).all()) for c in colours) or \
+                (len(bp) and bp[:, 2:5].max() > 255) or (len(ca) and ca[:, 6:9].max() > 255) or \
+                (len(tr) and not (tr[:, 3] < tr[:, 4]).all()):
+            raise FormatError(f"{lz}: facade, shade and colour values must be integers (colours 0..255) and every "
+                              f"tree's canopy bottom below its top")
+        verts_split = np.split(verts, np.cumsum(nv)[:-1]) if len(nv) else []
+        buildings = [Building(v, float(q[0]), int(q[1]), tuple(int(c) for c in q[2:5]))
+                     for v, q in zip(verts_split, bp)]
+        trees = [Tree((t[0], t[1]), t[2], t[3], t[4], int(t[5])) for t in tr]
+        cars = [Car((c[0], c[1]), c[2], c[3], c[4], c[5], tuple(int(v) for v in c[6:9])) for c in ca]
+        lay = Layout(w_m, h_m, mpp, a["ground_rgb"], a["ground_labels"], buildings, trees, cars, az, el)
+        tile = d / "tile"
+        sm = SatelliteMap.load(tile)
+        x0, x1, y0, y1 = sm.extent
+        smpp = sm.meters_per_pixel
+        if (abs(smpp - spec.meters_per_pixel) > 1e-9 or abs(x0) > 1e-6 or abs(y1 - h_m) > 1e-6
+                or not (-smpp < x1 - w_m <= 1e-6) or not (-1e-6 <= y0 < smpp)):
+            raise FormatError(f"{tile / 'map.json'}: the tile (x [{x0:g}, {x1:g}] y [{y0:g}, {y1:g}] m at {smpp:g} m "
+                              f"per pixel) does not cover the layout in {lz} ({w_m:g} m x {h_m:g} m) at the "
+                              f"spec's {spec.meters_per_pixel:g} m per pixel ({sj})")
+        try:
+            return Scene(spec, lay, sm, a["alias_source"], where=f"{sj}: spec")
+        except ConfigError as e:
+            raise FormatError(str(e)) from e
 
 
 def _objects_from_spec(spec: ObjectsSpec) -> tuple[list[Building], list[Tree], list[Car]]:
@@ -547,8 +654,13 @@ def build_scene(spec: SceneSpec, base_dir: Path | None = None, aliasing: float |
     g = spec.generator_spec(where)
     src = None
     ground = None
+    check_spec(spec, where)
     if g.type == "grid":
         params = GridParams(g.style, tuple(g.blocks), g.pitch_m, g.road_width_m, g.sidewalk_m, g.margin_m)
+        if min(g.blocks) < 1 or not (g.pitch_m > 0 and g.road_width_m > 0 and g.sidewalk_m >= 0 and g.margin_m >= 0):
+            raise ConfigError(f"{where}: generator: expected blocks >= 1, pitch_m and road_width_m > 0, sidewalk_m "
+                              f"and margin_m >= 0, got {to_dict(g)}")
+        _check_size(*params.size_m(), spec.ground_mpp, where, "generator")
         try:
             lay, src = generate_grid(params, spec.seed, aliasing, spec.ground_mpp)
         except ValueError as e:
@@ -556,6 +668,7 @@ def build_scene(spec: SceneSpec, base_dir: Path | None = None, aliasing: float |
     else:
         ground = _image_layout(g, spec, base_dir, where)
         lay = ground.layout
+    _check_objects_inside(spec, lay.width_m, lay.height_m, where)
     routes = _resolve_routes(spec, ground, lay, g, base_dir, where)
     b, t, c = _objects_from_spec(spec.objects)
     lay.buildings += b

@@ -66,7 +66,7 @@ from ..errors import ConfigError, FormatError
 from ..geoframe import GeoFrame
 from ..geometry import Pose2, StereoCamera, wrap_angle
 from ..satmap import read_image
-from ..sequence import Frame, Sequence
+from ..sequence import Frame, Sequence, check_camera_ranges
 
 IMU_HEIGHT_M = 0.93  # GPS/IMU above the ground, KITTI sensor setup (setup.php; IJRR 2013 Fig. 3)
 
@@ -210,15 +210,26 @@ def read_rig(date_dir: str | os.PathLike, camera: str = "color", imu_height: flo
     shift = np.eye(4)
     shift[:3, 3] = t_l
     cam_from_imu = shift @ rect @ _rigid(read_calib_file(vc_path), vc_path) @ _rigid(read_calib_file(iv_path), iv_path)
-    imu_from_cam = np.linalg.inv(cam_from_imu)
+    try:
+        with np.errstate(all="ignore"):
+            imu_from_cam = np.linalg.inv(cam_from_imu)
+    except np.linalg.LinAlgError:
+        imu_from_cam = np.full((4, 4), np.nan)  # refused below, naming the files
     centre = imu_from_cam[:3, 3]
     # rotation of the camera in the IMU frame = Rz(yaw) Ry(pitch) Rx(roll) _CAM_AXES
     m = imu_from_cam[:3, :3] @ _CAM_AXES.T
     yaw = math.atan2(m[1, 0], m[0, 0])
     pitch = math.asin(float(np.clip(-m[2, 0], -1.0, 1.0)))
     roll = math.atan2(m[2, 1], m[2, 2])
-    cam = StereoCamera(int(size[0]), int(size[1]), float(k_l[0, 0]), float(k_l[1, 1]), float(k_l[0, 2]),
-                       float(k_l[1, 2]), baseline, float(centre[2] + imu_height), pitch)
+    height = float(centre[2] + imu_height)
+    if not (np.isfinite(imu_from_cam).all() and 0 < height < 10 and abs(pitch) < math.pi / 2):
+        raise FormatError(f"{cam_path}, {vc_path}, {iv_path}: the calibration chain puts the left camera "
+                          f"{height:.4g} m above the ground (with the IMU {imu_height} m high) and pitches it "
+                          f"{math.degrees(pitch):.3g} degrees; expected a height in (0, 10) m and a pitch within "
+                          f"+-90 degrees")
+    cam = check_camera_ranges(StereoCamera(int(size[0]), int(size[1]), float(k_l[0, 0]), float(k_l[1, 1]),
+                                           float(k_l[0, 2]), float(k_l[1, 2]), baseline, height, pitch),
+                              f"{cam_path}: the camera")
     return KittiRig(cam, tuple(float(v) for v in centre), yaw, roll, float(imu_height),
                     tuple(tuple(float(v) for v in row) for row in imu_from_cam))
 
@@ -393,7 +404,12 @@ def load_kitti(drive_dir: str | os.PathLike, frame: GeoFrame | None = None, *, c
     oxts = np.stack([read_oxts_file(streams[2][0] / f"{i:010d}.txt") for i in kept])
     lat, lon, imu_yaw = oxts[:, 0], oxts[:, 1], oxts[:, 5]
     if frame is None:
-        frame = GeoFrame(lon[0], lat[0])
+        try:
+            frame = GeoFrame(lon[0], lat[0])
+        except ConfigError as e:
+            first = streams[2][0] / f"{kept[0]:010d}.txt"
+            raise FormatError(f"{first} line 1: the first frame's lat/lon cannot be the map frame's origin "
+                              f"({e})") from e
     imu_xy = frame.to_map(np.stack([lon, lat], axis=1))
     ox, oy = rig.camera_in_imu[0], rig.camera_in_imu[1]
     c, s = np.cos(imu_yaw), np.sin(imu_yaw)

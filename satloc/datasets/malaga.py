@@ -81,7 +81,7 @@ from ..errors import ConfigError, FormatError
 from ..geoframe import GeoFrame
 from ..geometry import Pose2, StereoCamera, arc_length
 from ..satmap import read_image
-from ..sequence import Frame, Sequence
+from ..sequence import Frame, Sequence, check_camera_ranges
 
 MALAGA_MOUNT_HEIGHT_M = 1.6  # an estimate, see the module docstring: no source gave the height above the road
 
@@ -286,8 +286,9 @@ def read_camera_params(path: str | Path, mount_height: float = MALAGA_MOUNT_HEIG
         raise FormatError(f"{path} line {ini['CAMERA_LEFT2RIGHT_POSE']['pose_quaternion'][1]}: "
                           f"[CAMERA_LEFT2RIGHT_POSE] pose_quaternion: expected the right camera at x > 0 "
                           f"(the baseline, metres), got x = {pose[0]}")
-    return StereoCamera(left["width"], left["height"], left["fx"], left["fy"], left["cx"], left["cy"],
-                        pose[0], float(mount_height), float(pitch))
+    return check_camera_ranges(StereoCamera(left["width"], left["height"], left["fx"], left["fy"], left["cx"],
+                                            left["cy"], pose[0], float(mount_height), float(pitch)),
+                               f"{path}: the camera")
 
 
 # --- images ---------------------------------------------------------------------------------------------
@@ -534,7 +535,11 @@ def load_malaga(extract_dir: str | Path, frame: GeoFrame | None = None,
     gps_file = _find_gps_file(root)
     gps = read_gps_log(gps_file)
     if frame is None:
-        frame = GeoFrame(float(gps.lon[0]), float(gps.lat[0]))
+        try:
+            frame = GeoFrame(float(gps.lon[0]), float(gps.lat[0]))
+        except ConfigError as e:
+            raise FormatError(f"{gps_file} line {gps.lines[0]}: the first fix cannot be the map frame's origin "
+                              f"({e})") from e
     fix_xy = frame.to_map(np.stack([gps.lon, gps.lat], axis=-1))
     poses = track_poses(gps.times, fix_xy, pairs.times, cfg.heading_window_m, cfg.min_step_m, cfg.max_gap_s)
 
