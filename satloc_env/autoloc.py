@@ -14,7 +14,9 @@ for a shipped scene. The result is a build directory under the cache root::
 scene), the effective aliasing, the resolution, satloc's format and package versions, and the recording,
 build and projection configurations. Anything else (the recording itself) is not kept. An entry is built in
 a temporary directory beside it and renamed into place when complete, under an exclusive lock, so concurrent
-processes (e.g. async vector env workers) build it once and never see a partial entry.
+processes (e.g. async vector env workers) build it once and never see a partial entry. A build interrupted
+by Ctrl-C removes its temporary directory; one killed outright (SIGKILL) leaves it, and the next build of
+that entry removes it (under the lock) and starts over.
 
 :func:`auto_build_dir` returns the directory (building it on a miss); the CLI and scripts can use it like a
 build directory of ``satloc build``. :func:`load_cached_localizer` loads a build directory once per process.
@@ -27,6 +29,7 @@ from __future__ import annotations
 
 import contextlib
 import functools
+import glob
 import hashlib
 import json
 import logging
@@ -34,7 +37,6 @@ import os
 import re
 import shutil
 import sys
-import tempfile
 import time
 from dataclasses import replace
 from pathlib import Path
@@ -43,10 +45,11 @@ from typing import Any, Iterator
 from satloc import __version__ as SATLOC_VERSION
 from satloc.config import to_dict
 from satloc.errors import ConfigError
-from satloc.persist import FORMAT_VERSION, header, read_json, write_json
+from satloc.persist import FORMAT_VERSION, atomic_dir, header, read_json, write_json
 
 from .record import RecordConfig, make_env, record_pass
-from .scene import SCENES_DIR, load_spec, scene_path
+from .record import scene_identity as _scene_identity
+from .scene import SCENES_DIR  # noqa: F401  (autoloc.SCENES_DIR: where the shipped scenes are)
 
 log = logging.getLogger(__name__)
 
@@ -62,37 +65,6 @@ def cache_root(cache_dir: str | os.PathLike | None = None) -> Path:
         return Path(cache_dir).expanduser()
     env = os.environ.get(CACHE_ENV)
     return Path(env).expanduser() if env else Path.home() / ".cache" / "satloc"
-
-
-def _hash_files(h: "hashlib._Hash", files: list[tuple[str, Path]]) -> None:
-    for name, path in files:
-        h.update(name.encode() + b"\0")
-        with open(path, "rb") as f:
-            for chunk in iter(lambda: f.read(1 << 20), b""):
-                h.update(chunk)
-        h.update(b"\0")
-
-
-def _scene_identity(scene: str | os.PathLike) -> tuple[str, str, str, float]:
-    """(name, source, sha256 of the scene's files, the scene's own aliasing) of a scene argument as
-    :func:`satloc_env.scene.load_scene` reads it. ``source`` is the shipped name or the resolved path."""
-    p = Path(scene).expanduser()
-    h = hashlib.sha256()
-    if p.is_dir() and (p / "scene.json").is_file():  # a saved scene: all its files
-        spec = read_json(p / "scene.json", "scene").get("spec") or {}
-        files = sorted((str(f.relative_to(p)), f) for f in p.rglob("*") if f.is_file())
-        _hash_files(h, files)
-        name = str(spec.get("name", p.name))
-        return name, str(p.resolve()), h.hexdigest(), float((spec.get("knobs") or {}).get("aliasing", 0.0))
-    spec, base = load_spec(scene)
-    path = scene_path(scene).resolve()
-    files = [("scene.yaml", path)]
-    g = spec.generator_spec(str(path))
-    if g.type == "image":
-        files += g.files(base)
-    _hash_files(h, files)
-    source = path.stem if path.parent == SCENES_DIR.resolve() else str(path)
-    return spec.name, source, h.hexdigest(), float(spec.knobs.aliasing)
 
 
 def _configs(max_frames, build_config, projection_config):
@@ -143,13 +115,14 @@ def is_complete(entry: Path) -> bool:
 
 
 @contextlib.contextmanager
-def _locked(path: Path, on_wait=None) -> Iterator[None]:
-    """An exclusive advisory lock on ``path`` (no-op where ``fcntl`` is missing: the final rename stays safe);
-    ``on_wait()`` is called if another process holds it."""
+def _locked(path: Path, on_wait=None) -> Iterator[bool]:
+    """An exclusive advisory lock on ``path``; yields True, or False where ``fcntl`` is missing (no lock: the
+    final rename stays safe). ``on_wait()`` is called if another process holds it. The kernel releases the
+    lock when its holder dies, however it dies (SIGKILL included)."""
     try:
         import fcntl
     except ImportError:  # pragma: no cover - not POSIX
-        yield
+        yield False
         return
     with open(path, "a") as f:
         try:
@@ -159,9 +132,17 @@ def _locked(path: Path, on_wait=None) -> Iterator[None]:
                 on_wait()
             fcntl.flock(f, fcntl.LOCK_EX)
         try:
-            yield
+            yield True
         finally:
             fcntl.flock(f, fcntl.LOCK_UN)
+
+
+def _leftovers(entry: Path) -> list[Path]:
+    """Temporary and set-aside directories of ``entry`` (``.<entry>.*.tmp``, ``.<entry>.*.old*``): an
+    interrupted build's. Only the holder of the entry's lock builds it, so under the lock they are all stale."""
+    pre = f".{entry.name}."
+    return [p for p in entry.parent.glob(f"{glob.escape(pre)}*")
+            if p.name.endswith(".tmp") or ".old" in p.name[len(pre):]]
 
 
 def _announce(msg: str, progress: bool) -> None:
@@ -188,29 +169,26 @@ def auto_build_dir(scene: str | os.PathLike, aliasing: float | None = None, reso
         return entry
     root.mkdir(parents=True, exist_ok=True)
     wait = lambda: _announce(f"waiting for another process building {entry}", progress)  # noqa: E731
-    with _locked(root / f".{entry.name}.lock", wait):
+    with _locked(root / f".{entry.name}.lock", wait) as exclusive:
         if is_complete(entry):  # built by another process while we waited
             return entry
+        if exclusive:  # an earlier build killed mid-way (SIGKILL) left its temporary directory
+            for p in _leftovers(entry):
+                log.info("removing the leftover of an interrupted build: %s", p)
+                if p.is_dir() and not p.is_symlink():
+                    shutil.rmtree(p, ignore_errors=True)
+                else:
+                    p.unlink(missing_ok=True)
         _announce(f"building the localizer for scene {key['scene']!r} (aliasing {key['aliasing']:g}, "
                   f"{resolution}) once, into the cache {entry}", progress)
-        tmp = Path(tempfile.mkdtemp(prefix=f".{entry.name}.", suffix=".tmp", dir=root))
-        try:
+        # built in a temporary directory beside the entry, renamed into place whole (an incomplete leftover
+        # entry, e.g. with files deleted by hand, is replaced); on any exception, Ctrl-C included, removed
+        with atomic_dir(entry) as tmp:
             t0 = time.perf_counter()
             _build_entry(tmp, key, scene, aliasing, resolution, max_frames, build_config, projection_config,
                          progress)
             write_json(tmp / "autoloc.json", dict(header("autoloc_cache"), key=key,
                                                   seconds=round(time.perf_counter() - t0, 1)))
-            if entry.exists():  # an incomplete leftover (e.g. files deleted by hand)
-                old = root / f".{entry.name}.old-{os.getpid()}"
-                os.replace(entry, old)
-                shutil.rmtree(old, ignore_errors=True)
-            try:
-                os.replace(tmp, entry)
-            except OSError:
-                if not is_complete(entry):  # without working locks another process may have won the race
-                    raise
-        finally:
-            shutil.rmtree(tmp, ignore_errors=True)
         _announce(f"localizer cache ready: {entry}", progress)
     return entry
 
@@ -271,6 +249,43 @@ def auto_localizer(scene: str | os.PathLike, aliasing: float | None = None, reso
     return load_cached_localizer(auto_build_dir(scene, aliasing, resolution, progress), mode, refine)
 
 
+#: the fields of a cache key (:func:`cache_key`) and their types
+_KEY_FIELDS = {"scene": str, "source": str, "scene_sha256": str, "aliasing": float, "resolution": str,
+               "format_version": int, "satloc_version": str, "key_version": int, "speed_mps": float,
+               "database_pass": dict, "build": dict, "projection": dict}
+
+
 def describe_entry(entry: str | os.PathLike) -> dict[str, Any]:
-    """The cache key an entry was built for (its ``autoloc.json``)."""
-    return read_json(Path(entry) / "autoloc.json", "autoloc_cache")["key"]
+    """The cache key an entry was built for (its ``autoloc.json``), checked field by field (a damaged or
+    foreign file raises :class:`satloc.FormatError` naming it and the field)."""
+    from satloc.errors import FormatError
+    from satloc.persist import nonfinite_path
+
+    path = Path(entry) / "autoloc.json"
+    key = read_json(path, "autoloc_cache").get("key")
+    if not isinstance(key, dict) or set(key) != set(_KEY_FIELDS):
+        got = sorted(key) if isinstance(key, dict) else type(key).__name__
+        raise FormatError(f"{path}: field 'key': expected a mapping of {sorted(_KEY_FIELDS)}, got {got}")
+    for k, tp in _KEY_FIELDS.items():
+        v = key[k]
+        ok = isinstance(v, (int, float) if tp is float else tp) and not isinstance(v, bool)
+        if not ok:
+            raise FormatError(f"{path}: key.{k}: expected {tp.__name__}, got {str(v)[:60]!r}")
+    bad = nonfinite_path(key)
+    if bad is not None:
+        raise FormatError(f"{path}: key.{bad}: expected a finite number")
+    if not (0 <= key["aliasing"] <= 1 and key["speed_mps"] > 0 and key["resolution"] in ("half", "full")):
+        raise FormatError(f"{path}: key: expected aliasing in [0, 1], speed_mps > 0 and resolution half or full, got "
+                          f"{key['aliasing']!r}, {key['speed_mps']!r}, {key['resolution'][:20]!r}")
+    from satloc.config import from_dict
+    from satloc.pipeline import BuildConfig
+    from satloc.projection import ProjectionConfig
+
+    from .record import PassConfig
+
+    try:
+        for k, cls in (("database_pass", PassConfig), ("build", BuildConfig), ("projection", ProjectionConfig)):
+            from_dict(cls, key[k], f"{path}: key.{k}")
+    except ConfigError as e:
+        raise FormatError(str(e)) from e
+    return key

@@ -344,19 +344,45 @@ def build_parser() -> argparse.ArgumentParser:
     return p
 
 
-def main(argv: list[str] | None = None) -> int:
-    argv = sys.argv[1:] if argv is None else list(argv)
-    if argv[:1] == ["train-features"]:  # its own parser (argparse cannot forward options through REMAINDER)
-        from satloc_env.train_features import main as train_main
+#: the exit status after Ctrl-C (SIGINT), as shells report a command ended by SIGINT (128 + 2)
+EXIT_INTERRUPTED = 130
 
-        return train_main(argv[1:]) or 0
-    args = build_parser().parse_args(argv)
+
+def main(argv: list[str] | None = None) -> int:
+    """Run a command; 2 with one line on a :class:`SatlocError`, 130 with one line on Ctrl-C (SIGINT).
+
+    An interrupted command leaves its outputs as they were or marked incomplete (every file is written
+    atomically; see each stage), and running it again resumes or starts over."""
+    argv = sys.argv[1:] if argv is None else list(argv)
     try:
+        if argv[:1] == ["train-features"]:  # its own parser (argparse cannot forward options through REMAINDER)
+            from satloc_env.train_features import main as train_main
+
+            return train_main(argv[1:]) or 0
+        args = build_parser().parse_args(argv)
         return args.func(args)
     except SatlocError as e:
         print(f"satloc: error: {e}", file=sys.stderr)
         return 2
+    except KeyboardInterrupt:
+        nl = "\n" if sys.stderr.isatty() else ""  # end a progress bar's line first
+        print(f"{nl}satloc: interrupted; run the command again to resume or start over", file=sys.stderr,
+              flush=True)
+        return EXIT_INTERRUPTED
+
+
+def entry(argv: list[str] | None = None) -> None:
+    """The ``satloc`` command: :func:`main`, then exit with its status. Once the command has finished, a
+    Ctrl-C during the interpreter's shutdown is ignored (it would end the process with a traceback and a
+    signal status although every output is complete)."""
+    import signal
+    import threading
+
+    code = main(argv)
+    if threading.current_thread() is threading.main_thread():
+        signal.signal(signal.SIGINT, signal.SIG_IGN)
+    sys.exit(code)
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    entry()

@@ -5,8 +5,15 @@
     out_dir/map/          the scene's satellite map (SatelliteMap layout)
     out_dir/database/     Sequence: the database pass (lane offset, no occluders, reference appearance)
     out_dir/query/        Sequence: the query pass (another lane offset, appearance and occluders)
+    out_dir/recording.json  the configuration and which passes are done; ``complete`` once both are
 
 Both sequences use the on-disk layout of :mod:`satloc.sequence`, which the dataset readers also produce.
+
+Interrupted runs: each pass is written whole (a temporary directory renamed into place) and marked done in
+``recording.json`` after it. A rerun with the same configuration and satloc version after an interruption
+keeps the passes marked done and records the rest (it resumes); otherwise it starts over, first marking
+the recording incomplete and removing the earlier map and passes, so a recording is never a mix of two
+configurations. :func:`load_recording` loads a recording only when it is complete.
 
 This module does not import :mod:`satloc_env.env`: the environment uses :mod:`satloc_env.autoloc` for
 ``localizer="auto"``, which records the scene's database pass with this module, so the recorders make their
@@ -15,6 +22,10 @@ go one way (env -> autoloc -> record).
 """
 from __future__ import annotations
 
+import hashlib
+import os
+import shutil
+import sys
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -24,9 +35,15 @@ import numpy as np
 from gymnasium.envs.registration import load_env_creator
 from tqdm import tqdm
 
+from satloc import __version__ as SATLOC_VERSION
 from satloc.config import from_dict, to_dict
+from satloc.errors import FormatError
 from satloc.geometry import Pose2
+from satloc.persist import header, read_json, write_json
+from satloc.satmap import SatelliteMap
 from satloc.sequence import Frame, Sequence, SequenceWriter
+
+from .scene import SCENES_DIR, load_spec, scene_path
 
 #: the id ``satloc_env`` registers the simulator under (``satloc_env.ENV_ID``; importing the package, which
 #: every import of this module does first, registers it)
@@ -100,13 +117,102 @@ def record_pass(env: gym.Env, p: PassConfig, route: str, out: Path, name: str, p
     return seq
 
 
+def _hash_files(h: "hashlib._Hash", files: list[tuple[str, Path]]) -> None:
+    for name, path in files:
+        h.update(name.encode() + b"\0")
+        with open(path, "rb") as f:
+            for chunk in iter(lambda: f.read(1 << 20), b""):
+                h.update(chunk)
+        h.update(b"\0")
+
+
+def scene_identity(scene: str | os.PathLike) -> tuple[str, str, str, float]:
+    """(name, source, sha256 of the scene's files, the scene's own aliasing) of a scene argument as
+    :func:`satloc_env.scene.load_scene` reads it. ``source`` is the shipped name or the resolved path."""
+    p = Path(scene).expanduser()
+    h = hashlib.sha256()
+    if p.is_dir() and (p / "scene.json").is_file():  # a saved scene: all its files
+        spec = read_json(p / "scene.json", "scene").get("spec") or {}
+        files = sorted((str(f.relative_to(p)), f) for f in p.rglob("*") if f.is_file())
+        _hash_files(h, files)
+        name = str(spec.get("name", p.name))
+        return name, str(p.resolve()), h.hexdigest(), float((spec.get("knobs") or {}).get("aliasing", 0.0))
+    spec, base = load_spec(scene)
+    path = scene_path(scene).resolve()
+    files = [("scene.yaml", path)]
+    g = spec.generator_spec(str(path))
+    if g.type == "image":
+        files += g.files(base)
+    _hash_files(h, files)
+    source = path.stem if path.parent == SCENES_DIR.resolve() else str(path)
+    return spec.name, source, h.hexdigest(), float(spec.knobs.aliasing)
+
+
+#: the status file of a recording directory (format ``recording``)
+STATUS = "recording.json"
+PASSES = ("database", "query")
+
+
+def _status(cfg: dict, scene_sha: str, done: list[str], complete: bool = False) -> dict:
+    return dict(header("recording"), config=cfg, scene_sha256=scene_sha, satloc_version=SATLOC_VERSION,
+                done=list(done), complete=complete)
+
+
+def _resumable(out: Path, cfg: dict, scene_sha: str) -> list[str]:
+    """The passes an interrupted earlier run with configuration ``cfg`` (and the same scene files and satloc
+    version) finished, if they load; else []."""
+    try:
+        st = read_json(out / STATUS, "recording")
+    except FormatError:
+        return []
+    if st.get("complete") or st.get("config") != cfg or st.get("scene_sha256") != scene_sha \
+            or st.get("satloc_version") != SATLOC_VERSION:
+        return []
+    done = []
+    for name in PASSES:  # in order: the query pass counts only after the database pass (and the map)
+        if name not in (st.get("done") or []):
+            break
+        try:
+            Sequence.load(out / name)
+            if name == "database":
+                SatelliteMap.load(out / "map")
+        except FormatError:
+            break
+        done.append(name)
+    return done
+
+
+def _start_over(out: Path, cfg: dict, scene_sha: str) -> None:
+    """Mark the recording incomplete (for ``cfg``), then remove the map and passes of an earlier run."""
+    write_json(out / STATUS, _status(cfg, scene_sha, []))
+    for name in PASSES:
+        if (out / name).is_symlink():
+            (out / name).unlink()
+        elif (out / name).is_dir():
+            shutil.rmtree(out / name)
+    for f in ("map.json", "map.png", "labels.png"):  # only the map's own files: never a folder we did not write
+        (out / "map" / f).unlink(missing_ok=True)
+
+
 def record_passes(config: RecordConfig | dict[str, Any], out_dir: str | Path, progress: bool = True
                   ) -> tuple[Sequence, Sequence]:
-    """Record the database and query passes of a scene into ``out_dir`` (see the module docstring)."""
+    """Record the database and query passes of a scene into ``out_dir`` (see the module docstring); after an
+    interrupted run with the same configuration, only the passes it did not finish."""
     cfg = config if isinstance(config, RecordConfig) else from_dict(RecordConfig, config, "record config")
     out = Path(out_dir)
+    conf = to_dict(cfg)
+    sha = scene_identity(cfg.scene)[2]
+    done = _resumable(out, conf, sha)
+    if not done:
+        _start_over(out, conf, sha)
     sequences = []
     for name, p in (("database", cfg.database), ("query", cfg.query)):
+        if name in done:
+            if progress:
+                print(f"satloc: resuming: the {name} pass in {out / name} was recorded by an interrupted run",
+                      file=sys.stderr, flush=True)
+            sequences.append(Sequence.load(out / name))
+            continue
         # localizer=None: recording needs no localization (and "auto" would itself record the database pass)
         env = make_env(scene=cfg.scene, resolution=cfg.resolution, aliasing=cfg.aliasing, speed_mps=cfg.speed_mps,
                        depth=p.depth, labels=p.labels, localizer=None)
@@ -122,4 +228,20 @@ def record_passes(config: RecordConfig | dict[str, Any], out_dir: str | Path, pr
             sequences.append(record_pass(env, p, route, out / name, name, progress, meta))
         finally:
             env.close()
+        done.append(name)
+        write_json(out / STATUS, _status(conf, sha, done))
+    write_json(out / STATUS, _status(conf, sha, done, complete=True))
     return sequences[0], sequences[1]
+
+
+def load_recording(out_dir: str | Path) -> tuple[SatelliteMap, Sequence, Sequence]:
+    """The map, database and query pass of a complete recording (:func:`record_passes`); FormatError naming
+    ``recording.json`` for an incomplete one (an interrupted run: rerun it to finish) or a directory that is
+    not a recording."""
+    out = Path(out_dir)
+    st = read_json(out / STATUS, "recording")
+    if st.get("complete") is not True:
+        done = ", ".join(st.get("done") or []) or "no pass"
+        raise FormatError(f"{out / STATUS}: the recording is incomplete ({done} done; interrupted?); run "
+                          "record_passes / satloc record again with the same options to finish it")
+    return SatelliteMap.load(out / "map"), Sequence.load(out / "database"), Sequence.load(out / "query")
