@@ -105,9 +105,15 @@ class Run:
         return f"rc {self.rc}\nstdout: {self.out[-2000:]}\nstderr: {self.err[-3000:]}"
 
 
+def _default_sigint() -> None:
+    # a shell's background job (CI's, nohup's) starts with SIGINT ignored, and Python then installs no
+    # KeyboardInterrupt handler: give the child the SIGINT of an interactive run
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
+
+
 def start(args: list[str], cwd: Path) -> subprocess.Popen:
     return subprocess.Popen([sys.executable, *args], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
-                            start_new_session=True, cwd=cwd)
+                            start_new_session=True, cwd=cwd, preexec_fn=_default_sigint)
 
 
 def finish(p: subprocess.Popen) -> Run:
