@@ -140,7 +140,7 @@ def compare(cfg: ExperimentConfig, cc: CompareConfig, label: str, db: Sequence, 
         m.update(errors=a["errors"], inlier_score=np.where(np.isfinite(a["errors"]), a["inlier_score"], np.nan))
         res[mode] = m
     for b in cc.baselines:
-        res[b] = run_baseline(b, cc, label, db, q, sel, out, progress, log, fabmap_dir)
+        res[b] = run_baseline(b, cc, cfg.scene, db, q, sel, out, progress, log, fabmap_dir)
     write_json(out / "compare.json", {"format": "compare", "head": head, "frames": [int(i) for i in sel],
                                       "methods": {k: _plain(v) for k, v in res.items()}})
     return res
@@ -355,7 +355,7 @@ def sweep(out: str | Path, config: dict | None = None, progress: bool = True, lo
                 sel = _covered(cfg, db, q)
                 res = compare(cfg, cfg.compare, f"{sc.scene} a={a:g} o={o:g} p={p:g}", db, q, sel, bdir,
                               SatelliteMap.load(d / "rec" / "map"), d, {"scene": sc.scene, "config": to_dict(cfg)},
-                              times, progress, log)
+                              times, progress, log, fabmap_dir=out)   # FAB-MAP's training does not depend on the knobs
                 for m, r in res.items():
                     rows.append({"scene": sc.scene, "aliasing": a, "occlusion": o, "appearance": p,
                                  "method": method_name(m), "mean_m": round(float(r["mean_m"]), 3),
