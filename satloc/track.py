@@ -129,8 +129,7 @@ class Tracker:
         share) triples of their Gaussian spread over the candidates within 3 sigma and the heading gate (shares of
         a source sum to 1) and whether each source reached any candidate."""
         c, cfg = self.candidates, self.config
-        near = [self._tree.query_ball_point(m, 3.0 * sg, return_sorted=False) for m, sg in zip(moved, sigma)] \
-            if np.ndim(sigma) else self._tree.query_ball_point(moved, 3.0 * float(sigma), return_sorted=False)
+        near = self._tree.query_ball_point(moved, 3.0 * np.asarray(sigma, np.float64), return_sorted=False)
         counts = np.fromiter((len(n) for n in near), np.int64, len(near))
         src = np.repeat(np.arange(len(moved)), counts)
         dst = np.concatenate([np.asarray(n, np.int64) for n in near]) if len(near) else np.zeros(0, np.int64)

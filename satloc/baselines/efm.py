@@ -64,7 +64,7 @@ from ..config import from_dict, to_dict
 from ..errors import ConfigError, FormatError
 from ..geometry import StereoCamera
 from ..localizer import Localization, top_k_estimate
-from ..persist import load_npz, save_npz
+from ..persist import ArraySpec, load_npz, save_npz
 from ..sequence import Frame, Sequence
 
 FORMAT = "efm_database"
@@ -418,15 +418,12 @@ class Efm:
         """Read a database written by :meth:`save`; ``config`` (optional) replaces the matching settings
         (see :meth:`with_config`). A damaged or foreign file raises :class:`FormatError` naming it."""
         path = Path(path)
-        arrays, meta = load_npz(path, FORMAT)
-        want = {"xy": (np.floating, 2), "desc": (np.uint8, 2), "offsets": (np.integer, 1), "poses": (np.floating, 2),
-                "frame_index": (np.integer, 1)}
-        for k, (dt, nd) in want.items():
-            if k not in arrays:
-                raise FormatError(f"{path}: missing array '{k}'")
-            if not np.issubdtype(arrays[k].dtype, dt) or arrays[k].ndim != nd:
-                raise FormatError(f"{path}: array '{k}' has dtype {arrays[k].dtype} and {arrays[k].ndim} "
-                                  f"dimension(s); expected {nd}-D {getattr(dt, '__name__', dt)}")
+        arrays, meta = load_npz(path, FORMAT, spec={
+            "xy": ArraySpec("f", (None, None)), "desc": ArraySpec("u", (None, None), max=255),
+            "offsets": ArraySpec("iu", (None,)), "poses": ArraySpec("f", (None, None)),
+            "frame_index": ArraySpec("iu", (None,))})
+        if arrays["desc"].dtype != np.uint8:
+            raise FormatError(f"{path}: array 'desc': expected uint8 descriptors, got {arrays['desc'].dtype}")
         try:
             cfg = from_dict(EfmConfig, meta.get("config"), f"{path}: config")
             camera = StereoCamera(**meta["camera"]) if meta.get("camera") else None
