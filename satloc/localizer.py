@@ -368,6 +368,11 @@ class Localizer:
         cands = self.candidates if candidates is None else candidates
         scores = np.zeros(len(cands))
         sel = self._pruned(gid, wg, pv) if candidates is None and cfg.prune_regions > 0 else slice(None)
+        if tracker is not None and not tracker.locked():
+            # a belief that has not locked (a new one: a uniform prior) needs every candidate's score: vote
+            # pruning drops the truth of most aliased single images, and a dropped candidate is all but ruled
+            # out by the fusion (satloc.track, "global search")
+            sel = slice(None)
         if tracker is not None and tracker.belief is not None and not isinstance(sel, slice):
             # also score where the tracked belief is, wherever this frame's votes point
             b = tracker.belief

@@ -15,6 +15,16 @@ image. :class:`Tracker` keeps a belief over the candidate poses of a :class:`sat
   locked onto a wrong place (or a vehicle moved without odometry) recovers once images disagree with it;
 * **fuse** (a frame's co-occurrence posterior P(L | I)): belief × (P(L | I) + ``floor`` / C), normalised.
   The floor keeps candidates the localizer did not score (vote pruning gives them 0) alive.
+* **global search** (``lock_m``, ``lock_mass``): a single image's posterior is scored only near the path
+  positions its ground neighbours vote for most (``LocalizerConfig.prune_regions``, a speed device), and a
+  candidate left unscored gets only the floor, a factor of thousands below the scored ones. On an aliased
+  route the truth is often outside those regions, so a new belief pruned that way starts from look-alikes
+  and the truth can only come back through ``revive``. So while the tracker is not :meth:`Tracker.locked`
+  (no belief yet, or less than ``lock_mass`` of it within ``lock_m`` of its mode) the localizer scores
+  every candidate; once locked, the pruned regions plus the belief's support. Measured on Table II's 3 km
+  loop ring (README, Table II): the first frames of the ring revisit were lost to the point-symmetric twin
+  of the ring (a rectangle looks the same to odometry after a half turn) for 43 frames (860 m) with
+  pruning, and 0 with the global search;
 * **off the map** (``off_map``, the default): probability that the odometry moves more than 3 sigma from every
   candidate is not dropped but kept as *off-map hypotheses*: poses (at most ``off_map_hypotheses``, grouped
   within 5 m) dead-reckoned by the odometry, their spread growing with the distance driven since they left
@@ -60,6 +70,9 @@ class TrackConfig:
     off_map: bool = True              # keep the belief that the odometry moves off the mapped path (see above)
     off_map_hypotheses: int = 8       # at most this many off-map poses, the least probable merged
     inlier_threshold: float = 0.5     # a tracked frame is declared inside the map when P(on the map) reaches this
+    lock_m: float = 10.0              # a belief is locked when this radius around its mode holds ...
+    lock_mass: float = 0.9            # ... this much of it (times P(on the map)); until then every candidate is
+                                      # scored (Localizer: no vote pruning); 0: only a new belief's first frame
 
     def __post_init__(self):
         if self.sigma_m <= 0 or self.sigma_frac < 0:
@@ -72,6 +85,9 @@ class TrackConfig:
             raise ConfigError(f"track.off_map_hypotheses: expected an integer >= 1, got {self.off_map_hypotheses}")
         if not 0 < self.inlier_threshold <= 1:
             raise ConfigError(f"track.inlier_threshold: expected a probability in (0, 1], got {self.inlier_threshold}")
+        if not self.lock_m > 0 or not 0 <= self.lock_mass <= 1:
+            raise ConfigError(f"track: lock_m > 0 and lock_mass in [0, 1] are required, got {self.lock_m}, "
+                              f"{self.lock_mass}")
 
 
 def relative_motion(a: Pose2, b: Pose2) -> np.ndarray:
@@ -123,6 +139,19 @@ class Tracker:
         self.belief = None
         self.p_on = 1.0
         self.off = np.zeros((0, 5))
+
+    def locked(self) -> bool:
+        """Whether the belief is concentrated: at least ``lock_mass`` of it (times :attr:`p_on`) lies within
+        ``lock_m`` of its most probable candidate. No belief yet (the first frame, or after :meth:`reset`): not
+        locked. The localizer scores every candidate while the tracker is not locked (see the module docstring)."""
+        if self.belief is None:
+            return False
+        cfg = self.config
+        if cfg.lock_mass <= 0:
+            return True
+        mode = self.candidates[int(np.argmax(self.belief)), :2]
+        near = self._tree.query_ball_point(mode, cfg.lock_m, return_sorted=False)
+        return float(self.belief[near].sum()) * self.p_on >= cfg.lock_mass
 
     def _spread(self, moved: np.ndarray, myaw: np.ndarray, sigma: np.ndarray):
         """For poses ``moved`` (n, 2) with headings ``myaw`` (n,) and spreads ``sigma`` (n,): the (source, candidate,

@@ -243,6 +243,47 @@ def test_localizer_tracks_a_stream_like_single_calls():
         loc.localize(frames[0], candidates=loc.candidates[:10], tracker=loc.tracker())
 
 
+def test_locked_needs_the_belief_concentrated_near_its_mode():
+    cands = line_candidates()
+    t = Tracker(cands, TrackConfig(lock_m=10.0, lock_mass=0.9))
+    assert not t.locked()                                   # no belief yet: a uniform prior
+    t.fuse(peaks(cands, [50.0]))
+    assert t.locked()
+    t.fuse(peaks(cands, [50.0, 120.0]))                     # the belief keeps its peak at 50 m
+    assert t.locked()
+    t.reset()
+    t.fuse(peaks(cands, [50.0, 120.0]))                     # two equal places 70 m apart: half the mass each
+    assert not t.locked()
+    t.fuse(peaks(cands, [50.0]))
+    assert t.belief[np.abs(cands[:, 0] - 50) <= 10].sum() > 0.99 and t.locked()
+    t.p_on = 0.5                                            # probably off the map: not locked
+    assert not t.locked()
+    lazy = Tracker(cands, TrackConfig(lock_mass=0.0))       # 0: only a new belief searches everything
+    assert not lazy.locked()
+    lazy.fuse(peaks(cands, [50.0, 120.0]))
+    assert lazy.locked()
+    with pytest.raises(ConfigError, match="lock_mass"):
+        TrackConfig(lock_mass=1.5)
+
+
+def test_a_tracker_that_has_not_locked_scores_every_candidate():
+    cam, seq, sf, ext = tiny_setup()
+    d = build_dictionary(seq, sf, ext, GridConfig(step_px=4, min_depth_m=1.0), depth_source="frame", progress=False)
+    common = dict(mode="np", depth_source="frame", candidate_spacing_m=0.5)
+    pruned = Localizer(d, sf, ext, cam, None, LocalizerConfig(prune_regions=1, prune_window_m=2.0, **common))
+    every = Localizer(d, sf, ext, cam, None, LocalizerConfig(prune_regions=0, **common))
+    f = seq[2]
+    single, full = pruned.localize(f), every.localize(f)
+    assert np.count_nonzero(single.posterior) < np.count_nonzero(full.posterior)    # pruning drops candidates
+    tracked = pruned.localize(f, tracker=pruned.tracker())                            # a new belief: all scored
+    assert np.allclose(tracked.posterior, full.posterior, rtol=1e-9, atol=1e-15)
+    lazy = pruned.tracker(TrackConfig(lock_mass=0.0))
+    lazy.fuse(single.posterior)                               # a belief that counts as locked: pruned again
+    again = pruned.localize(f, tracker=lazy)
+    b = single.posterior * (single.posterior + lazy.config.floor / len(single.posterior))
+    assert np.allclose(again.posterior, b / b.sum(), rtol=1e-9, atol=1e-15)
+
+
 def test_pipeline_localize_needs_matching_odometry_to_track(tmp_path):
     from satloc.pipeline import localize
 
