@@ -7,7 +7,11 @@ same query frames in the same process, one method after the other:
   :func:`satloc_env.experiment.localize_and_report` (``localization_<mode>.npz``);
 * FAB-MAP (:class:`satloc.baselines.FabMap`) and EFM (:class:`satloc.baselines.Efm`), single image, each
   query's left image: ``baseline_<name>.npz`` with the same arrays (frames, estimates, truth, errors,
-  inlier_score, inlier).
+  inlier_score, inlier);
+* ``fabmap+seq`` ("FAB-MAP + seq"): the same FAB-MAP over the query stream with the paper's sequential
+  prior (the last posterior moved to the places within ``fabmap_motion_window`` database places; by default
+  the median query step over the median place spacing, rounded up, + 1: :func:`fabmap_motion_window`), the
+  baseline's counterpart of the method's tracked rows.
 
 FAB-MAP's vocabulary and Chow-Liu tree are trained on frames disjoint from the test scene: the database pass
 (route, lane -1.75 m, no occluders, reference appearance) of *another scene* (``fabmap_train_scene``; default
@@ -26,6 +30,7 @@ Table I's protocols are in :func:`table1`.
 from __future__ import annotations
 
 import csv
+import math
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -82,6 +87,22 @@ def trained_fabmap(cc: CompareConfig, test_scene: str, out: Path, progress: bool
     return model
 
 
+def fabmap_motion_window(db_poses: np.ndarray, query_poses: np.ndarray) -> int:
+    """FAB-MAP's motion window in database places for a query stream: the median step between consecutive
+    queries over the median spacing of consecutive database places, rounded up, plus one (so that the place
+    reached after a typical step, and its neighbour, are adjacent to the previous one)."""
+    def steps(p):
+        p = np.asarray(p, np.float64)[:, :2]
+        d = np.hypot(*np.diff(p, axis=0).T)
+        d = d[np.isfinite(d) & (d > 0)]
+        return float(np.median(d)) if len(d) else float("nan")
+
+    place, step = steps(db_poses), steps(query_poses)
+    if not (np.isfinite(place) and np.isfinite(step)):
+        return 1
+    return int(math.ceil(step / place)) + 1
+
+
 def run_baseline(name: str, cc: CompareConfig, test_scene: str, db: Sequence, q: Sequence, sel: np.ndarray,
                  out: Path, progress: bool = True, log=print, fabmap_dir: Path | None = None) -> dict:
     """Build baseline ``name`` on ``db`` (every ``cc.database_step``-th frame of it), localize the frames ``sel``
@@ -91,13 +112,18 @@ def run_baseline(name: str, cc: CompareConfig, test_scene: str, db: Sequence, q:
     t = time.perf_counter()
     if cc.database_step > 1:
         db = db.view(np.arange(0, len(db), cc.database_step))
-    if name == "fabmap":
+    meta: dict = {"baseline": name}
+    if name.startswith("fabmap"):
         model = FabMap.load(trained_fabmap(cc, test_scene, Path(fabmap_dir or out), progress, log))
         model.add_places(db, progress)
-        loc = model.localize
+        if name == "fabmap+seq":   # the paper's motion model: each frame's prior is the last posterior, moved
+            window = cc.fabmap_motion_window
+            if window is None:
+                window = fabmap_motion_window(db.poses, q.poses[sel])
+            model = model.with_config(sequential=True, motion_window=window)
+            meta["motion_window"] = int(window)
     else:
         model = Efm.build(db, cc.efm, progress)
-        loc = model.localize
     t_index = time.perf_counter() - t
     n = len(sel)
     est, truth = np.full((n, 3), np.nan), np.array(q.poses[sel], np.float64).reshape(n, 3)
@@ -105,14 +131,16 @@ def run_baseline(name: str, cc: CompareConfig, test_scene: str, db: Sequence, q:
     from tqdm import tqdm
 
     t = time.perf_counter()
-    for i, qi in enumerate(tqdm(sel, desc=BASELINE_NAMES[name], unit="query", disable=not progress, leave=False)):
-        r = loc(q[int(qi)])
+    frames = (q[int(qi)] for qi in tqdm(sel, desc=BASELINE_NAMES[name], unit="query", disable=not progress,
+                                        leave=False))
+    results = model.localize_stream(frames) if name == "fabmap+seq" else map(model.localize, frames)
+    for i, r in enumerate(results):
         est[i], score[i], inl[i] = r.estimate.as_array(), r.inlier_score, r.inlier
     secs = time.perf_counter() - t
     err = np.hypot(est[:, 0] - truth[:, 0], est[:, 1] - truth[:, 1])
     save_npz(Path(out) / f"baseline_{name}.npz", "localization",
              {"frames": np.asarray(sel, np.int64), "estimates": est, "truth": truth, "errors": err,
-              "inlier_score": score, "inlier": inl}, {"baseline": name})
+              "inlier_score": score, "inlier": inl}, meta)
     st = error_stats(err)
     s = {"mode": name, "queries": n, "mean_m": st["mean"], "std_m": st["std"], "median_m": st["median"],
          "within_1m": st["within_1m"], "within_10m": st["within_10m"], "index_s": round(t_index, 2),

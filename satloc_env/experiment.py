@@ -51,8 +51,8 @@ METHOD_NAMES = {b + "".join("+" + s for s in suf): " + ".join([name] + [_SUFFIX_
                 for b, name in _BASE_NAMES.items() for suf in ((), ("align",), ("track",), ("track", "align"))}
 
 
-BASELINES = ("fabmap", "efm")
-BASELINE_NAMES = {"fabmap": "FAB-MAP", "efm": "EFM"}
+BASELINES = ("fabmap", "fabmap+seq", "efm")
+BASELINE_NAMES = {"fabmap": "FAB-MAP", "fabmap+seq": "FAB-MAP + seq", "efm": "EFM"}
 
 
 @dataclass
@@ -68,6 +68,8 @@ class CompareConfig:
     fabmap_train_spacing_m: float = 2.0
     database_step: int = 1                  # the baselines' database: every this many database frames (EFM's
                                             # time per query grows with the database's image count)
+    fabmap_motion_window: int | None = None  # fabmap+seq: places within this many database places are adjacent
+                                            # (None: the median query step over the median place spacing, + 1)
 
     def __post_init__(self):
         if self.database_step < 1:
@@ -79,6 +81,8 @@ class CompareConfig:
             raise ConfigError(f"fabmap_train_frames: expected an integer >= 2, got {self.fabmap_train_frames}")
         if self.fabmap_train_spacing_m <= 0:
             raise ConfigError(f"fabmap_train_spacing_m: expected > 0, got {self.fabmap_train_spacing_m}")
+        if self.fabmap_motion_window is not None and self.fabmap_motion_window < 0:
+            raise ConfigError(f"fabmap_motion_window: expected an integer >= 0 or null, got {self.fabmap_motion_window}")
 
     def train_scene(self, test_scene: str) -> str:
         if self.fabmap_train_scene is not None:

@@ -14,6 +14,21 @@ TINY_BASELINES = {"fabmap": {"vocabulary_size": 40, "max_features": 150, "new_pl
                   "efm": {"features": 200}, "fabmap_train_frames": 6}
 
 
+def meta_of(path):
+    return load_npz(path, "localization")[1]
+
+
+def test_fabmap_motion_window_from_the_steps():
+    from satloc_env.compare import fabmap_motion_window
+
+    db = np.column_stack([np.arange(0, 100, 2.0), np.zeros(50), np.zeros(50)])      # places every 2 m
+    assert fabmap_motion_window(db, db[::5]) == 6                                    # 10 m steps: 5 places + 1
+    assert fabmap_motion_window(db, db[::2] + 0.1) == 3                              # 4 m: 2 + 1
+    assert fabmap_motion_window(db, db[:1]) == 1                                     # one query: no step known
+    with pytest.raises(ConfigError, match="fabmap_motion_window"):
+        CompareConfig(fabmap_motion_window=-1)
+
+
 def test_operating_point_counts_true_positives_on_a_hand_made_case():
     # 6 queries: 4 inside the map, 2 outside
     errors = np.array([0.5, 3.0, 25.0, 2.0, 1.0, 4.0])
@@ -82,13 +97,16 @@ def test_table1_protocols_on_a_tiny_section(tmp_path):
     lines = (tmp_path / "table1.csv").read_text().splitlines()
     assert lines[0] == "method,scene,mean_m,std_m,protocol"
     assert [(r["protocol"], r["method"]) for r in rows] == [(p, m) for p in ("revisit", "city", "residential")
-                                                           for m in ("Ours-GO", "Ours-NP", "FAB-MAP", "EFM")]
+                                                           for m in ("Ours-GO", "Ours-NP", "FAB-MAP", "FAB-MAP + seq", "EFM")]
     assert all(np.isfinite(r["mean_m"]) and r["s_per_query"] > 0 for r in rows)
     res = json.loads((tmp_path / "city" / "compare.json").read_text())["methods"]
-    assert list(res) == ["go", "np", "fabmap", "efm"] and all(m["failed"] == 0 for m in res.values() if "failed" in m)
-    for m in ("fabmap", "efm"):
+    assert list(res) == ["go", "np", "fabmap", "fabmap+seq", "efm"]
+    assert all(m["failed"] == 0 for m in res.values() if "failed" in m)
+    for m in ("fabmap", "fabmap+seq", "efm"):
         a, _ = load_npz(tmp_path / "city" / f"baseline_{m}.npz", "localization")
         assert np.all(np.isfinite(a["errors"])) and np.all(np.isfinite(a["inlier_score"]))
+    # the sequential row's window: query steps of 6 m over database places about 1.6 m apart -> 4 + 1 places
+    assert meta_of(tmp_path / "city" / "baseline_fabmap+seq.npz")["motion_window"] == 5
     # FAB-MAP was trained on the other scene, once for the three protocols
     stamp = json.loads((tmp_path / "city" / "fabmap_stage.json").read_text())
     assert stamp["config"]["train_scene"] == "residential" and stamp["training_images"] == 6
