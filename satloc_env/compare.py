@@ -322,18 +322,25 @@ def plot_pr_curves(curves: dict, rows: list[dict], path: Path) -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    fig, ax = plt.subplots(figsize=(6.5, 5))
-    for (name, c), r in zip(curves.items(), rows):
-        line, = ax.plot(c.recall, np.nan_to_num(c.precision, nan=1.0), "-", lw=1.2, label=name)
-        if np.isfinite(r["precision"]):
-            ax.plot([r["recall"]], [r["precision"]], "o", color=line.get_color(), ms=5)
-    ax.set_xlabel("recall")
-    ax.set_ylabel("precision")
-    ax.set_xlim(0, 1.02)
-    ax.set_ylim(0, 1.02)
-    ax.grid(alpha=0.3)
-    ax.set_title("inside/outside the map (dots: chosen thresholds)")
-    ax.legend(fontsize=7, loc="lower left")
+    fig, axes = plt.subplots(1, 2, figsize=(11, 5))
+    colours = list(plt.get_cmap("tab10").colors) + ["black", "0.55", "darkgoldenrod", "navy"]
+    for k, ((name, c), r) in enumerate(zip(curves.items(), rows)):
+        # the method's single-image rows solid, its tracked rows dashed, the baselines dotted and thicker
+        style = (":", 2.0) if not name.startswith("Ours") else ("--", 1.3) if "track" in name else ("-", 1.3)
+        for ax in axes:
+            ax.plot(c.recall, np.nan_to_num(c.precision, nan=1.0), style[0], lw=style[1], label=name,
+                    color=colours[k % len(colours)])
+            if np.isfinite(r["precision"]):
+                ax.plot([r["recall"]], [r["precision"]], "o", color=ax.lines[-1].get_color(), ms=5)
+    for ax, lim, title in ((axes[0], (0, 1.02), "all methods"), (axes[1], (0.8, 1.005), "zoom: top right")):
+        ax.set_xlabel("recall")
+        ax.set_ylabel("precision")
+        ax.set_xlim(*lim)
+        ax.set_ylim(*lim)
+        ax.grid(alpha=0.3)
+        ax.set_title(title)
+    axes[0].legend(fontsize=7, loc="lower left")
+    fig.suptitle("inside/outside the map: precision-recall (dots: chosen thresholds)")
     fig.tight_layout()
     with atomic_path(path, suffix=".png") as tmp:
         fig.savefig(tmp, dpi=120)
