@@ -22,9 +22,9 @@ image. :class:`Tracker` keeps a belief over the candidate poses of a :class:`sat
   and the truth can only come back through ``revive``. So while the tracker is not :meth:`Tracker.locked`
   (no belief yet, or less than ``lock_mass`` of it within ``lock_m`` of its mode) the localizer scores
   every candidate; once locked, the pruned regions plus the belief's support. Measured on Table II's 3 km
-  loop ring (README, Table II): the first frames of the ring revisit were lost to the point-symmetric twin
-  of the ring (a rectangle looks the same to odometry after a half turn) for 43 frames (860 m) with
-  pruning, and 0 with the global search;
+  loop ring (README, Table II): with pruning, full + track followed the ring's point-symmetric twin (a
+  rectangle looks the same to odometry after a half turn) for the first 43 frames (860 m) of the
+  revisit; with the global search only the first frame, a single image, is off;
 * **off the map** (``off_map``, the default): probability that the odometry moves more than 3 sigma from every
   candidate is not dropped but kept as *off-map hypotheses*: poses (at most ``off_map_hypotheses``, grouped
   within 5 m) dead-reckoned by the odometry, their spread growing with the distance driven since they left
