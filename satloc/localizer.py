@@ -367,12 +367,11 @@ class Localizer:
         wg = np.where(gid >= 0, 1.0 / np.maximum(dg, self.eps_g), 0.0).astype(np.float32)
         cands = self.candidates if candidates is None else candidates
         scores = np.zeros(len(cands))
-        sel = self._pruned(gid, wg, pv) if candidates is None and cfg.prune_regions > 0 else slice(None)
-        if tracker is not None and not tracker.locked():
-            # a belief that has not locked (a new one: a uniform prior) needs every candidate's score: vote
-            # pruning drops the truth of most aliased single images, and a dropped candidate is all but ruled
-            # out by the fusion (satloc.track, "global search")
-            sel = slice(None)
+        # a tracker that has not locked (a new belief: a uniform prior) needs every candidate's score: vote
+        # pruning drops the truth of most aliased single images, and a dropped candidate is all but ruled out
+        # by the fusion (satloc.track, "global search")
+        prune = candidates is None and cfg.prune_regions > 0 and (tracker is None or tracker.locked())
+        sel = self._pruned(gid, wg, pv) if prune else slice(None)
         if tracker is not None and tracker.belief is not None and not isinstance(sel, slice):
             # also score where the tracked belief is, wherever this frame's votes point
             b = tracker.belief
