@@ -32,7 +32,7 @@ from satloc.pipeline import load_localizer, train_projection
 from satloc.projection import Projections
 from satloc_env import autoloc
 from satloc_env.record import load_recording
-from test_process import TINY_SCENE
+from test_process import TINY_SCENE, communicate_or_kill
 
 FRAMES = 12                     # per pass: the database pass spans about 18 m, the query pass 110 m of the loop
 BUILD_CFG = "features: rgb\n"
@@ -117,12 +117,7 @@ def start(args: list[str], cwd: Path) -> subprocess.Popen:
 
 
 def finish(p: subprocess.Popen) -> Run:
-    try:
-        out, err = p.communicate(timeout=TIMEOUT)
-    except subprocess.TimeoutExpired:
-        os.killpg(p.pid, signal.SIGKILL)
-        out, err = p.communicate()
-        pytest.fail(f"{p.args} did not end within {TIMEOUT} s (hung?)\n{err[-3000:]}")
+    out, err = communicate_or_kill(p, TIMEOUT, str(p.args))
     return Run(p.returncode, out, err)
 
 

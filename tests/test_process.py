@@ -51,17 +51,22 @@ def tiny_scene(tmp_path_factory) -> Path:
     return p
 
 
+def communicate_or_kill(proc: subprocess.Popen, timeout: float, what: str) -> tuple[str, str]:
+    """``proc``'s output; past ``timeout`` kill its whole process group (workers included) and fail."""
+    try:
+        return proc.communicate(timeout=timeout)
+    except subprocess.TimeoutExpired:
+        os.killpg(proc.pid, signal.SIGKILL)
+        out, err = proc.communicate()
+        pytest.fail(f"{what} did not end within {timeout} s (hung?)\n{out}\n{err[-3000:]}")
+
+
 def run_script(path: Path, args: list[str], timeout: float) -> subprocess.CompletedProcess:
     """Run ``python path args`` in a session of its own; on timeout kill the whole group (workers included)
     and fail."""
     proc = subprocess.Popen([sys.executable, str(path), *args], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
                             text=True, start_new_session=True, cwd=path.parent)
-    try:
-        out, err = proc.communicate(timeout=timeout)
-    except subprocess.TimeoutExpired:
-        os.killpg(proc.pid, signal.SIGKILL)
-        out, err = proc.communicate()
-        pytest.fail(f"{path.name} {args} did not finish within {timeout} s (hung?)\n{out}\n{err[-3000:]}")
+    out, err = communicate_or_kill(proc, timeout, f"{path.name} {args}")
     return subprocess.CompletedProcess(proc.args, proc.returncode, out, err)
 
 
