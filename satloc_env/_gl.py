@@ -10,12 +10,19 @@ What importing it does:
 * **Platform.** Sets ``PYOPENGL_PLATFORM=egl`` unless the user set it. PyOpenGL reads the variable once, at
   its own first import, so this must happen before anything imports ``OpenGL`` or ``pyrender``. EGL on Mesa's
   llvmpipe renders headless without a display server.
-* **numpy 2 fix.** pyrender 0.1.45's ``Mesh.bounds`` builds its start value from ``np.infty``, an alias that
-  numpy 2 removed, so reading ``Mesh.bounds`` (and everything built on it: ``Mesh.centroid``,
-  ``Mesh.extents``, ``Scene.bounds``, ``Scene.centroid``, some camera helpers and the viewer) raised
-  ``AttributeError``. The property is replaced by :func:`_mesh_bounds`, which computes the same
-  ``(2, 3)`` axis-aligned bounds (the union of the primitives' bounds) without the alias. numpy itself is not
-  touched.
+* **Headless import.** pyrender's package ``__init__`` imports its interactive viewer, a
+  ``pyglet.window.Window`` subclass; on Linux, pyglet's window module loads the X11 client libraries, so on a
+  machine without them ``import pyrender`` failed (``XRenderFindVisualFormat``) before any EGL context existed.
+  When the platform is ``egl`` or ``osmesa`` and pyrender has not been imported yet, this module registers a
+  placeholder for ``pyrender.viewer`` before importing pyrender, so the offscreen path never imports pyglet. The
+  placeholder's ``Viewer`` raises :class:`ViewerUnavailableError` saying what to do instead (import pyrender
+  before ``satloc_env._gl``, with a display, to get the real viewer). If pyrender was already imported, it is
+  used as it is.
+* **The fork.** The project depends on ``pyrender2``, a maintained fork of pyrender 0.1.45 that imports as
+  ``pyrender`` (numpy 2's ``np.inf``, PyOpenGL >= 3.1.9 for Python 3.12+). Both distributions install the same
+  ``pyrender/`` folder; if the old one's files are in place (``pyrender.__version__`` 0.1.x, which fails on
+  numpy 2 and, with its PyOpenGL 3.1.0 pin, on Python 3.12), importing this module raises ImportError with the
+  command that repairs the environment.
 
 It also provides :class:`MultiViewOffscreenRenderer`, a ``pyrender.OffscreenRenderer`` that draws several
 cameras of a scene in one go, without multisampling, and sets texture filtering (anisotropy, LOD bias) on
@@ -38,19 +45,62 @@ block). A process that forked before its first render is unaffected.
 """
 from __future__ import annotations
 
+import importlib
 import os
+import sys
 from collections.abc import Iterable, Sequence
+from types import ModuleType
 
 os.environ.setdefault("PYOPENGL_PLATFORM", "egl")
 
 import cv2  # noqa: E402
 import numpy as np  # noqa: E402
-import pyrender  # noqa: E402
+
+
+class ViewerUnavailableError(RuntimeError):
+    """pyrender's interactive viewer was not imported: satloc_env imported pyrender for offscreen rendering."""
+
+
+class _NoViewer:
+    """Stands in for ``pyrender.Viewer`` when pyrender was imported headless by this module."""
+
+    def __init__(self, *args: object, **kwargs: object):
+        raise ViewerUnavailableError(
+            "pyrender.Viewer is not available: satloc_env imported pyrender for headless rendering "
+            f"(PYOPENGL_PLATFORM={os.environ.get('PYOPENGL_PLATFORM')!r}) without its pyglet viewer, so that no "
+            "X11 library is needed. To use the interactive viewer, run with a display and `import pyrender` "
+            "(with PYOPENGL_PLATFORM unset) before anything imports satloc_env's renderer.")
+
+
+def _import_pyrender_headless() -> ModuleType:
+    """Import pyrender; on a headless platform (egl, osmesa), without its pyglet viewer module."""
+    if "pyrender" in sys.modules or os.environ.get("PYOPENGL_PLATFORM") not in ("egl", "osmesa"):
+        return importlib.import_module("pyrender")
+    placeholder = ModuleType("pyrender.viewer", "satloc_env: pyrender's viewer, not imported (headless).")
+    placeholder.Viewer = _NoViewer  # type: ignore[attr-defined]
+    sys.modules["pyrender.viewer"] = placeholder
+    try:
+        return importlib.import_module("pyrender")
+    except BaseException:
+        if sys.modules.get("pyrender.viewer") is placeholder:
+            del sys.modules["pyrender.viewer"]
+        raise
+
+
+pyrender = _import_pyrender_headless()
+if tuple(int(p) for p in pyrender.__version__.split(".")[:2]) < (0, 2):
+    raise ImportError(
+        f"satloc_env needs pyrender2 (a maintained fork of pyrender that imports as `pyrender`), but the files of "
+        f"pyrender {pyrender.__version__} are installed at {os.path.dirname(pyrender.__file__)}: it fails on numpy 2 "
+        "and, with its PyOpenGL 3.1.0 pin, on Python 3.12. Both distributions install the same `pyrender` folder; "
+        "repair the environment with: pip uninstall -y pyrender && pip install --force-reinstall --no-deps "
+        "pyrender2 && pip install 'PyOpenGL>=3.1.9'")
+
 from OpenGL import GL  # noqa: E402
 from pyrender.constants import ProgramFlags  # noqa: E402
 
-__all__ = ["pyrender", "MultiViewOffscreenRenderer", "GLForkError", "check_process", "configure_filtering",
-           "max_anisotropy"]
+__all__ = ["pyrender", "MultiViewOffscreenRenderer", "GLForkError", "ViewerUnavailableError", "check_process",
+           "configure_filtering", "gl_info", "max_anisotropy"]
 
 #: GL_TEXTURE_MAX_ANISOTROPY and GL_MAX_TEXTURE_MAX_ANISOTROPY (EXT/ARB_texture_filter_anisotropic, core in 4.6).
 _GL_TEXTURE_MAX_ANISOTROPY = 0x84FE
@@ -93,21 +143,6 @@ def _mark_gl_process() -> None:
         _gl_pid = os.getpid()
 
 
-def _mesh_bounds(self: "pyrender.Mesh") -> np.ndarray:
-    """(2, 3) float: the axis-aligned bounds of the mesh (min row, max row), the union of its primitives'."""
-    if self._bounds is None:
-        if self.primitives:
-            lows = np.array([p.bounds[0] for p in self.primitives], dtype=np.float64)
-            highs = np.array([p.bounds[1] for p in self.primitives], dtype=np.float64)
-            self._bounds = np.stack([lows.min(axis=0), highs.max(axis=0)])
-        else:
-            self._bounds = np.array([[np.inf] * 3, [-np.inf] * 3])
-    return self._bounds
-
-
-pyrender.mesh.Mesh.bounds = property(_mesh_bounds, doc=_mesh_bounds.__doc__)
-
-
 def max_anisotropy() -> float:
     """Largest anisotropy the current GL context supports; 1.0 when anisotropic filtering is unavailable."""
     n = int(GL.glGetIntegerv(GL.GL_NUM_EXTENSIONS))
@@ -118,9 +153,20 @@ def max_anisotropy() -> float:
     return float(GL.glGetFloatv(_GL_MAX_TEXTURE_MAX_ANISOTROPY))
 
 
-def configure_filtering(textures: "Iterable[pyrender.Texture]", anisotropy: float, lod_bias: float) -> None:
+def gl_info() -> dict[str, str]:
+    """``vendor``, ``renderer`` and ``version`` strings of the current GL context (e.g. renderer "llvmpipe
+    (LLVM 15.0.6, 256 bits)" for Mesa's software rasterizer, "NVIDIA H100 80GB HBM3/PCIe/SSE2" for the NVIDIA
+    driver). Needs the context current."""
+    return {key: (GL.glGetString(name) or b"").decode(errors="replace")
+            for key, name in (("vendor", GL.GL_VENDOR), ("renderer", GL.GL_RENDERER), ("version", GL.GL_VERSION))}
+
+
+def configure_filtering(textures: "Iterable[pyrender.Texture]", anisotropy: float, lod_bias: float,
+                        mipmaps: bool = True) -> None:
     """Set the level-of-detail bias and ``GL_TEXTURE_MAX_ANISOTROPY`` (clamped to what the context supports;
-    skipped where anisotropic filtering is unavailable) of the uploaded, mipmapped 2-D ``textures``. Needs the
+    skipped where anisotropic filtering is unavailable) of the uploaded, mipmapped 2-D ``textures``. With
+    ``mipmaps=False`` their level of detail is clamped to 0 (``GL_TEXTURE_MAX_LOD``): the full-resolution level
+    is always sampled, bilinearly (the magnification filter), whatever the driver's level selection. Needs the
     context current."""
     textures = [t for t in textures if t._in_context() and t.tex_type == GL.GL_TEXTURE_2D
                 and t.sampler.minFilter in _MIPMAP_FILTERS]
@@ -130,6 +176,8 @@ def configure_filtering(textures: "Iterable[pyrender.Texture]", anisotropy: floa
         GL.glTexParameterf(GL.GL_TEXTURE_2D, GL.GL_TEXTURE_LOD_BIAS, float(lod_bias))
         if level > 1.0:
             GL.glTexParameterf(GL.GL_TEXTURE_2D, _GL_TEXTURE_MAX_ANISOTROPY, level)
+        if not mipmaps:
+            GL.glTexParameterf(GL.GL_TEXTURE_2D, GL.GL_TEXTURE_MAX_LOD, 0.0)
         tex._unbind()
 
 
@@ -146,10 +194,12 @@ class _MultiViewRenderer(pyrender.Renderer):
     pyrender's per-draw bookkeeping costs as much as the drawing.
     """
 
-    def __init__(self, viewport_width: int, viewport_height: int, anisotropy: float = 1.0, lod_bias: float = 0.0):
+    def __init__(self, viewport_width: int, viewport_height: int, anisotropy: float = 1.0, lod_bias: float = 0.0,
+                 mipmaps: bool = True):
         super().__init__(viewport_width, viewport_height)
         self.anisotropy = float(anisotropy)
         self.lod_bias = float(lod_bias)
+        self.mipmaps = bool(mipmaps)
         self._filtered: set = set()
         self._programs: dict = {}
         self._views_fb: tuple[int, int, int] | None = None   # (framebuffer, colour rb, depth rb)
@@ -159,7 +209,7 @@ class _MultiViewRenderer(pyrender.Renderer):
         super()._update_context(scene, flags)
         new = self._mesh_textures - self._filtered
         if new:
-            configure_filtering(new, self.anisotropy, self.lod_bias)
+            configure_filtering(new, self.anisotropy, self.lod_bias, self.mipmaps)
         self._filtered = set(self._mesh_textures)
         self._programs = {p: prog for p, prog in self._programs.items() if p._in_context()}
 
@@ -311,11 +361,14 @@ class _MultiViewRenderer(pyrender.Renderer):
 class MultiViewOffscreenRenderer(pyrender.OffscreenRenderer):
     """A ``pyrender.OffscreenRenderer`` (GL context of its own) whose :meth:`render_views` draws several
     cameras at once without multisampling (see :class:`_MultiViewRenderer`); newly uploaded mipmapped
-    textures get ``anisotropy`` and ``lod_bias`` (see :func:`configure_filtering`)."""
+    textures get ``anisotropy``, ``lod_bias`` and ``mipmaps`` (see :func:`configure_filtering`). ``gl_info`` holds
+    the context's vendor, renderer and version strings (see :func:`gl_info`)."""
 
-    def __init__(self, viewport_width: int, viewport_height: int, anisotropy: float = 1.0, lod_bias: float = 0.0):
+    def __init__(self, viewport_width: int, viewport_height: int, anisotropy: float = 1.0, lod_bias: float = 0.0,
+                 mipmaps: bool = True):
         check_process()
-        self._filtering = (float(anisotropy), float(lod_bias))
+        self._filtering = (float(anisotropy), float(lod_bias), bool(mipmaps))
+        self.gl_info: dict[str, str] = {}
         super().__init__(viewport_width, viewport_height)
 
     def _create(self):
@@ -324,6 +377,7 @@ class MultiViewOffscreenRenderer(pyrender.OffscreenRenderer):
         super()._create()
         # The stock renderer has allocated no GL objects yet, so swapping it out leaks nothing.
         self._renderer = _MultiViewRenderer(self.viewport_width, self.viewport_height, *self._filtering)
+        self.gl_info = gl_info()     # the stock _create leaves the new context current
 
     def delete(self):
         """Free the GL objects and the context. Unlike pyrender's (and its platform's ``__del__``), this does

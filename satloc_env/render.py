@@ -36,12 +36,15 @@ class StereoRenderer:
     sharper far ground; -0.5 keeps lane markings visible further out without visible shimmer) and, when
     ``anisotropy`` > 1, anisotropic filtering of that level (clamped to what the driver supports). On Mesa
     22.3's llvmpipe any anisotropy > 1 filters like 16x and makes a frame 3 to 4 times slower, hence the
-    default of 1. ``znear`` / ``zfar`` (metres) bound the rendered depth range. The renderer owns a GL context
-    from the first :meth:`render` until :meth:`close`; it may render again after ``close``.
+    default of 1. ``mipmaps=False`` samples every colour texture at full resolution (bilinear, no level
+    selection): far ground aliases, but the image no longer depends on how a driver picks mipmap levels, which
+    the GL specification leaves open (used to compare renders across drivers). ``znear`` / ``zfar`` (metres)
+    bound the rendered depth range. The renderer owns a GL context from the first :meth:`render` until
+    :meth:`close`; it may render again after ``close``.
     """
 
     def __init__(self, world: World, camera: StereoCamera, *, anisotropy: int = 1, lod_bias: float = -0.5,
-                 znear: float = 0.1, zfar: float = 150.0):
+                 mipmaps: bool = True, znear: float = 0.1, zfar: float = 150.0):
         if not 0 < znear < zfar:
             raise ConfigError(f"renderer: need 0 < znear < zfar, got znear={znear}, zfar={zfar}")
         if anisotropy < 1:
@@ -50,6 +53,7 @@ class StereoRenderer:
         self.camera = camera
         self.anisotropy = int(anisotropy)
         self.lod_bias = float(lod_bias)
+        self.mipmaps = bool(mipmaps)
         self.znear = float(znear)
         self.zfar = float(zfar)
         # Farthest a point with z-depth <= zfar can be from the camera: along the ray through an image corner.
@@ -107,6 +111,12 @@ class StereoRenderer:
         return out
 
     @property
+    def gl_info(self) -> dict[str, str]:
+        """The GL context's ``vendor``, ``renderer`` and ``version`` strings (creates the context if needed):
+        which driver draws, e.g. Mesa's llvmpipe or a GPU vendor's."""
+        return dict(self._context().gl_info)
+
+    @property
     def visible_chunks(self) -> list[int]:
         """Indices of the world chunks drawn by the latest :meth:`render`."""
         return [int(i) for i in np.flatnonzero(self._visible)]
@@ -145,7 +155,7 @@ class StereoRenderer:
             self._attach_occluders()
         if self._gl is None:
             self._gl = MultiViewOffscreenRenderer(self.camera.width, self.camera.height, self.anisotropy,
-                                                  self.lod_bias)
+                                                  self.lod_bias, self.mipmaps)
         return self._gl
 
     def _attach_occluders(self) -> None:

@@ -334,7 +334,6 @@ def test_shipped_suburb_loads_with_its_frame_and_traced_route(suburb):
 
 
 def test_shipped_suburb_renders_the_image_on_the_ground(suburb):
-    pytest.importorskip("pyrender")
     from satloc_env.render import StereoRenderer
 
     cam = StereoCamera.kitti_half()
@@ -364,7 +363,6 @@ def test_shipped_suburb_renders_the_image_on_the_ground(suburb):
 
 
 def test_autopilot_drives_the_traced_route_on_road(suburb):
-    pytest.importorskip("pyrender")
     import gymnasium as gym
 
     import satloc_env  # noqa: F401  (registers the environment)
