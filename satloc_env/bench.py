@@ -17,7 +17,9 @@ def _rss_mb() -> float:
 
 
 def bench_env(resolution: str = "half", steps: int = 2000, scene: str = "city", warmup: int = 20) -> dict:
-    """Stereo colour + depth steps per second driven by the autopilot, and memory over the run."""
+    """Stereo colour + depth steps per second driven by the autopilot, memory over the run, and which GL driver
+    rendered (``gl_renderer``: e.g. llvmpipe for Mesa's software rasterizer, the GPU's name on a vendor's
+    driver)."""
     env = SatLocEnv(scene=scene, resolution=resolution, depth=True, localizer=None)  # rendering only
     try:
         env.reset(seed=0)
@@ -33,11 +35,13 @@ def bench_env(resolution: str = "half", steps: int = 2000, scene: str = "city", 
                 episodes += 1
         dt = time.perf_counter() - t0
         rss_end = _rss_mb()
+        gl = env._renderer.gl_info
     finally:
         env.close()
     cam = env.camera
     return {
         "bench": "env", "resolution": resolution, "width": cam.width, "height": cam.height, "scene": scene,
+        "gl_renderer": gl["renderer"], "gl_version": gl["version"],
         "steps": steps, "episodes": episodes, "steps_per_s": round(steps / dt, 1),
         "ms_per_step": round(1000 * dt / steps, 2), "rss_start_mb": round(rss_start, 1),
         "rss_end_mb": round(rss_end, 1), "peak_rss_mb": round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024, 1),

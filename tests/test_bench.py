@@ -20,3 +20,4 @@ def test_bench_env_prints_steps_per_second(capsys):
     assert main(["bench", "env", "--steps", "10"]) == 0
     r = json.loads(capsys.readouterr().out)
     assert r["steps"] == 10 and r["steps_per_s"] > 0 and r["width"] == 620
+    assert r["gl_renderer"] and r["gl_version"]       # which driver rendered (llvmpipe here, a GPU's elsewhere)
