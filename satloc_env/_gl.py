@@ -18,6 +18,12 @@ What importing it does:
   placeholder's ``Viewer`` raises :class:`ViewerUnavailableError` saying what to do instead (import pyrender
   before ``satloc_env._gl``, with a display, to get the real viewer). If pyrender was already imported, it is
   used as it is.
+* **Triton before Mesa.** Mesa's llvmpipe links its own LLVM (libLLVM-15 on Debian 12). Triton, which the
+  CUDA builds of torch install from the package index (the CPU wheel does not), carries another LLVM; when
+  triton's extension is loaded after Mesa's driver, it binds to Mesa's LLVM symbols and the process dies with a
+  segmentation fault (measured with torch 2.13.0 + triton 3.7.1 on Python 3.12: torch imports triton lazily,
+  at the first ``torch.optim.Adam``, so learning projections after the first render crashed). Loaded in the
+  other order both work, so this module imports triton first when it is installed (0.2 s).
 * **The fork.** The project depends on ``pyrender2``, a maintained fork of pyrender 0.1.45 that imports as
   ``pyrender`` (numpy 2's ``np.inf``, PyOpenGL >= 3.1.9 for Python 3.12+). Both distributions install the same
   ``pyrender/`` folder; if the old one's files are in place (``pyrender.__version__`` 0.1.x, which fails on
@@ -46,12 +52,26 @@ block). A process that forked before its first render is unaffected.
 from __future__ import annotations
 
 import importlib
+import importlib.util
 import os
 import sys
 from collections.abc import Iterable, Sequence
 from types import ModuleType
 
 os.environ.setdefault("PYOPENGL_PLATFORM", "egl")
+
+
+def _load_triton_before_mesa() -> None:
+    """Import triton, if installed and not yet imported, before any GL driver is loaded (see the module notes)."""
+    if "triton" in sys.modules or importlib.util.find_spec("triton") is None:
+        return
+    try:
+        importlib.import_module("triton")
+    except Exception:   # a broken triton is torch's problem, not the renderer's: torch will report it
+        pass
+
+
+_load_triton_before_mesa()
 
 import cv2  # noqa: E402
 import numpy as np  # noqa: E402
