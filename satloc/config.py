@@ -111,14 +111,19 @@ def from_dict(cls: type[T], data: Any, where: str = "config") -> T:
         raise ConfigError(f"{where.rstrip(':')}: {e}") from e
 
 
-def to_dict(obj: Any) -> Any:
-    """Plain (JSON/YAML-ready) dict of a dataclass, tuples turned into lists."""
+def to_dict(obj: Any, runtime: bool = True) -> Any:
+    """Plain (JSON/YAML-ready) dict of a dataclass, tuples turned into lists.
+
+    ``runtime=False`` leaves out the fields marked ``metadata={"runtime": True}`` (at any depth): settings of
+    how a stage runs, not of what it makes (e.g. :func:`satloc.device.device_field`), which the keys of
+    cached stages must not depend on."""
     if dataclasses.is_dataclass(obj) and not isinstance(obj, type):
-        return {f.name: to_dict(getattr(obj, f.name)) for f in dataclasses.fields(obj)}
+        return {f.name: to_dict(getattr(obj, f.name), runtime) for f in dataclasses.fields(obj)
+                if runtime or not f.metadata.get("runtime")}
     if isinstance(obj, (list, tuple)):
-        return [to_dict(v) for v in obj]
+        return [to_dict(v, runtime) for v in obj]
     if isinstance(obj, dict):
-        return {k: to_dict(v) for k, v in obj.items()}
+        return {k: to_dict(v, runtime) for k, v in obj.items()}
     return obj
 
 

@@ -14,8 +14,11 @@ Extractors (the :mod:`satloc.extractor` interface, ``extractor(image, view) -> (
   structured-forest model through ``cv2.ximgproc`` when given a model file.
 
 One network pass serves both: the extractors share an :class:`FCNPredictor` (by default the process-wide
-:func:`default_predictor`), which remembers the outputs for the last image and view it ran on. A
-``FeatureStack([SemanticFeatures(), EdgeFeatures()])`` therefore runs the network once per image.
+:func:`default_predictor` of their ``device``), which remembers the outputs for the last image and view it
+ran on. A ``FeatureStack([SemanticFeatures(), EdgeFeatures()])`` therefore runs the network once per image.
+
+The networks run on the predictor's ``device`` (:mod:`satloc.device`: ``"auto"``, the default, is CUDA
+when it is available, else the CPU); outputs come back as numpy arrays.
 
 Weights file: ``torch.save`` of a dict of primitives and tensors, read with ``torch.load(weights_only=True)``::
 
@@ -41,6 +44,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
+from .device import resolve_device
 from .errors import ConfigError, FormatError
 from .extractor import View, check_image
 from .labels import CLASSES, NUM_CLASSES
@@ -270,16 +274,21 @@ class FCNPredictor:
     runs (the global setting is restored after each call); None keeps torch's global setting. One thread
     is the robust choice when other processes load the cores: with two, every parallel region waits for a
     descheduled thread (measured: 23 ms instead of 780 ms per ground frame on a busy 2-core machine).
+    ``device``: where the networks run (:func:`satloc.device.resolve_device`: ``"auto"`` is CUDA when it is
+    available, else the CPU); tiles go to it one at a time, the outputs come back to the CPU.
     """
 
     def __init__(self, weights: str | os.PathLike | None = None, tile: int = 1024, margin: int = 96,
-                 threads: int | None = None):
+                 threads: int | None = None, device: str | torch.device = "auto"):
         if tile < 64 or not 0 <= margin < tile // 4:
             raise ConfigError(f"FCNPredictor: need tile >= 64 and 0 <= margin < tile / 4, got {tile}, {margin}")
         if threads is not None and threads < 1:
             raise ConfigError(f"FCNPredictor: threads must be >= 1 or None, got {threads}")
+        self.device = resolve_device(device)
         self.weights = Path(weights) if weights is not None else DEFAULT_WEIGHTS
-        self.views, self.training = load_fcn(self.weights)
+        self.views, self.training = load_fcn(self.weights)   # on the CPU, then moved
+        for vn in self.views.values():
+            vn.net.to(self.device)
         self.tile, self.margin, self.threads = tile, margin, threads
         self._last: tuple[tuple, FCNOutput] | None = None
 
@@ -304,7 +313,7 @@ class FCNPredictor:
         x = _to_tensor(image)
         with torch.inference_mode(), torch_threads(self.threads):
             if max(x.shape[-2:]) <= self.tile:
-                scores, edge = vn.net.forward_with_edges(x, out_size=(h, w))
+                scores, edge = (y.cpu() for y in vn.net.forward_with_edges(x.to(self.device), out_size=(h, w)))
             else:
                 scores, edge = self._tiled(vn.net, x)
                 if scores.shape[-2:] != (h, w):
@@ -313,7 +322,8 @@ class FCNPredictor:
         return FCNOutput(scores[0].contiguous().numpy(), edge[0, 0].contiguous().numpy())
 
     def _tiled(self, net: SegEdgeNet, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """Outputs at the input's size, from overlapping tiles whose centres are kept."""
+        """Outputs at the input's size, from overlapping tiles whose centres are kept (the image and the
+        outputs stay on the CPU; one tile at a time is on the device)."""
         _, _, h, w = x.shape
         core, m = self.tile - 2 * self.margin, self.margin
         scores = torch.empty((1, net.num_classes, h, w))
@@ -323,16 +333,21 @@ class FCNPredictor:
                 y1, x1 = min(y0 + core, h), min(x0 + core, w)
                 ty0, tx0 = max(0, y0 - m), max(0, x0 - m)
                 ty1, tx1 = min(h, y1 + m), min(w, x1 + m)
-                s, e = net.forward_with_edges(x[:, :, ty0:ty1, tx0:tx1])
+                s, e = (y.cpu() for y in net.forward_with_edges(x[:, :, ty0:ty1, tx0:tx1].to(self.device)))
                 scores[:, :, y0:y1, x0:x1] = s[:, :, y0 - ty0:y1 - ty0, x0 - tx0:x1 - tx0]
                 edge[:, :, y0:y1, x0:x1] = e[:, :, y0 - ty0:y1 - ty0, x0 - tx0:x1 - tx0]
         return scores, edge
 
 
-@functools.lru_cache(maxsize=1)
-def default_predictor() -> FCNPredictor:
-    """The process-wide predictor with the shipped weights (loaded on first use, then shared)."""
-    return FCNPredictor()
+def default_predictor(device: str | torch.device = "auto") -> FCNPredictor:
+    """The process-wide predictor with the shipped weights on ``device`` (loaded on first use, then shared:
+    ``"auto"`` and the device it resolves to give the same one)."""
+    return _shared_predictor(str(resolve_device(device)))
+
+
+@functools.lru_cache(maxsize=2)
+def _shared_predictor(device: str) -> FCNPredictor:
+    return FCNPredictor(device=device)
 
 
 # --- extractors -----------------------------------------------------------------------------------------
@@ -352,14 +367,16 @@ class SemanticFeatures:
     ``view_models`` = ``{"ground": m1, "satellite": m2}``. A module receives a (1, 3, H, W) float32 RGB
     tensor in [0, 1] and returns class scores (1, C, h, w) (a tensor, or a mapping with key ``"out"`` as
     torchvision's segmentation models do); scores of another size are resized bilinearly to (H, W). It is
-    put in eval mode. ``dim = C``: ``num_classes`` if given, else found by running the module once on a
-    64x64 image.
+    put in eval mode and runs on the device its parameters are on (the input goes there, the scores come
+    back). ``dim = C``: ``num_classes`` if given, else found by running the module once on a 64x64 image.
+    ``device``: where the shipped network runs when no ``predictor`` is given (:mod:`satloc.device`).
     """
 
     name = "semantic"
 
     def __init__(self, model: nn.Module | None = None, view_models: Mapping[str, nn.Module] | None = None,
-                 temperature: float = 1.0, num_classes: int | None = None, predictor: FCNPredictor | None = None):
+                 temperature: float = 1.0, num_classes: int | None = None, predictor: FCNPredictor | None = None,
+                 device: str = "auto"):
         if not temperature > 0:
             raise ConfigError(f"SemanticFeatures: temperature must be > 0, got {temperature}")
         if model is not None and view_models is not None:
@@ -369,6 +386,7 @@ class SemanticFeatures:
                               "with a plugged-in model")
         self.temperature = float(temperature)
         self._predictor = predictor
+        self._device = resolve_device(device)
         self._modules: dict[str, nn.Module] | None = None
         if model is not None:
             self._modules = {v: model for v in VIEWS}
@@ -402,15 +420,17 @@ class SemanticFeatures:
     @property
     def predictor(self) -> FCNPredictor:
         if self._predictor is None:
-            self._predictor = default_predictor()
+            self._predictor = default_predictor(self._device)
         return self._predictor
 
     @staticmethod
     def _module_scores(module: nn.Module, image: np.ndarray, view: str) -> torch.Tensor:
         """(C, H, W) float32 scores of a plugged-in module."""
         h, w = image.shape[:2]
+        param = next(module.parameters(), None)
         with torch.inference_mode():
-            y = module(_to_tensor(image))
+            x = _to_tensor(image)
+            y = module(x.to(param.device) if param is not None else x)
             if isinstance(y, Mapping):
                 y = y.get("out")
             if not isinstance(y, torch.Tensor) or y.ndim != 4 or y.shape[0] != 1:
@@ -418,7 +438,7 @@ class SemanticFeatures:
                 raise ConfigError(f"SemanticFeatures: the {view} model must return (1, C, h, w) scores, got {got}")
             if y.shape[-2:] != (h, w):
                 y = F.interpolate(y.float(), size=(h, w), mode="bilinear", align_corners=False)
-            return y[0].float()
+            return y[0].float().cpu()
 
     def __call__(self, image: np.ndarray, view: View) -> np.ndarray:
         check_image(image, f"{self.name} features")
@@ -442,13 +462,16 @@ class EdgeFeatures:
     With ``model_file``: OpenCV's structured-forest edge detector
     (``cv2.ximgproc.createStructuredEdgeDetection``, from ``opencv-contrib``), the same for both views.
     A model file that does not exist, or ``cv2.ximgproc`` missing, raises :class:`ConfigError`.
+    ``device``: where the shipped network runs when no ``predictor`` is given (:mod:`satloc.device`).
     """
 
     name = "edge"
     dim = 1
 
-    def __init__(self, model_file: str | os.PathLike | None = None, predictor: FCNPredictor | None = None):
+    def __init__(self, model_file: str | os.PathLike | None = None, predictor: FCNPredictor | None = None,
+                 device: str = "auto"):
         self._predictor = predictor
+        self._device = resolve_device(device)
         self._forest = None
         if model_file is not None:
             if predictor is not None:
@@ -464,7 +487,7 @@ class EdgeFeatures:
     @property
     def predictor(self) -> FCNPredictor:
         if self._predictor is None:
-            self._predictor = default_predictor()
+            self._predictor = default_predictor(self._device)
         return self._predictor
 
     def __call__(self, image: np.ndarray, view: View) -> np.ndarray:

@@ -16,6 +16,7 @@ from typing import Sequence
 import cv2
 import numpy as np
 
+from .device import check_device
 from .errors import ConfigError
 from .extractor import FeatureExtractor, View, check_image
 
@@ -66,15 +67,17 @@ class FeatureStack:
 FEATURE_SETS = ("rgb", "semantic", "default")
 
 
-def make_extractor(name: str = "default") -> FeatureExtractor:
+def make_extractor(name: str = "default", device: str = "auto") -> FeatureExtractor:
     """A named feature set: ``rgb`` (bilateral RGB), ``semantic`` (the FCN's class probabilities and edge
-    potentials) or ``default`` (all three stacked: RGB, edge potentials, semantic attributes)."""
+    potentials) or ``default`` (all three stacked: RGB, edge potentials, semantic attributes). ``device``:
+    where the FCN runs (:mod:`satloc.device`; checked for every set, used by those with the FCN)."""
+    check_device(device)
     if name == "rgb":
         return BilateralRGB()
     if name in ("semantic", "default"):
         from .fcn import EdgeFeatures, SemanticFeatures
 
-        parts: list[FeatureExtractor] = [EdgeFeatures(), SemanticFeatures()]
+        parts: list[FeatureExtractor] = [EdgeFeatures(device=device), SemanticFeatures(device=device)]
         if name == "default":
             parts.insert(0, BilateralRGB())
         stack = FeatureStack(parts)

@@ -37,6 +37,7 @@ from scipy.spatial import cKDTree
 from tqdm import tqdm
 
 from .align import AlignConfig, BevAligner, posterior_peaks
+from .device import check_device, device_field
 from .dictionary import Dictionary, FrameDepth, SatelliteFeatures, ground_features, ground_samples
 from .errors import ConfigError, FormatError
 from .persist import ArraySpec, check_arrays, header_number, load_npz, save_npz
@@ -73,8 +74,11 @@ class LocalizerConfig:
                                           # acted on by satloc.pipeline.localize and the environment; a direct
                                           # localize()/localize_stream() call tracks when given a tracker
     tracking: TrackConfig = field(default_factory=TrackConfig)
+    device: str = device_field()          # where the query features' FCN runs (satloc.device), when
+                                          # satloc.pipeline.load_localizer makes the extractor
 
     def __post_init__(self):
+        check_device(self.device)
         if self.candidate_spacing_m <= 0:
             raise ConfigError(f"candidate_spacing_m: expected > 0, got {self.candidate_spacing_m}")
         if self.neighbors < 1 or self.top_k < 1 or self.posterior_k < self.top_k:

@@ -26,6 +26,7 @@ from tqdm import tqdm
 
 from .config import from_dict, to_dict
 from .context import ContextConfig
+from .device import check_device, device_field, resolve_device
 from .dictionary import Dictionary, GridConfig, SatelliteFeatures, build_dictionary
 from .errors import ConfigError, FormatError
 from .features import FEATURE_SETS, make_extractor
@@ -43,6 +44,10 @@ class BuildConfig:
     depth_source: str = "stereo"
     context: ContextConfig = field(default_factory=ContextConfig)
     max_frames: int | None = None           # use only the first frames of the database
+    device: str = device_field()            # where the FCN runs (satloc.device): auto, cpu, cuda, cuda:N
+
+    def __post_init__(self):
+        check_device(self.device)
 
 
 def _source_name(obj: "str | Path | Sequence | SatelliteMap", directory: "Path | None") -> "str | None":
@@ -58,8 +63,10 @@ def build(database: str | Path | Sequence, satmap: str | Path | SatelliteMap, ou
 
     ``database``: a sequence directory or a :class:`Sequence` (e.g. a dataset reader's lazy one); ``satmap``: a
     map directory (:meth:`SatelliteMap.save`) or a :class:`SatelliteMap`. Every posed database frame must lie on
-    the map (:meth:`SatelliteMap.check_covers`), else :class:`ConfigError` before any work."""
+    the map (:meth:`SatelliteMap.check_covers`), else :class:`ConfigError` before any work. The summary
+    records the device the features were computed on (``config.device`` resolved)."""
     out = Path(out)
+    device = resolve_device(config.device)
     db = database if isinstance(database, Sequence) else Sequence.load(database)
     sm = satmap if isinstance(satmap, SatelliteMap) else SatelliteMap.load(satmap)
     if config.max_frames is not None:
@@ -67,7 +74,7 @@ def build(database: str | Path | Sequence, satmap: str | Path | SatelliteMap, ou
     posed = db.poses[np.all(np.isfinite(db.poses), axis=1)]
     on = "" if isinstance(satmap, SatelliteMap) else f" on the map {satmap}"
     sm.check_covers(posed[:, :2], f"database {db.name!r} poses{on}")
-    ext = make_extractor(config.features)
+    ext = make_extractor(config.features, str(device))
     t0 = time.perf_counter()
     sf = SatelliteFeatures.compute(sm, ext)
     t1 = time.perf_counter()
@@ -78,7 +85,7 @@ def build(database: str | Path | Sequence, satmap: str | Path | SatelliteMap, ou
     d.save(out / "dictionary.npz")
     summary = dict(header("build"), config=to_dict(config), camera=db.camera.to_dict(),
                    database=_source_name(database, getattr(db, "_dir", None)), database_name=db.name,
-                   map=_source_name(satmap, None),
+                   map=_source_name(satmap, None), device=str(device),
                    entries=len(d), database_frames=len(db), database_m=round(db.path_length(), 1),
                    satellite_features_s=round(t1 - t0, 2), dictionary_s=round(t2 - t1, 2))
     write_json(out / "build.json", summary)
@@ -117,8 +124,10 @@ def _load_build(build_dir: str | Path) -> tuple[dict, BuildConfig]:
 
 def train_projection(build_dir: str | Path, config: ProjectionConfig = ProjectionConfig(),
                      progress: bool = True) -> Projections:
-    """Learn W_g, W_s on the build's dictionary; writes ``projections.pt`` and ``projection_loss.png``."""
+    """Learn W_g, W_s on the build's dictionary (on ``config.device``); writes ``projections.pt`` and
+    ``projection_loss.png``."""
     b = Path(build_dir)
+    device = resolve_device(config.device)
     _load_build(b)
     d = Dictionary.load(b / "dictionary.npz")
     t0 = time.perf_counter()
@@ -129,7 +138,7 @@ def train_projection(build_dir: str | Path, config: ProjectionConfig = Projectio
     write_json(b / "projection.json", dict(header("projection_training"), config=to_dict(config),
                                             epochs=len(p.loss_curve), converged=p.converged,
                                             loss_first=p.loss_curve[0], loss_last=p.loss_curve[-1],
-                                            val_curve=p.val_curve, best_epoch=p.best_epoch,
+                                            val_curve=p.val_curve, best_epoch=p.best_epoch, device=str(device),
                                             seconds=round(time.perf_counter() - t0, 2)))
     return p
 
@@ -139,7 +148,7 @@ def load_localizer(build_dir: str | Path, config: LocalizerConfig = LocalizerCon
     """A localizer from a build directory (projections needed for mode ``full``). The satellite neighbour
     table it precomputes is cached in the build directory (``satellite_table_<mode>.npz``) unless
     ``cache_table`` is False; a cached table that does not match the build, projections or config is
-    recomputed."""
+    recomputed. Query features are computed on ``config.device``."""
     b = Path(build_dir)
     meta, bc = _load_build(b)
     proj = None
@@ -149,7 +158,7 @@ def load_localizer(build_dir: str | Path, config: LocalizerConfig = LocalizerCon
         proj = Projections.load(b / "projections.pt")
     camera = camera_from_dict(meta.get("camera"), f"{b / 'build.json'}: camera")
     return Localizer(Dictionary.load(b / "dictionary.npz"), SatelliteFeatures.load(b / "satellite_features.npz"),
-                     make_extractor(bc.features), camera, proj, config,
+                     make_extractor(bc.features, config.device), camera, proj, config,
                      b / f"satellite_table_{config.mode}.npz" if cache_table else None, progress)
 
 

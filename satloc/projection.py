@@ -22,6 +22,10 @@ it: for held-out samples, the mean size of NN_M(W_g g) ∩ NN_M(W_s s) among the
 sample's own satellite feature, minus the same at the satellite feature of a held-out sample more than
 ``val_far_m`` away. The W of the best epoch is kept, the identity (epoch 0) included (an epoch counts as
 better only if its per-sample gain over the best so far is ``val_z`` standard errors above zero), and training stops after ``patience`` epochs without improvement.
+
+Device. The optimisation runs on ``device`` (:mod:`satloc.device`: ``"auto"`` is CUDA when it is available,
+else the CPU); the anchors and the order of the batches are drawn on the CPU wherever it runs, the held-out
+neighbour search runs on the CPU, and the learned W come back as CPU arrays (saved as CPU tensors).
 """
 from __future__ import annotations
 
@@ -33,6 +37,7 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
+from .device import check_device, device_field, resolve_device
 from .dictionary import Dictionary
 from .errors import ConfigError, FormatError
 from .nn import NNIndex
@@ -61,8 +66,10 @@ class ProjectionConfig:
     val_neighbors: int = 20         # M of the co-occurrence margin
     val_far_m: float = 20.0         # the "wrong place" sample lies at least this far away
     val_z: float = 2.0              # an epoch is better only if it raises the margin by this many standard errors
+    device: str = device_field()    # where the optimisation runs (satloc.device): auto, cpu, cuda, cuda:N
 
     def __post_init__(self):
+        check_device(self.device)
         if not 0.0 <= self.val_frac < 1.0:
             raise ConfigError(f"val_frac: expected in [0, 1), got {self.val_frac}")
         if self.neighbors < 2 or self.lr <= 0 or self.max_epochs < 1 or self.batch_size < 1:
@@ -209,7 +216,7 @@ class CooccurrenceMargin:
 
     def __call__(self, W_g: torch.Tensor, W_s: torch.Tensor) -> torch.Tensor:
         """Per-sample co-occurrence margins (exact neighbour search)."""
-        p = Projections(W_g.detach().numpy(), W_s.detach().numpy())
+        p = Projections(W_g.detach().cpu().numpy(), W_s.detach().cpu().numpy())
         _, gid = NNIndex(p.project_g(self.base_g), exact_max=len(self.base_g)).search(p.project_g(self.g), self.m)
         # both satellite query sets in one batch
         _, sid = NNIndex(p.project_s(self.base_s), exact_max=len(self.base_s)).search(
@@ -234,16 +241,16 @@ def auto_alpha(x: torch.Tensor, anchors: torch.Tensor, others: torch.Tensor, mar
 
 
 def train_projections(d: Dictionary, cfg: ProjectionConfig = ProjectionConfig(), progress: bool = True) -> Projections:
-    """Learn W_g and W_s on dictionary ``d`` (see the module docstring)."""
+    """Learn W_g and W_s on dictionary ``d`` (see the module docstring), on ``cfg.device``."""
+    device = resolve_device(cfg.device)
     torch.manual_seed(cfg.seed)
     train, held = validation_split(d, cfg)
     anchors, kstar, others, margins = ranking_triplets(d, cfg, train)
-    views = {"g": torch.from_numpy(np.ascontiguousarray(d.g)), "s": torch.from_numpy(np.ascontiguousarray(d.s))}
-    W = {v: torch.eye(x.shape[1], requires_grad=True) for v, x in views.items()}
+    views = {v: torch.from_numpy(np.ascontiguousarray(x)).to(device) for v, x in (("g", d.g), ("s", d.s))}
+    W = {v: torch.eye(x.shape[1], device=device, requires_grad=True) for v, x in views.items()}
     norms = {v: float(torch.linalg.norm(w.detach())) for v, w in W.items()}
     opt = torch.optim.Adam(list(W.values()), lr=cfg.lr)
-    t_anchor, t_star = torch.from_numpy(anchors), torch.from_numpy(kstar)
-    t_others, t_marg = torch.from_numpy(others), torch.from_numpy(margins)
+    t_anchor, t_star, t_others, t_marg = (torch.from_numpy(a).to(device) for a in (anchors, kstar, others, margins))
     gen = torch.Generator().manual_seed(cfg.seed)
     alpha = {v: cfg.alpha if cfg.alpha is not None else auto_alpha(x, t_anchor, t_others, t_marg) for v, x in views.items()}
     validate = CooccurrenceMargin(d, train, held, cfg) if len(held) else None
@@ -255,7 +262,7 @@ def train_projections(d: Dictionary, cfg: ProjectionConfig = ProjectionConfig(),
     stale, converged = 0, False
     bar = tqdm(range(cfg.max_epochs), desc="projections", unit="epoch", disable=not progress, leave=False)
     for epoch in bar:
-        perm = torch.randperm(len(anchors), generator=gen)
+        perm = torch.randperm(len(anchors), generator=gen).to(device)   # drawn on the CPU: the same batches anywhere
         total, count = 0.0, 0
         for b in range(0, len(perm), cfg.batch_size):
             sel = perm[b:b + cfg.batch_size]
@@ -292,18 +299,20 @@ def train_projections(d: Dictionary, cfg: ProjectionConfig = ProjectionConfig(),
         W_g, W_s, kept = best[1], best[2], best[0]
     else:
         W_g, W_s, kept = W["g"].detach(), W["s"].detach(), -1
-    return Projections(W_g.numpy().copy(), W_s.numpy().copy(), curve, converged, val, kept)
+    return Projections(W_g.cpu().numpy().copy(), W_s.cpu().numpy().copy(), curve, converged, val, kept)
 
 
 def evaluate_loss(d: Dictionary, p: Projections, cfg: ProjectionConfig = ProjectionConfig()) -> float:
-    """The ranking loss of projections ``p`` on dictionary ``d`` (both views, all sampled anchors)."""
-    anchors, kstar, others, margins = (torch.from_numpy(a) for a in ranking_triplets(d, cfg))
+    """The ranking loss of projections ``p`` on dictionary ``d`` (both views, all sampled anchors), on
+    ``cfg.device``."""
+    device = resolve_device(cfg.device)
+    anchors, kstar, others, margins = (torch.from_numpy(a).to(device) for a in ranking_triplets(d, cfg))
     total = 0.0
     with torch.no_grad():
         for W, x in ((p.W_g, d.g), (p.W_s, d.s)):
-            xt = torch.from_numpy(np.ascontiguousarray(x))
+            xt = torch.from_numpy(np.ascontiguousarray(x)).to(device)
             alpha = cfg.alpha if cfg.alpha is not None else auto_alpha(xt, anchors, others, margins)
-            total += float(ranking_loss(torch.from_numpy(W), xt, anchors, kstar, others, margins, alpha))
+            total += float(ranking_loss(torch.from_numpy(W).to(device), xt, anchors, kstar, others, margins, alpha))
     return total
 
 

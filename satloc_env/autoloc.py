@@ -92,7 +92,8 @@ def cache_key(scene: str | os.PathLike, aliasing: float | None = None, resolutio
     return {"scene": name, "source": source, "scene_sha256": sha,
             "aliasing": float(own_aliasing if aliasing is None else aliasing), "resolution": resolution,
             "format_version": FORMAT_VERSION, "satloc_version": SATLOC_VERSION, "key_version": _KEY_VERSION,
-            "speed_mps": speed, "database_pass": to_dict(db), "build": to_dict(bc), "projection": to_dict(pc)}
+            "speed_mps": speed, "database_pass": to_dict(db), "build": to_dict(bc, runtime=False),
+            "projection": to_dict(pc, runtime=False)}   # not the device: how an entry is made, not what it holds
 
 
 def _entry_name(key: dict) -> str:

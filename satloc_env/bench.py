@@ -49,7 +49,7 @@ def bench_env(resolution: str = "half", steps: int = 2000, scene: str = "city", 
 
 
 def bench_localize(sizes_km=(0.25, 1.0, 4.0), work=None, scene: str = "loop", queries: int = 40,
-                   progress: bool = True, mode: str = "full") -> "Iterator[dict]":
+                   progress: bool = True, mode: str = "full", device: str = "auto") -> "Iterator[dict]":
     """Localization speed against databases of increasing path length (one JSON-able row per size).
 
     One database pass (frames every metre) and one query pass of ``scene`` are recorded in ``work`` (reused
@@ -59,18 +59,22 @@ def bench_localize(sizes_km=(0.25, 1.0, 4.0), work=None, scene: str = "loop", qu
     localized (:meth:`Localizer.localize_stream`: frames read from disk, the next frame's depth and features
     overlapping the current one's scoring), ``ms_per_query`` as the latency of one :meth:`Localizer.localize`
     call on a frame in memory (``sequential_queries_per_s`` its inverse), ``refined_*`` the stream again with
-    the bird's-eye refinement. Build and training times are reported too."""
+    the bird's-eye refinement. Build and training times are reported too. Features and projection learning
+    run on ``device`` (:mod:`satloc.device`); each row names the device it resolved to."""
     import tempfile
     from pathlib import Path
 
+    from satloc.device import resolve_device
     from satloc.geometry import arc_length
     from satloc.localizer import LocalizerConfig
     from satloc.pipeline import BuildConfig, build, load_localizer, train_projection
+    from satloc.projection import ProjectionConfig
     from satloc.sequence import Sequence
 
     from .experiment import covered_queries
     from .record import PassConfig, RecordConfig, record_passes
 
+    dev = str(resolve_device(device))   # before any work: a device that is not there fails at once
     work = Path(work) if work else Path(tempfile.mkdtemp(prefix="satloc_bench_"))
     longest = max(sizes_km)
     rec = work / "rec"
@@ -86,11 +90,11 @@ def bench_localize(sizes_km=(0.25, 1.0, 4.0), work=None, scene: str = "loop", qu
         db = db_all.head(n)
         bdir = work / f"build_{km:g}km"
         t0 = time.perf_counter()
-        summary = build(rec / "database", rec / "map", bdir, BuildConfig(max_frames=n), progress)
+        summary = build(rec / "database", rec / "map", bdir, BuildConfig(max_frames=n, device=dev), progress)
         t1 = time.perf_counter()
-        train_projection(bdir, progress=progress)
+        train_projection(bdir, ProjectionConfig(device=dev), progress=progress)
         t2 = time.perf_counter()
-        loc = load_localizer(bdir, LocalizerConfig(mode=mode), cache_table=False, progress=progress)
+        loc = load_localizer(bdir, LocalizerConfig(mode=mode, device=dev), cache_table=False, progress=progress)
         t3 = time.perf_counter()
         sel = covered_queries(db, q, 3.0)
         sel = sel[np.linspace(0, len(sel) - 1, min(queries, len(sel))).astype(int)] if len(sel) else sel
@@ -106,7 +110,7 @@ def bench_localize(sizes_km=(0.25, 1.0, 4.0), work=None, scene: str = "loop", qu
         errs_r = [r.estimate.distance(f.pose)
                   for r, f in zip(loc.localize_stream((q[int(i)] for i in sel), refine=True), frames)]
         t7 = time.perf_counter()
-        yield {"bench": "localize", "scene": scene, "mode": mode, "db_km": round(db.path_length() / 1000, 3),
+        yield {"bench": "localize", "scene": scene, "mode": mode, "device": dev, "db_km": round(db.path_length() / 1000, 3),
                "db_frames": n, "entries": summary["entries"], "queries": len(frames),
                "queries_per_s": round(len(frames) / (t6 - t5), 2), "ms_per_query": round(1000 * (t5 - t4) / len(frames), 1),
                "sequential_queries_per_s": round(len(frames) / (t5 - t4), 2),

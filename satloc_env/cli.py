@@ -9,6 +9,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from satloc.device import HELP as DEVICE_HELP
 from satloc.errors import SatlocError
 
 
@@ -147,7 +148,7 @@ def cmd_bench(args) -> int:
         from satloc_env.bench import bench_localize
 
         for row in bench_localize(args.sizes_km, args.work or None, scene=args.scene or "loop",
-                                  queries=args.queries, progress=not args.quiet):
+                                  queries=args.queries, progress=not args.quiet, device=args.device):
             print(json.dumps(row), flush=True)
     return 0
 
@@ -187,7 +188,7 @@ def _stage_config(cls, path: str | None, overrides: dict):
 def cmd_build(args) -> int:
     from satloc.pipeline import BuildConfig, build
 
-    cfg = _stage_config(BuildConfig, args.config, {"features": args.features})
+    cfg = _stage_config(BuildConfig, args.config, {"features": args.features, "device": args.device})
     print(json.dumps(build(args.database, args.map, args.out, cfg, progress=not args.quiet)))
     return 0
 
@@ -196,7 +197,8 @@ def cmd_train_projection(args) -> int:
     from satloc.pipeline import train_projection
     from satloc.projection import ProjectionConfig
 
-    p = train_projection(args.build, _stage_config(ProjectionConfig, args.config, {}), progress=not args.quiet)
+    p = train_projection(args.build, _stage_config(ProjectionConfig, args.config, {"device": args.device}),
+                         progress=not args.quiet)
     print(json.dumps({"epochs": len(p.loss_curve), "converged": p.converged, "loss_first": p.loss_curve[0],
                       "loss_last": p.loss_curve[-1], "plot": str(Path(args.build) / "projection_loss.png")}))
     return 0
@@ -207,7 +209,8 @@ def cmd_localize(args) -> int:
     from satloc.pipeline import localize
 
     cfg = _stage_config(LocalizerConfig, args.config, {"mode": args.mode, "refine": True if args.refine else None,
-                                                       "track": True if args.track else None})
+                                                       "track": True if args.track else None,
+                                                       "device": args.device})
     odometry, queries = None, args.queries
     if cfg.track:  # simulated odometry: the true motion between the sequence's frames, with noise
         from satloc.sequence import Sequence
@@ -300,6 +303,7 @@ def build_parser() -> argparse.ArgumentParser:
     b.add_argument("--sizes-km", type=float, nargs="+", default=[0.25, 1.0, 4.0], help="localize: database sizes")
     b.add_argument("--queries", type=int, default=40, help="localize: queries timed per size")
     b.add_argument("--work", help="localize: folder for recordings and builds (reused; default: a temp dir)")
+    b.add_argument("--device", default="auto", help=f"localize: {DEVICE_HELP}")
     b.add_argument("--quiet", action="store_true")
     b.set_defaults(func=cmd_bench)
 
@@ -308,6 +312,7 @@ def build_parser() -> argparse.ArgumentParser:
     bl.add_argument("--map", required=True, help="satellite map directory")
     bl.add_argument("--out", required=True, help="build directory to write")
     bl.add_argument("--features", choices=["rgb", "semantic", "default"], default=None)
+    bl.add_argument("--device", default=None, help=f"{DEVICE_HELP}; the FCN of the features")
     bl.add_argument("--config", help="YAML with BuildConfig fields")
     bl.add_argument("--quiet", action="store_true")
     bl.set_defaults(func=cmd_build)
@@ -315,6 +320,7 @@ def build_parser() -> argparse.ArgumentParser:
     tp = sub.add_parser("train-projection", help="learn the projections W_g, W_s of a build")
     tp.add_argument("build")
     tp.add_argument("--config", help="YAML with ProjectionConfig fields")
+    tp.add_argument("--device", default=None, help=DEVICE_HELP)
     tp.add_argument("--quiet", action="store_true")
     tp.set_defaults(func=cmd_train_projection)
 
@@ -329,6 +335,7 @@ def build_parser() -> argparse.ArgumentParser:
                     help="--track: odometry noise std, fraction of the distance and radians per frame")
     lo.add_argument("--odometry-seed", type=int, default=0)
     lo.add_argument("--out", help="where to write results (default: the build directory)")
+    lo.add_argument("--device", default=None, help=f"{DEVICE_HELP}; the FCN of the query features")
     lo.add_argument("--config", help="YAML with LocalizerConfig fields")
     lo.add_argument("--quiet", action="store_true")
     lo.set_defaults(func=cmd_localize)

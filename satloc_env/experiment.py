@@ -197,7 +197,7 @@ def build_and_learn(cfg, label: str, database: Sequence, satmap: str | Path, out
     bdir = out / "build"
     times: dict[str, float] = {}
     t = time.perf_counter()
-    bstamp = dict(to_dict(bc), **source)
+    bstamp = dict(to_dict(bc, runtime=False), **source)   # runtime settings (the device) do not redo a stage
     if not _stage_done(out / "build_stage.json", bstamp):
         log(f"[{label}] building the dictionary ({len(database)} database frames)")
         (out / "projection_stage.json").unlink(missing_ok=True)   # projections of an earlier build are stale
@@ -206,7 +206,7 @@ def build_and_learn(cfg, label: str, database: Sequence, satmap: str | Path, out
     times["build_s"] = time.perf_counter() - t
     t = time.perf_counter()
     if any(m.startswith("full") for m in cfg.modes):
-        pc = dict(to_dict(cfg.projection), build=read_json(bdir / "build.json").get("entries"))
+        pc = dict(to_dict(cfg.projection, runtime=False), build=read_json(bdir / "build.json").get("entries"))
         if not _stage_done(out / "projection_stage.json", pc) or not (bdir / "projections.pt").is_file():
             log(f"[{label}] learning the projections W_g, W_s")
             train_projection(bdir, cfg.projection, progress)

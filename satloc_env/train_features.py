@@ -33,7 +33,12 @@ Held out, never trained on, and reported:
 
 Metrics: pixel accuracy, per-class IoU, mean IoU over the classes present in the ground truth, and boundary
 precision / recall / F1 (edge probability > 0.5 against the boundary target, with a 2-pixel tolerance).
-Runs are deterministic for a given seed and thread count.
+Runs are deterministic for a given seed and thread count (on the CPU).
+
+Device: training and the held-out evaluation run on ``device`` (:mod:`satloc.device`: ``"auto"``, the
+default, is CUDA when it is available, else the CPU). The batches, their photometric changes and the initial
+weights are drawn on the CPU wherever training runs; the weights are saved as CPU tensors, and the report
+records the device used.
 """
 from __future__ import annotations
 
@@ -53,6 +58,7 @@ import torch.nn.functional as F
 from tqdm import tqdm
 
 from satloc.config import from_dict, to_dict
+from satloc.device import HELP as DEVICE_HELP, device_field, resolve_device
 from satloc.errors import ConfigError, SatlocError
 from satloc.fcn import FCNPredictor, SegEdgeNet, ViewNet, save_fcn, torch_threads
 from satloc.labels import CLASSES, NUM_CLASSES
@@ -93,6 +99,7 @@ class TrainConfig:
     weight_decay: float = 1e-4
     boundary_weight: float = 1.0
     threads: int | None = None          # torch threads (None: torch's default)
+    device: str = device_field()        # where the networks train and are evaluated (satloc.device)
     # occlusion cap of held-out scene episodes: on the 6 km loop route, occlusion above ~0.45 makes the
     # simulator's occluder texture exceed OpenGL's size limit (GLError at reset)
     heldout_max_occlusion: float = 0.4
@@ -207,12 +214,13 @@ def seed_variant_tiles(spec: SceneSpec, n: int, ground_mpp: Sequence[float], rng
 
 
 def _photometric(x: torch.Tensor, g: torch.Generator) -> torch.Tensor:
-    """Per-image random gain, white balance, gamma and contrast of (N, 3, H, W) RGB in [0, 1]."""
+    """Per-image random gain, white balance, gamma and contrast of (N, 3, H, W) RGB in [0, 1] (drawn from the
+    CPU generator ``g``, applied on ``x``'s device)."""
     n = x.shape[0]
-    gain = torch.exp(0.3 * torch.randn(n, 1, 1, 1, generator=g))
-    wb = 1.0 + 0.06 * torch.randn(n, 3, 1, 1, generator=g)
-    gamma = torch.exp(0.2 * torch.randn(n, 1, 1, 1, generator=g))
-    contrast = 1.0 + 0.12 * torch.randn(n, 1, 1, 1, generator=g)
+    gain = torch.exp(0.3 * torch.randn(n, 1, 1, 1, generator=g)).to(x.device)
+    wb = (1.0 + 0.06 * torch.randn(n, 3, 1, 1, generator=g)).to(x.device)
+    gamma = torch.exp(0.2 * torch.randn(n, 1, 1, 1, generator=g)).to(x.device)
+    contrast = (1.0 + 0.12 * torch.randn(n, 1, 1, 1, generator=g)).to(x.device)
     y = (x * gain * wb).clamp(1e-4, 1.0) ** gamma
     return ((y - 0.5) * contrast + 0.5).clamp(0.0, 1.0)
 
@@ -234,14 +242,15 @@ def class_weights(labels: np.ndarray) -> torch.Tensor:
 
 def segmentation_loss(net: SegEdgeNet, images: np.ndarray, labels: np.ndarray, weights: torch.Tensor,
                       boundary_weight: float, g: torch.Generator | None = None) -> torch.Tensor:
-    """Cross-entropy + boundary BCE of ``net`` on a batch of (N, h, w, 3) images and (N, h, w) labels.
-    With a generator ``g``, images get a random photometric change."""
-    x = torch.from_numpy(images).permute(0, 3, 1, 2).float().div_(255.0)
+    """Cross-entropy + boundary BCE of ``net`` on a batch of (N, h, w, 3) images and (N, h, w) labels, on the
+    device of ``net``'s parameters. With a (CPU) generator ``g``, images get a random photometric change."""
+    device = next(net.parameters()).device
+    x = torch.from_numpy(images).to(device).permute(0, 3, 1, 2).float().div_(255.0)
     if g is not None:
         x = _photometric(x, g)
-    y = torch.from_numpy(labels).long()
+    y = torch.from_numpy(labels).to(device).long()
     scores, edge = net.forward_with_edges(x)
-    ce = F.cross_entropy(scores, y, weight=weights, ignore_index=IGNORE)
+    ce = F.cross_entropy(scores, y, weight=weights.to(device), ignore_index=IGNORE)
     target, valid = label_boundaries(y)
     pos = (target & valid).sum().clamp(min=1)
     pos_weight = ((valid.sum() - pos) / pos).clamp(min=1.0).sqrt().float()
@@ -388,11 +397,13 @@ def train_features(out_dir: str | Path, scenes: Sequence[str] = ("city", "reside
         raise ConfigError(f"sat_holdout: expected a value in (0, 0.5), got {cfg.sat_holdout}")
     if not 0.0 < cfg.ground_scale <= 1.0:
         raise ConfigError(f"ground_scale: expected a value in (0, 1], got {cfg.ground_scale}")
+    device = resolve_device(cfg.device)
     with torch_threads(cfg.threads):
-        return _train(Path(out_dir), list(scenes), list(heldout), cfg, progress)
+        return _train(Path(out_dir), list(scenes), list(heldout), cfg, device, progress)
 
 
-def _train(out_dir: Path, scenes: list[str], heldout: list[str], cfg: TrainConfig, progress: bool) -> dict:
+def _train(out_dir: Path, scenes: list[str], heldout: list[str], cfg: TrainConfig, device: torch.device,
+           progress: bool) -> dict:
     t_start = time.perf_counter()
     rng = np.random.default_rng(cfg.seed)
     torch.manual_seed(cfg.seed)
@@ -431,7 +442,8 @@ def _train(out_dir: Path, scenes: list[str], heldout: list[str], cfg: TrainConfi
         im[flip], lab[flip] = im[flip][:, :, ::-1], lab[flip][:, :, ::-1]
         return np.ascontiguousarray(im), np.ascontiguousarray(lab)
 
-    nets = {"ground": SegEdgeNet(NUM_CLASSES, cfg.widths), "satellite": SegEdgeNet(NUM_CLASSES, cfg.widths)}
+    # made on the CPU (the same initial weights anywhere), then moved
+    nets = {v: SegEdgeNet(NUM_CLASSES, cfg.widths).to(device) for v in ("ground", "satellite")}
     losses = {}
     t0 = time.perf_counter()
     losses["ground"] = train_view(nets["ground"], ground_batch, class_weights(ground.labels), cfg.ground_iters, cfg,
@@ -449,7 +461,7 @@ def _train(out_dir: Path, scenes: list[str], heldout: list[str], cfg: TrainConfi
                             "satellite": ViewNet(nets["satellite"], 1.0)}, summary)
 
     t0 = time.perf_counter()
-    metrics = _heldout_metrics(FCNPredictor(weights_path), scenes, heldout, eval_seeds, satmaps, cfg)
+    metrics = _heldout_metrics(FCNPredictor(weights_path, device=device), scenes, heldout, eval_seeds, satmaps, cfg)
     times["evaluate_s"] = time.perf_counter() - t0
     times["total_s"] = time.perf_counter() - t_start
 
@@ -457,7 +469,7 @@ def _train(out_dir: Path, scenes: list[str], heldout: list[str], cfg: TrainConfi
     report.update(summary)
     report.update(weights=WEIGHTS_NAME, weights_bytes=weights_path.stat().st_size,
                   parameters={v: sum(p.numel() for p in n.parameters()) for v, n in nets.items()},
-                  threads=torch.get_num_threads(), ground_frames_trained=len(ground.labels),
+                  threads=torch.get_num_threads(), device=str(device), ground_frames_trained=len(ground.labels),
                   times={k: round(v, 1) for k, v in times.items()},
                   loss={v: _loss_summary(x) for v, x in losses.items()}, heldout_metrics=metrics)
     write_json(out_dir / REPORT_NAME, report)
@@ -481,13 +493,14 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="training episodes per scene and aliasing level")
     p.add_argument("--threads", type=int, default=None,
                    help="torch threads (default: torch's; 1 is faster when other processes load the cores)")
+    p.add_argument("--device", default=TrainConfig.device, help=DEVICE_HELP)
     p.add_argument("--quiet", action="store_true", help="no progress bars")
 
 
 def run(args: argparse.Namespace) -> int:
     """Train with parsed options; print a one-line JSON summary (held-out metrics, times)."""
     cfg = TrainConfig(seed=args.seed, ground_iters=args.ground_iters, sat_iters=args.sat_iters,
-                      ground_episodes=args.ground_episodes, threads=args.threads)
+                      ground_episodes=args.ground_episodes, threads=args.threads, device=args.device)
     report = train_features(args.out, args.scenes, args.heldout, cfg, progress=not args.quiet)
     brief = {k: {s: {"pixel_accuracy": m["pixel_accuracy"], "mean_iou": m["mean_iou"], "boundary_f1": m["boundary_f1"]}
                  for s, m in v.items()} for k, v in report["heldout_metrics"].items()}

@@ -1,6 +1,7 @@
 """The benchmark commands run and print the documented JSON keys (small settings; no timing asserted)."""
 import json
 
+from satloc.device import resolve_device
 from satloc_env.cli import main
 
 
@@ -14,6 +15,7 @@ def test_bench_localize_prints_one_row_per_size(tmp_path, capsys):
                     "sequential_queries_per_s", "refined_queries_per_s", "refined_median_error_m"):
             assert key in r, key
         assert r["queries"] == 2 and r["queries_per_s"] > 0 and 0.02 < r["db_km"] < 0.04
+        assert r["device"] == str(resolve_device("auto"))    # the device "auto" resolved to
 
 
 def test_bench_env_prints_steps_per_second(capsys):

@@ -58,6 +58,25 @@ def test_cli_stages(recording, tmp_path, capsys):
     assert "build.json: file not found" in capsys.readouterr().err
 
 
+def test_cli_device_flag(recording, tmp_path, capsys):
+    """--device on build, train-projection and localize; the build and projection summaries name the device
+    the work ran on. (Bad values: tests/test_device.py.)"""
+    b = str(tmp_path / "b")
+    assert main(["build", "--database", str(recording / "database"), "--map", str(recording / "map"),
+                 "--out", b, "--features", "semantic", "--device", "cpu", "--quiet"]) == 0
+    s = json.loads(capsys.readouterr().out)
+    assert s["device"] == "cpu" and s["config"]["device"] == "cpu"
+    cfg = tmp_path / "p.yaml"
+    cfg.write_text("max_anchors: 2000\nmax_epochs: 2\ndevice: auto\n")
+    assert main(["train-projection", b, "--config", str(cfg), "--device", "cpu", "--quiet"]) == 0
+    proj = json.loads((tmp_path / "b" / "projection.json").read_text())
+    assert proj["device"] == "cpu" and proj["config"]["device"] == "cpu"    # the flag overrides the file
+    capsys.readouterr()
+    assert main(["localize", b, "--queries", str(recording / "query"), "--mode", "full", "--device", "cpu",
+                 "--quiet"]) == 0
+    assert json.loads(capsys.readouterr().out)["queries"] == 4
+
+
 def test_localizer_lands_within_1m_on_a_small_scene(recording, tmp_path):
     """Revisit (the query pass drives another lane) of a 25 m database with the shipped features."""
     b = tmp_path / "build"
