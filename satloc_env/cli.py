@@ -154,9 +154,11 @@ def cmd_bench(args) -> int:
 
 
 def cmd_scene(args) -> int:
+    from satloc_env.record import check_scene_routes
     from satloc_env.scene import load_scene
 
     scene = load_scene(args.scene, args.aliasing)
+    check_scene_routes(scene)   # every route drivable by the autopilot at the recorder's lane offsets
     if args.save:
         scene.save(args.save)
     if args.picture:

@@ -49,8 +49,10 @@ from satloc.persist import read_json
 
 from .experiment import (BASELINE_NAMES, METHOD_NAMES, CompareConfig, ExperimentConfig,  # noqa: F401
                          _covered, _stage_done, _stages, _stamp, build_and_learn, covered_queries,
-                         localize_and_report, markdown_table, scene_label, scene_labels)
-from .record import PassConfig, RecordConfig, make_env, record_pass
+                         check_recordings, localize_and_report, markdown_table, record_config, scene_label,
+                         scene_labels)
+from .record import PassConfig, RecordConfig, check_passes, make_env, pass_routes, record_pass
+from .scene import load_scene
 
 def method_name(method: str) -> str:
     """Display name of a mode of :data:`satloc_env.experiment.METHOD_NAMES` or a baseline."""
@@ -225,6 +227,8 @@ def _record_table2(t2: Table2Config, out: Path, progress: bool, log) -> tuple[Se
                                         max_frames=e.query_frames))
     branch = PassConfig(route=t2.outside_route, lane_offset_m=e.query_lane_m, spacing_m=e.query_spacing_m,
                         occlusion=e.occlusion, appearance=e.appearance, seed=2, max_frames=t2.outside_frames)
+    scene = load_scene(t2.scene, e.aliasing)   # before any work: the three passes drivable by the autopilot
+    check_passes(scene, pass_routes(scene, rec) + [(t2.outside_route, branch)], rec.speed_mps, f"scene {t2.scene!r}")
     from .autoloc import cache_key
     from .record import record_passes
 
@@ -380,6 +384,9 @@ def sweep(out: str | Path, config: dict | None = None, progress: bool = True, lo
     out.mkdir(parents=True, exist_ok=True)
     sc = from_dict(SweepConfig, dict(config or {}), "sweep config")
     rows = []
+    check_recordings(record_config(from_dict(ExperimentConfig, dict(to_dict(sc.experiment), scene=sc.scene,
+                                                                    aliasing=a), "sweep config: experiment"))
+                     for a in sc.aliasing)   # before any work: the passes drivable (the roads do not alias)
     for a in sc.aliasing:
         for o in sc.occlusion:
             for p in sc.appearance:
@@ -523,8 +530,10 @@ def table1(out: str | Path, scenes: tuple[str, ...] = ("city", "residential"), c
     (method,scene,mean_m,std_m,protocol), ``table1.md`` and ``table1.json`` into ``out``; returns the rows."""
     out = Path(out)
     rows = []
-    for scene, label in zip(scenes, scene_labels(scenes)):
-        cfg = from_dict(ExperimentConfig, dict(config or {}, scene=scene), "experiment config")
+    cfgs = [from_dict(ExperimentConfig, dict(config or {}, scene=scene), "experiment config") for scene in scenes]
+    for c in cfgs:   # before any work: every scene's passes drivable by the autopilot
+        check_recordings([record_config(c)], second_pass="residential" in c.protocols)
+    for cfg, label in zip(cfgs, scene_labels(scenes)):
         sdir = out / label
         db, q, bdir, times = _stages(cfg, sdir, progress, log)
         results = {}

@@ -36,7 +36,7 @@ from satloc.track import compose_motion
 
 from .occluders import Appearance, sample_occluders
 from .scene import Scene, load_scene
-from .vehicle import Autopilot, VehicleParams, step_bicycle
+from .vehicle import DEFAULT_DT, Autopilot, VehicleParams, action_bounds, step_bicycle
 
 
 @dataclass
@@ -48,7 +48,7 @@ class EnvConfig:
     start_s_m: float = 0.0                  # start position along the route
     random_start: bool = False              # start at a random place on the route (from the episode seed)
     speed_mps: float = 8.0                  # autopilot cruising speed
-    dt: float = 0.1                         # seconds per step
+    dt: float = DEFAULT_DT                  # seconds per step
     max_steps: int = 1000                   # episode time limit (truncation)
     depth: bool = False                     # add true left-camera depth (metres) to observations
     labels: bool = False                    # add left-camera semantic labels to observations
@@ -549,8 +549,7 @@ class SatLocEnv(SharedSpecMixin, gym.Env):
             obs["labels"] = spaces.Box(0, NUM_CLASSES - 1, (h, w), np.uint8)
         self.observation_space = spaces.Dict(obs)
         v = self.vehicle
-        self.action_space = spaces.Box(np.array([0.0, -v.max_yaw_rate], np.float32),
-                                       np.array([v.max_speed_mps, v.max_yaw_rate], np.float32))
+        self.action_space = spaces.Box(*action_bounds(v))
         self._episode = self.config
         self._scene: Scene | None = None
         self._scene_key: tuple | None = None
@@ -706,7 +705,7 @@ class SatLocEnv(SharedSpecMixin, gym.Env):
         prev = self.pose
         self.pose, _, _ = step_bicycle(prev, a[0], a[1], cfg.dt, self.vehicle)
         self.steps += 1
-        self.pilot.s, _ = self.route.project((self.pose.x, self.pose.y), s_hint=self.pilot.s, window=15.0)
+        self.pilot.follow(self.pose)
         true_odo = prev.between(self.pose).as_array()
         dist = math.hypot(true_odo[0], true_odo[1])
         noise = self.np_random.normal(0.0, 1.0, 3) * np.array(

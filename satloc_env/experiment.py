@@ -40,7 +40,8 @@ from satloc.satmap import SatelliteMap
 from satloc.sequence import Sequence
 from satloc.track import noisy_odometry
 
-from .record import PassConfig, RecordConfig, record_passes
+from .record import PassConfig, RecordConfig, check_passes, pass_routes, record_passes
+from .scene import load_scene
 
 # "<mode>[+track][+align]": tracked over the query sequence with odometry (satloc.track), refined by bird's-eye
 # alignment (satloc.align)
@@ -158,15 +159,33 @@ def covered_queries(db: Sequence, q: Sequence, radius_m: float) -> np.ndarray:
     return np.flatnonzero(d <= radius_m)
 
 
+def record_config(cfg: ExperimentConfig) -> RecordConfig:
+    """The recording of an experiment's scene: the database pass and the revisit (query) pass."""
+    return RecordConfig(scene=cfg.scene, aliasing=cfg.aliasing,
+                        database=PassConfig(max_frames=cfg.database_frames),
+                        query=PassConfig(lane_offset_m=cfg.query_lane_m, spacing_m=cfg.query_spacing_m,
+                                         occlusion=cfg.occlusion, appearance=cfg.appearance, seed=1,
+                                         max_frames=cfg.query_frames))
+
+
+def check_recordings(recs, second_pass: bool = False) -> None:
+    """Before any work: every pass of every recording (:class:`RecordConfig`) drivable by the autopilot
+    (:func:`satloc_env.record.check_passes`), and with ``second_pass`` the database route at the query
+    pass's lane too (Table I's residential protocol); ConfigError naming the scene, the route and the first
+    point where it leaves the road."""
+    for rec in recs:
+        scene = load_scene(rec.scene, rec.aliasing)
+        passes = pass_routes(scene, rec)
+        if second_pass:
+            passes.append((passes[0][0], rec.query))
+        check_passes(scene, passes, rec.speed_mps, f"scene {rec.scene!r}")
+
+
 def _stages(cfg: ExperimentConfig, out: Path, progress: bool, log) -> tuple[Sequence, Sequence, Path, dict]:
     """Record, build and learn (each stage skipped where its output is already there with the same
     configuration); the database and query passes, the build folder and the stage times."""
     out.mkdir(parents=True, exist_ok=True)
-    rec = RecordConfig(scene=cfg.scene, aliasing=cfg.aliasing,
-                       database=PassConfig(max_frames=cfg.database_frames),
-                       query=PassConfig(lane_offset_m=cfg.query_lane_m, spacing_m=cfg.query_spacing_m,
-                                        occlusion=cfg.occlusion, appearance=cfg.appearance, seed=1,
-                                        max_frames=cfg.query_frames))
+    rec = record_config(cfg)
     times: dict[str, float] = {}
     t = time.perf_counter()
     from .autoloc import cache_key
@@ -387,8 +406,9 @@ def aliasing(out: str | Path, scenes: tuple[str, ...] = ("city", "residential"),
     into ``out``; return the rows."""
     out = Path(out)
     rows = []
-    for scene, label in zip(scenes, scene_labels(scenes)):
-        cfg = from_dict(ExperimentConfig, dict(config or {}, scene=scene), "experiment config")
+    cfgs = [from_dict(ExperimentConfig, dict(config or {}, scene=scene), "experiment config") for scene in scenes]
+    check_recordings(record_config(c) for c in cfgs)
+    for cfg, label in zip(cfgs, scene_labels(scenes)):
         s = aliasing_scene(cfg, out / label, progress, log)
         for cue, c in s["cues"].items():
             rows.append({"scene": label, "cue": cue, "measured": s["measured"], "far_wins": c["far_wins"],
@@ -397,7 +417,7 @@ def aliasing(out: str | Path, scenes: tuple[str, ...] = ("city", "residential"),
                      "far_wins": len(s["lost_by_every_cooccurrence_mode"]), "median_margin": None})
         rows.append({"scene": label, "cue": "every cue", "measured": s["measured"],
                      "far_wins": len(s["lost_by_every_cue"]), "median_margin": None})
-        log(f"[{scene}] queries where every cue prefers a place > {FAR_M:.0f} m away: {s['lost_by_every_cue']}")
+        log(f"[{cfg.scene}] queries where every cue prefers a place > {FAR_M:.0f} m away: {s['lost_by_every_cue']}")
     with atomic_path(out / "aliasing.csv", suffix=".csv") as tmp:
         with open(tmp, "w", newline="") as f:
             w = csv.writer(f)

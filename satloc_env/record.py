@@ -9,6 +9,11 @@
 
 Both sequences use the on-disk layout of :mod:`satloc.sequence`, which the dataset readers also produce.
 
+Before any work, :func:`record_passes` checks that the autopilot can drive both passes (route and lane
+offset) on the road (:func:`check_passes`, the same off-road check as the recorder's, run without
+rendering: :mod:`satloc_env.drivecheck`); a pass that would leave the road is a :class:`satloc.ConfigError`
+naming the route and the first point off the road, as it is when a pass leaves the road while recording.
+
 Interrupted runs: each pass is written whole (a temporary directory renamed into place) and marked done in
 ``recording.json`` after it. A rerun with the same configuration and satloc version after an interruption
 keeps the passes marked done and records the rest (it resumes); otherwise it starts over, first marking
@@ -37,13 +42,14 @@ from tqdm import tqdm
 
 from satloc import __version__ as SATLOC_VERSION
 from satloc.config import from_dict, to_dict
-from satloc.errors import FormatError
+from satloc.errors import ConfigError, FormatError
 from satloc.geometry import Pose2
 from satloc.persist import header, read_json, write_json
 from satloc.satmap import SatelliteMap
 from satloc.sequence import Frame, Sequence, SequenceWriter
 
-from .scene import SCENES_DIR, load_spec, scene_path
+from .drivecheck import check_route, off_road_message
+from .scene import SCENES_DIR, load_scene, load_spec, scene_path
 
 #: the id ``satloc_env`` registers the simulator under (``satloc_env.ENV_ID``; importing the package, which
 #: every import of this module does first, registers it)
@@ -110,11 +116,38 @@ def record_pass(env: gym.Env, p: PassConfig, route: str, out: Path, name: str, p
             t += env.unwrapped.config.dt
             if term or trunc:
                 if bool(info["off_road"]):
-                    raise RuntimeError(f"the autopilot left the road on route {route!r} at {info['pose']}")
+                    raise ConfigError(f"scene {env.unwrapped.scene.name!r}: " + off_road_message(
+                        env.unwrapped.scene, route, p.lane_offset_m, info["pose"], float(info["route_s"])))
                 break
         seq = w.close()
     bar.close()
     return seq
+
+
+def pass_routes(scene, cfg: RecordConfig) -> list[tuple[str, PassConfig]]:
+    """(route, pass) of the database and query passes of ``cfg`` on ``scene`` (a pass's own route, else the
+    scene's ``database_route`` / ``query_route``)."""
+    return [(cfg.database.route or scene.spec.database_route, cfg.database),
+            (cfg.query.route or scene.spec.query_route, cfg.query)]
+
+
+def check_passes(scene, passes, speed_mps: float, where: str | None = None) -> None:
+    """ConfigError naming the route and the first point where the autopilot would leave the road, for the
+    first of ``passes`` ((route, PassConfig) pairs) it cannot drive (:func:`satloc_env.drivecheck.check_route`:
+    the recorder's own off-road check, without rendering)."""
+    for route, p in passes:
+        check_route(scene, route, p.lane_offset_m, speed_mps, where=where)
+
+
+def check_scene_routes(scene, cfg: RecordConfig | None = None, where: str | None = None) -> None:
+    """Every route of ``scene`` drivable at the database pass's lane offset of ``cfg`` (default: the
+    defaults of :class:`RecordConfig`), and the query route at the query pass's too (what ``satloc scene``
+    checks)."""
+    cfg = cfg or RecordConfig()
+    passes = [(k, cfg.database) for k in scene.routes]
+    if cfg.query.lane_offset_m != cfg.database.lane_offset_m:
+        passes.append((cfg.query.route or scene.spec.query_route, cfg.query))
+    check_passes(scene, passes, cfg.speed_mps, where)
 
 
 def _hash_files(h: "hashlib._Hash", files: list[tuple[str, Path]]) -> None:
@@ -199,6 +232,8 @@ def record_passes(config: RecordConfig | dict[str, Any], out_dir: str | Path, pr
     """Record the database and query passes of a scene into ``out_dir`` (see the module docstring); after an
     interrupted run with the same configuration, only the passes it did not finish."""
     cfg = config if isinstance(config, RecordConfig) else from_dict(RecordConfig, config, "record config")
+    scene = load_scene(cfg.scene, cfg.aliasing)   # before any work: both passes drivable by the autopilot
+    check_passes(scene, pass_routes(scene, cfg), cfg.speed_mps)
     out = Path(out_dir)
     conf = to_dict(cfg)
     sha = scene_identity(cfg.scene)[2]

@@ -11,12 +11,22 @@ from satloc.geometry import Pose2
 from .route import Route
 
 
+#: seconds per simulator step (the environment's default ``dt``, which the recorder drives at)
+DEFAULT_DT = 0.1
+
+
 @dataclass(frozen=True)
 class VehicleParams:
     wheelbase_m: float = 2.7
     max_steer_rad: float = 0.6
     max_speed_mps: float = 20.0
     max_yaw_rate: float = 1.0
+
+
+def action_bounds(p: VehicleParams) -> tuple[np.ndarray, np.ndarray]:
+    """The action space's bounds (float32): [speed m/s, yaw rate rad/s] from [0, -max yaw rate] to
+    [max speed, max yaw rate]."""
+    return (np.array([0.0, -p.max_yaw_rate], np.float32), np.array([p.max_speed_mps, p.max_yaw_rate], np.float32))
 
 
 def step_bicycle(pose: Pose2, speed: float, yaw_rate: float, dt: float, p: VehicleParams) -> tuple[Pose2, float, float]:
@@ -52,6 +62,10 @@ class Autopilot:
                  s0: float = 0.0):
         self.route, self.offset, self.speed, self.lookahead = route, lane_offset, speed, lookahead
         self.s = s0
+
+    def follow(self, pose: Pose2) -> None:
+        """Update the progress ``s`` along the route after the vehicle moved to ``pose``."""
+        self.s, _ = self.route.project((pose.x, pose.y), s_hint=self.s, window=15.0)
 
     def act(self, pose: Pose2) -> np.ndarray:
         self.s, _ = self.route.project((pose.x, pose.y), s_hint=self.s, window=15.0)
