@@ -56,7 +56,7 @@ log = logging.getLogger(__name__)
 CACHE_ENV = "SATLOC_CACHE"
 #: files a complete cache entry has
 ENTRY_FILES = ("build.json", "dictionary.npz", "satellite_features.npz", "projections.pt", "autoloc.json")
-_KEY_VERSION = 1  # bump when the way an entry is made changes in a way the key does not show
+_KEY_VERSION = 2  # bump when the way an entry is made changes in a way the key does not show (2: ground beyond the tile)
 
 
 def cache_root(cache_dir: str | os.PathLike | None = None) -> Path:

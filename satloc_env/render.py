@@ -190,7 +190,8 @@ def _meshes(tm: TexturedMesh) -> tuple[Any, Any]:
     """pyrender meshes of a :class:`TexturedMesh`: (colour mesh, label mesh), one primitive each."""
     from satloc_env._gl import pyrender
 
-    clamp = dict(wrapS=pyrender.GLTF.CLAMP_TO_EDGE, wrapT=pyrender.GLTF.CLAMP_TO_EDGE)
+    wrap = pyrender.GLTF.REPEAT if tm.repeat else pyrender.GLTF.CLAMP_TO_EDGE
+    clamp = dict(wrapS=wrap, wrapT=wrap)
     color_tex = pyrender.Texture(source=tm.texture, source_channels="RGB", sampler=pyrender.Sampler(**clamp))
     label_tex = pyrender.Texture(source=tm.labels, source_channels="R", sampler=pyrender.Sampler(
         magFilter=pyrender.GLTF.NEAREST, minFilter=pyrender.GLTF.NEAREST, **clamp))

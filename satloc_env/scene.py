@@ -9,13 +9,16 @@ A scene file (see ``scenes/*.yaml``)::
       # or {type: image, image: tile.tif, roads: roads.png}  (paths relative to the YAML file; see below)
     meters_per_pixel: 0.2          # satellite tile resolution
     ground_mpp: 0.1                # resolution of the ground texture the camera sees
-    routes:
+    routes:                        # optional: without it, derived from the road graph (see below)
       main: {waypoints: [[x, y], ...], closed: true, laps: 1}
       # or {lonlat: [[lon, lat], ...]} (an image scene with a georeference)
       # or {trace: true} / {trace: {smooth_m: 2, spacing_m: 2, min_length_m: 50, prune_m: 8, reverse: false}}
       #    (traced from the image scene's road mask or label image: satloc_env.roadtrace)
+      # waypoints / lonlat with snap: true: moved onto the roads and joined along them
     database_route: main
-    query_route: main
+    query_route: main              # default: main, or revisit for derived routes
+    road_graph: {snap_m: 2, edge_margin_m: 2, smooth_m: 3, spacing_m: 2, turn_radius_m: 4.5, snap_route_m: 20}
+    ground_pad_m: 250              # neutral ground around the tile, so no view shows its edge
     objects: {buildings: [...], trees: [...], cars: [...]}   # extra hand-placed objects
     lighting: {sun_azimuth_deg: 135, sun_elevation_deg: 50}
     knobs: {aliasing: 0.0, occlusion: 0.0, appearance: 0.0}
@@ -43,6 +46,30 @@ road inside the mask and, outside it, the label image's class or else ``void`` (
 label image's road and lane-marking classes): see :func:`satloc_env.roadtrace.trace_route`. Occluders and
 appearance changes work on image scenes as on generated ones.
 
+**Roads as vectors.** ``roads`` may instead be a vector file of road centre lines (GeoJSON, GeoPackage or
+Shapefile, as OpenStreetMap extracts and public benchmark labels come; read by :mod:`satloc.vectors` in the
+CRS the file declares, CRS84 for a GeoJSON file without one). The lines are taken to the scene's frame
+through pyproj and buffered by their width (``width`` / ``lanes`` / ``lane_number`` attributes, else
+``generator.road_width_m``, 7 m) into the road mask, which then serves as a raster mask does.
+
+**The road graph and derived routes** (:mod:`satloc_env.roadgraph`, parameters ``road_graph:``). The road
+graph is built from the vector centre lines, else from the skeleton of the road mask (or of the road classes
+of the label image, or of a generated scene's ground). Without ``routes:``, two routes are derived from it:
+``main`` (the ``database_route``), a tour that drives every road of the graph's largest connected part,
+turning at its intersections and turning round in a loop at dead ends where the road is wide enough (a
+turning circle), and ``revisit`` (the ``query_route``), the same tour the other way round, so every road is
+revisited in the other lane. ``waypoints`` or ``lonlat`` with ``snap: true`` are moved onto the roads (from
+up to ``road_graph.snap_route_m`` away, even from beyond the loaded area's edge) and joined by the shortest
+way along them. Routes over the graph carry the road's width at each waypoint (``widths``): lane offsets
+follow it (:class:`satloc_env.route.Route`: -1.75 m is the centre of the right lane on roads up to 7 m
+wide, -width / 4 on narrower ones).
+
+**The tile's edge.** The ground goes on ``ground_pad_m`` metres (default 250, more than the renderer's view
+distance, 150 m) beyond the tile on every side, in a neutral texture (:func:`satloc_env.world.pad_texture`),
+so no view shows the tile's edge and sky below the horizon. The alternative, keeping routes the view distance
+inside the tile, would leave nothing of a 377 m x 277 m image such as ``suburb_utm``. Derived routes keep
+``road_graph.edge_margin_m`` (2 m) inside the tile.
+
 Every field is checked; unknown keys, wrong types, missing images, images or masks of another size, empty
 masks, masks without a long enough road and routes leaving the tile raise :class:`satloc.ConfigError`
 naming the file and the field.
@@ -69,6 +96,7 @@ from satloc.satmap import SatelliteMap, read_image
 
 from .generator import GridParams, generate_grid
 from .layout import Building, Car, Layout, Tree
+from .roadgraph import GraphParams
 from .route import Route
 from .tile import paint_tile
 
@@ -97,6 +125,7 @@ class ImageGeneratorSpec:
     roads: str | None = None     #: road mask (non-zero: road), same size as ``image``
     crs: str | None = None       #: CRS of an image with a world file and no ``.prj`` (e.g. "EPSG:32632")
     region: tuple[float, float, float, float] | None = None   #: lon_min, lat_min, lon_max, lat_max (degrees)
+    road_width_m: float = 7.0    #: width of vector roads whose attributes give none (width, lanes, lane_number)
 
     def files(self, base: Path) -> list[tuple[str, Path]]:
         """(field, path) of every existing file the generator reads: the image, its world file and ``.prj``
@@ -107,6 +136,10 @@ class ImageGeneratorSpec:
         out = [("image", img)]
         out += [("image_sidecar", p) for p in input_files(img)[1:]]
         out += [(k, base / getattr(self, k)) for k in ("labels", "roads") if getattr(self, k)]
+        if self.roads:
+            from satloc.vectors import vector_files
+
+            out += [("roads_sidecar", p) for p in vector_files(base / self.roads)[1:]]
         return out
 
 
@@ -124,13 +157,17 @@ class TraceSpec:
 @dataclass
 class RouteSpec:
     """A route: ``waypoints`` in map metres, or ``lonlat`` (WGS84 degrees, an image scene with a
-    georeference), or ``trace`` (traced from the image scene's road mask); exactly one of them."""
+    georeference), or ``trace`` (traced from the image scene's road mask); exactly one of them. ``snap``:
+    move the waypoints onto the scene's roads and join them along the roads. ``widths``: the road's width
+    at each waypoint (set on routes over the road graph; lane offsets follow it)."""
 
     waypoints: list[tuple[float, float]] | None = None
     closed: bool = False
     laps: int = 1
     lonlat: list[tuple[float, float]] | None = None
     trace: bool | TraceSpec | None = None
+    snap: bool = False
+    widths: list[float] | None = None
 
     def __post_init__(self):
         given = [k for k in ("waypoints", "lonlat", "trace") if getattr(self, k) not in (None, False)]
@@ -139,6 +176,11 @@ class RouteSpec:
                               f"{' and '.join(given) if given else 'none'}")
         if self.laps < 1:
             raise ConfigError(f"laps: expected an integer >= 1, got {self.laps}")
+        if self.snap and self.trace not in (None, False):
+            raise ConfigError("snap: a traced route follows the road already; snap applies to waypoints and lonlat")
+        if self.widths is not None and (self.waypoints is None or self.snap):
+            raise ConfigError("widths: the road width at each waypoint goes with waypoints (not lonlat, trace or "
+                              "snap, whose widths come from the road graph)")
 
 
 @dataclass
@@ -200,17 +242,30 @@ class Knobs:
 @dataclass
 class SceneSpec:
     name: str
-    routes: dict[str, RouteSpec]
+    routes: dict[str, RouteSpec] = field(default_factory=dict)   # none: derived from the road graph
     generator: dict[str, Any] = field(default_factory=lambda: {"type": "grid"})
     seed: int = 0
     description: str = ""
     meters_per_pixel: float = 0.2
     ground_mpp: float = 0.1
     database_route: str = "main"
-    query_route: str = "main"
+    query_route: str | None = None       # None: "main", or "revisit" where the routes are derived
     objects: ObjectsSpec = field(default_factory=ObjectsSpec)
     lighting: LightingSpec = field(default_factory=LightingSpec)
     knobs: Knobs = field(default_factory=Knobs)
+    road_graph: GraphParams = field(default_factory=GraphParams)
+    ground_pad_m: float | None = None    # None: DEFAULT_GROUND_PAD_M
+
+    def __post_init__(self):
+        if self.query_route is None:
+            self.query_route = "main" if self.routes else "revisit"
+
+    @property
+    def route_names(self) -> list[str]:
+        """The routes the scene has: those given, else the derived ones."""
+        from .sceneroads import DERIVED_ROUTES
+
+        return sorted(self.routes) if self.routes else list(DERIVED_ROUTES)
 
     def generator_spec(self, where: str = "scene") -> GridGeneratorSpec | ImageGeneratorSpec:
         kind = self.generator.get("type")
@@ -223,6 +278,10 @@ class SceneSpec:
 
 MAX_GROUND_PX = 20000 * 20000  # the largest ground raster a scene may ask for (as satloc.georef's maps)
 MAX_LAPS = 1000
+#: neutral ground around the tile (metres): beyond the renderer's default view distance (150 m) along the
+#: camera's corner rays, so no view from the tile reaches the padding's edge
+DEFAULT_GROUND_PAD_M = 250.0
+MAX_GROUND_PAD_M = 5000.0
 
 
 def check_spec(spec: SceneSpec, where: str) -> None:
@@ -238,6 +297,9 @@ def check_spec(spec: SceneSpec, where: str) -> None:
     need(spec.seed >= 0, "seed", "an integer >= 0", spec.seed)
     for k, r in spec.routes.items():
         need(r.laps <= MAX_LAPS, f"routes.{k}.laps", f"at most {MAX_LAPS}", r.laps)
+    if spec.ground_pad_m is not None:
+        need(0 <= spec.ground_pad_m <= MAX_GROUND_PAD_M, "ground_pad_m", f"metres in [0, {MAX_GROUND_PAD_M:g}]",
+             spec.ground_pad_m)
     need(0 < spec.lighting.sun_elevation_deg <= 90, "lighting.sun_elevation_deg", "degrees in (0, 90]",
          spec.lighting.sun_elevation_deg)
     rgb_ok = lambda c: all(0 <= v <= 255 for v in c)  # noqa: E731
@@ -309,8 +371,9 @@ def load_spec(name_or_path: str | os.PathLike) -> tuple[SceneSpec, Path]:
     check_spec(spec, str(path))
     spec.generator_spec(str(path))
     for k in ("database_route", "query_route"):
-        if getattr(spec, k) not in spec.routes:
-            raise ConfigError(f"{path}: {k}: route {getattr(spec, k)!r} is not in routes {sorted(spec.routes)}")
+        if getattr(spec, k) not in spec.route_names:
+            raise ConfigError(f"{path}: {k}: route {getattr(spec, k)!r} is not in routes {spec.route_names}"
+                              + ("" if spec.routes else " (the routes derived where none are given)"))
     return spec, path.resolve().parent
 
 
@@ -328,7 +391,8 @@ class Scene:
         self.satmap = satmap
         self.alias_source = alias_source if alias_source is not None else np.zeros(0, int)
         try:
-            self.routes = {k: Route(r.waypoints, r.closed, r.laps, name=f"routes.{k}") for k, r in spec.routes.items()}
+            self.routes = {k: Route(r.waypoints, r.closed, r.laps, name=f"routes.{k}", widths=r.widths)
+                           for k, r in spec.routes.items()}
         except ValueError as e:
             raise ConfigError(f"{where or f'scene {spec.name!r}'}: {e}") from e
         self.drivable = np.isin(layout.ground_labels, DRIVABLE)
@@ -343,7 +407,8 @@ class Scene:
         """Renderable geometry of the scene (:class:`satloc_env.world.World`), built once per scene."""
         from .world import build_world
 
-        return build_world(self.layout)
+        pad = self.spec.ground_pad_m
+        return build_world(self.layout, pad_m=DEFAULT_GROUND_PAD_M if pad is None else pad)
 
     def _check_routes(self, where: str) -> None:
         W, H = self.layout.width_m, self.layout.height_m
@@ -471,6 +536,7 @@ class _ImageGround:
     layout: Layout
     frame: Any                      # satloc.geoframe.GeoFrame | None
     roads: np.ndarray | None        # (H, W) bool road mask on the layout's raster, if any
+    road_graph: Any = None          # the road graph of vector roads (satloc_env.roadgraph.RoadGraph), if any
 
 
 def _image_layout(g: ImageGeneratorSpec, spec: SceneSpec, base: Path, where: str) -> _ImageGround:
@@ -522,12 +588,19 @@ def _image_layout(g: ImageGeneratorSpec, spec: SceneSpec, base: Path, where: str
         except (ConfigError, FormatError) as e:
             raise ConfigError(f"{where}: generator.{field_name}: {e}") from e
 
-    labels = roads = None
+    labels = roads = road_graph = None
     if g.labels:
         raw, labels = aligned("labels", "label image", "nearest")
         if raw.max() >= NUM_CLASSES:
             raise ConfigError(f"{where}: generator.labels: class id {raw.max()} >= {NUM_CLASSES}")
-    if g.roads:
+    from satloc.vectors import is_vector_file
+
+    if g.roads and is_vector_file(g.roads):
+        from .sceneroads import vector_roads
+
+        road_graph, roads = vector_roads(base / g.roads, frame, rgb.shape[:2], mpp, g.road_width_m, spec.road_graph,
+                                         where)
+    elif g.roads:
         raw, tiled = aligned("roads", "road mask", "bilinear", value=255)   # bilinear, then halved
         if not raw.any():
             raise ConfigError(f"{where}: generator.roads: the road mask {base / g.roads} is empty (no non-zero "
@@ -543,7 +616,7 @@ def _image_layout(g: ImageGeneratorSpec, spec: SceneSpec, base: Path, where: str
     elif labels is None:
         labels = np.full(rgb.shape[:2], CLASS_ID["road"], np.uint8)
     h, w = labels.shape
-    return _ImageGround(Layout(w * mpp, h * mpp, spec.ground_mpp, rgb, labels), frame, roads)
+    return _ImageGround(Layout(w * mpp, h * mpp, spec.ground_mpp, rgb, labels), frame, roads, road_graph=road_graph)
 
 
 def _load_georeferenced(path: Path, g: ImageGeneratorSpec, mpp: float, where: str):
@@ -589,13 +662,35 @@ def _load_georeferenced(path: Path, g: ImageGeneratorSpec, mpp: float, where: st
 def _resolve_routes(spec: SceneSpec, ground: _ImageGround | None, lay: Layout, g, base: Path,
                     where: str) -> dict[str, RouteSpec]:
     """Every route as waypoints in map metres: ``lonlat`` converted through the geo frame, ``trace`` traced
-    from the road mask (or the label image's roads)."""
+    from the road mask (or the label image's roads), ``snap`` routes snapped to the road graph; without
+    routes, the derived ones (:mod:`satloc_env.sceneroads`)."""
     from .roadtrace import RoadTraceError, TraceParams, trace_route
+    from .sceneroads import DERIVED_ROUTES, derived_routes, road_graph, snap_waypoints
 
     out: dict[str, RouteSpec] = {}
     traced: dict[TraceSpec, Any] = {}
+
+    @functools.lru_cache(maxsize=1)
+    def graph():
+        if ground is not None and ground.road_graph is not None:
+            return ground.road_graph
+        return road_graph(spec.road_graph, ground.roads if ground is not None else None, lay.ground_labels,
+                          lay.ground_mpp, where)
+
+    def as_route(xy, widths, closed: bool, laps: int) -> RouteSpec:
+        return RouteSpec(waypoints=[(float(x), float(y)) for x, y in xy], closed=closed, laps=laps,
+                         widths=[round(float(v), 3) for v in widths])
+
+    if not spec.routes:
+        tours = derived_routes(graph(), np.isin(lay.ground_labels, DRIVABLE), lay.ground_mpp, spec.road_graph, where)
+        return {k: as_route(t.waypoints, t.widths, t.closed, 1) for k, t in zip(DERIVED_ROUTES, tours)}
     for k, r in spec.routes.items():
         field_ = f"routes.{k}"
+        if r.waypoints is not None and r.snap:
+            xy, w = snap_waypoints(graph(), np.asarray(r.waypoints, np.float64).reshape(-1, 2), r.closed,
+                                   spec.road_graph, f"{field_}.waypoints", where)
+            out[k] = as_route(xy, w, r.closed, r.laps)
+            continue
         if r.waypoints is not None:
             out[k] = r
             continue
@@ -605,11 +700,17 @@ def _resolve_routes(spec: SceneSpec, ground: _ImageGround | None, lay: Layout, g
                 raise ConfigError(f"{where}: {field_}.lonlat: the scene has no geo frame (lon/lat routes need "
                                   f"an image scene with a georeferenced image); give waypoints in metres")
             xy = frame.to_map(np.asarray(r.lonlat, np.float64).reshape(-1, 2))
+            if r.snap:
+                xy, w = snap_waypoints(graph(), xy, r.closed, spec.road_graph, f"{field_}.lonlat", where)
+                out[k] = as_route(xy, w, r.closed, r.laps)
+                continue
             for i, (x, y) in enumerate(xy):
                 if not (0 <= x <= lay.width_m and 0 <= y <= lay.height_m):
                     raise ConfigError(f"{where}: {field_}.lonlat[{i}] = {list(r.lonlat[i])} lies outside the "
                                       f"image, at ({x:.1f}, {y:.1f}) m; the image covers lon/lat "
-                                      f"{_lonlat_box(frame, lay)}")
+                                      f"{_lonlat_box(frame, lay)} (the largest north-up rectangle inside the "
+                                      f"image's footprint: a rotated or reprojected image loses its edges); "
+                                      f"with snap: true the point moves onto the nearest road")
             out[k] = RouteSpec(waypoints=[(float(x), float(y)) for x, y in xy], closed=r.closed, laps=r.laps)
             continue
         t = r.trace if isinstance(r.trace, TraceSpec) else TraceSpec()

@@ -13,6 +13,13 @@ lies in the chunk. The mesh has one colour texture laid out as
 and one label texture with the same layout holding a class id (:mod:`satloc.labels`) per texel:
 ``layout.ground_labels`` in the ground region, the object's class in its atlas regions.
 
+With ``pad_m`` > 0 the ground goes on beyond the layout for ``pad_m`` metres on every side, so that no view
+from the layout ever ends at its edge and shows sky below the horizon: flat ground textured with one neutral
+texture repeated (:func:`pad_texture`: the median colour of
+the layout's outermost ground with a faint, seamless mottle; class ``void``, unknown ground, which is not
+drivable): one mesh of eight flat quads round the layout, one draw call. It shows the camera that the ground
+goes on, not what lies there.
+
 Textures are made deterministically: the random generator of an object is seeded by its kind and its index
 in the layout (and a facade's look is chosen by its ``facade`` style index). Object faces carry a baked
 shading factor (per face, from its normal and the sun direction) so that unlit rendering still reads as 3-D;
@@ -59,6 +66,7 @@ class TexturedMesh:
     faces: np.ndarray      #: (M, 3) uint32 vertex indices, counter-clockwise seen from outside
     texture: np.ndarray    #: (H, W, 3) uint8 RGB, W % 4 == 0
     labels: np.ndarray     #: (H, W) uint8 class ids
+    repeat: bool = False   #: the texture repeats beyond [0, 1] (the padding's); else clamped to its edge
 
     @property
     def bounds(self) -> np.ndarray:
@@ -85,8 +93,9 @@ def sun_direction(azimuth: float, elevation: float) -> np.ndarray:
 
 
 # --- public builders --------------------------------------------------------------------------------------
-def build_world(layout: Layout, chunk_m: float = 204.8) -> World:
-    """Turn ``layout`` into chunked, textured geometry (see the module docstring)."""
+def build_world(layout: Layout, chunk_m: float = 204.8, pad_m: float = 0.0) -> World:
+    """Turn ``layout`` into chunked, textured geometry, with ``pad_m`` metres of neutral ground around it
+    (see the module docstring)."""
     mpp = float(layout.ground_mpp)
     rows, cols = layout.ground_labels.shape
     if layout.ground_rgb.shape != (rows, cols, 3):
@@ -121,7 +130,50 @@ def build_world(layout: Layout, chunk_m: float = 204.8) -> World:
             for add in members[j * nx + i]:
                 add(mb)
             chunks.append(mb.build(ground))
+    if pad_m > 0:
+        chunks.append(_pad_mesh(layout, cols * mpp, rows * mpp, float(pad_m)))
     return World(float(layout.width_m), float(layout.height_m), cpx * mpp, chunks, sun)
+
+
+#: texels on a side of the padding's repeated texture
+_PAD_TEXELS = 512
+
+
+def pad_texture(layout: Layout, texels: int = _PAD_TEXELS) -> np.ndarray:
+    """(texels, texels, 3) uint8 seamless neutral ground: the median colour of the layout's outermost
+    ``PAD`` texels of ground, mottled by a few percent (low-pass noise on a torus, so it tiles)."""
+    g = layout.ground_rgb
+    ring = np.concatenate([g[:PAD].reshape(-1, 3), g[-PAD:].reshape(-1, 3), g[:, :PAD].reshape(-1, 3),
+                           g[:, -PAD:].reshape(-1, 3)])
+    base = np.median(ring, axis=0)
+    rng = np.random.default_rng(20240521)
+    f = np.fft.fftfreq(texels)
+    r2 = f[:, None] ** 2 + f[None, :] ** 2
+    field = np.zeros((texels, texels))
+    for sigma, amp in ((0.004, 1.0), (0.02, 0.5), (0.12, 0.25)):   # broad blotches to fine grain
+        noise = np.fft.fft2(rng.standard_normal((texels, texels)))
+        layer = np.real(np.fft.ifft2(noise * np.exp(-r2 / (2 * sigma ** 2))))
+        field += amp * layer / max(float(layer.std()), 1e-12)
+    field /= max(float(field.std()), 1e-12)
+    tex = base[None, None, :] * (1.0 + 0.06 * field[..., None])
+    return np.clip(np.round(tex), 0, 255).astype(np.uint8)
+
+
+def _pad_mesh(layout: Layout, w_m: float, h_m: float, pad_m: float) -> TexturedMesh:
+    """One flat mesh covering [-pad, w + pad] x [-pad, h + pad] outside [0, w] x [0, h] (eight quads) with
+    the repeated :func:`pad_texture` at the layout's ground resolution."""
+    tex = pad_texture(layout)
+    labels = np.full(tex.shape[:2], CLASS_ID["void"], np.uint8)
+    period = tex.shape[0] * float(layout.ground_mpp)
+    xs = [(-pad_m, 0.0), (0.0, w_m), (w_m, w_m + pad_m)]
+    ys = [(-pad_m, 0.0), (0.0, h_m), (h_m, h_m + pad_m)]
+    quads = [[[a, c, 0.0], [b, c, 0.0], [b, d, 0.0], [a, d, 0.0]]
+             for i, (a, b) in enumerate(xs) for j, (c, d) in enumerate(ys) if (i, j) != (1, 1)]
+    pos = np.asarray(quads, np.float64).reshape(-1, 3)
+    uv = pos[:, :2] / period                 # anchored to the map: the texture runs on across the quads
+    faces = (np.arange(len(quads))[:, None, None] * 4 + np.array([[0, 1, 2], [0, 2, 3]])).reshape(-1, 3)
+    return TexturedMesh(pos.astype(np.float32), uv.astype(np.float32), np.ones(len(pos), np.float32),
+                        faces.astype(np.uint32), tex, labels, repeat=True)
 
 
 def build_occluders(cars: Sequence[Car], persons: Sequence[Person], obstacles: Sequence[Obstacle],

@@ -84,7 +84,6 @@ def test_aliasing_copies_blocks_exactly():
 
 
 @pytest.mark.parametrize("mutate, message", [
-    (lambda d: d.pop("routes"), "missing required key 'routes'"),
     (lambda d: d.update(colour="red"), r"unknown key\(s\) \['colour'\]"),
     (lambda d: d.update(seed="seven"), r"s\.yaml: seed: expected an integer"),
     (lambda d: d["generator"].update(blocks="many"), r"generator\.blocks: expected a list"),

@@ -1,0 +1,831 @@
+"""A road graph of a scene, and the routes derived from it: a tour that covers the roads, its revisit, and
+given waypoints snapped to the roads.
+
+**The graph** (:class:`RoadGraph`, a :class:`networkx.MultiGraph`) is built once per scene, from road centre
+lines in map metres (:func:`graph_from_lines`: a vector file read by :mod:`satloc.vectors`) or from the
+skeleton of a road mask (:func:`graph_from_mask`: cleaned, thinned and pruned as :mod:`satloc_env.roadtrace`
+does, then cut into chains between junctions and dead ends). The lines are clipped to the tile, kept
+``edge_margin_m`` inside it; a line end within ``snap_m`` of another line is joined to it; crossing lines
+are cut at their crossing (shapely's noding: one node per intersection); dead-end stubs and edges shorter
+than ``snap_m`` are dropped; nodes where just two edges meet are merged away. Every edge keeps its geometry
+``xy`` (from its ``start`` node), the road width ``w`` at each of its vertices, and its ``length``. The
+surface of vector roads (:func:`road_area`) is each line buffered by half its width, with the corners where
+roads meet rounded by a curb radius (``curb_radius_m``), as kerbs are, so a car can turn into a narrow street.
+
+**The tour** (:func:`covering_tour`) drives every road of the graph's largest connected part, turning at its
+intersections: a Chinese-postman walk. Odd-degree nodes are paired at the least total distance (a minimum
+weight matching of their shortest-path distances) and the shortest paths between the pairs are driven twice;
+an Euler walk of the result (Fleury's algorithm, preferring at each intersection the straightest way on, and
+right over left, and never turning back where another way is left) covers every edge. A dead end is turned
+in a loop (a "keyhole": round a circle centred where the road is widest near its end, counter-clockwise, so
+the car keeps to the outside; a ring road at the end, mapped as a loop, is driven counter-clockwise too)
+when the drivable area holds one of ``turn_radius_m`` at the lane offset;
+else it cannot be turned in: up to two such ends are where the tour starts and ends (an open route), the
+roads leading to any others are left out (the coverage says how much). The walk's polyline is smoothed
+(Gaussian, ``smooth_m``) and resampled every ``spacing_m``. Its ``widths`` (the road width at each waypoint,
+smoothed and taken as the narrowest within 20 m, so the car moves over before a narrower street) let the
+lane offset follow the road (:class:`satloc_env.route.Route`).
+
+**The revisit** is the same walk driven the other way round (its loops again counter-clockwise): the other
+direction, so the other lane, of every road.
+
+**Snapped routes** (:func:`snapped_route`): given waypoints are moved to the nearest road (within
+``snap_route_m``) and joined by the shortest way along the roads.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+from satloc.geometry import arc_length
+
+from .roadtrace import _clean, _neighbour_count, _prune, _resample, _skeleton, _smooth
+from .route import REFERENCE_ROAD_M
+
+if TYPE_CHECKING:
+    import networkx as nx
+
+__all__ = ["GraphParams", "RoadGraph", "RoadGraphError", "Tour", "covering_tour", "graph_from_lines",
+           "graph_from_mask", "rasterize_area", "road_area", "snapped_route"]
+
+#: the coarsest resolution a road mask is thinned at (metres per pixel)
+GRAPH_MPP = 0.2
+#: the heading change (radians) above which a step is a U-turn
+_UTURN = math.radians(150)
+
+
+class RoadGraphError(ValueError):
+    """No road graph or no route could be made (empty graph, a waypoint far from every road, ...)."""
+
+
+@dataclass(frozen=True)
+class GraphParams:
+    """How the road graph is built and routes are derived from it (the scene's ``road_graph:``)."""
+
+    snap_m: float = 2.0           #: line ends this close to another line join it; shorter edges are dropped
+    edge_margin_m: float = 2.0    #: the graph (and every derived route) keeps this far inside the tile
+    smooth_m: float = 3.0         #: Gaussian smoothing of a derived route's turns, metres
+    spacing_m: float = 2.0        #: waypoint spacing of derived routes, metres
+    turn_radius_m: float = 4.5    #: the smallest loop the car turns around in at a dead end, metres
+    snap_route_m: float = 20.0    #: a snapped route's waypoints may lie this far from the nearest road
+    prune_m: float = 8.0          #: skeleton twigs shorter than this are cut (road masks), metres
+    lane_offset_m: float = -1.75  #: the lane the loops at dead ends must hold (for a 7 m road; scaled)
+    curb_radius_m: float = 5.0    #: vector roads: the corners where roads meet are rounded with this radius
+
+    def __post_init__(self):
+        self.check()
+
+    def check(self) -> None:
+        for k in ("snap_m", "smooth_m", "edge_margin_m", "prune_m", "curb_radius_m"):
+            if not getattr(self, k) >= 0:
+                raise ValueError(f"{k}: expected metres >= 0, got {getattr(self, k)}")
+        for k in ("spacing_m", "turn_radius_m", "snap_route_m"):
+            if not getattr(self, k) > 0:
+                raise ValueError(f"{k}: expected metres > 0, got {getattr(self, k)}")
+        if not math.isfinite(self.lane_offset_m):
+            raise ValueError(f"lane_offset_m: expected a finite number, got {self.lane_offset_m}")
+
+
+@dataclass
+class RoadGraph:
+    """Roads as a multigraph: node attribute ``xy``; edge attributes ``xy`` ((N, 2) metres from the node
+    ``start``), ``w`` ((N,) road width, metres), ``length``."""
+
+    graph: "nx.MultiGraph"
+    width_m: float                  #: the tile the graph lies on
+    height_m: float
+
+    def edge_xy(self, u, v, k) -> tuple[np.ndarray, np.ndarray]:
+        """Geometry and widths of edge (u, v, k) oriented from ``u`` to ``v``."""
+        d = self.graph.edges[u, v, k]
+        if d["start"] == u:
+            return d["xy"], d["w"]
+        return d["xy"][::-1], d["w"][::-1]
+
+    @property
+    def length_m(self) -> float:
+        return float(sum(d["length"] for *_, d in self.graph.edges(data=True)))
+
+    def largest_component(self) -> set:
+        import networkx as nx
+
+        comps = list(nx.connected_components(self.graph))
+        if not comps:
+            raise RoadGraphError("the road graph is empty (no road inside the tile)")
+        return max(comps, key=lambda c: sum(d["length"] for *_, d in self.graph.subgraph(c).edges(data=True)))
+
+
+@dataclass
+class Tour:
+    """A derived route: waypoints (map metres), the road width at each, and what it covers."""
+
+    waypoints: np.ndarray    #: (N, 2)
+    widths: np.ndarray       #: (N,) road width at each waypoint, metres
+    closed: bool
+    covered_m: float         #: length of the graph's roads the tour drives (each counted once)
+    component_m: float       #: length of the roads of the graph's largest connected part
+    graph_m: float           #: length of all roads of the graph
+    steps: list = field(default_factory=list)   #: the walk: (u, v, key) per edge driven
+    loops: int = 0           #: dead ends turned in a loop
+
+    @property
+    def coverage(self) -> float:
+        """Fraction of the largest connected part's road length the tour drives."""
+        return self.covered_m / self.component_m if self.component_m > 0 else 0.0
+
+
+# --- building the graph -----------------------------------------------------------------------------------
+def graph_from_lines(lines, widths, width_m: float, height_m: float, params: GraphParams = GraphParams()
+                     ) -> RoadGraph:
+    """The road graph of centre lines in map metres (see the module docstring). ``widths``: per line, a road
+    width (metres) or an array of one per vertex."""
+    import networkx as nx
+
+    import shapely
+    from shapely.strtree import STRtree
+
+    params.check()
+    m = params.edge_margin_m
+    box = shapely.box(m, m, width_m - m, height_m - m)
+    src, src_w = [], []
+    for xy, w in zip(lines, widths):
+        xy = np.asarray(xy, np.float64)
+        wv = np.broadcast_to(np.asarray(w, np.float64), (len(xy),)).copy()
+        keep = np.concatenate([[True], np.linalg.norm(np.diff(xy, axis=0), axis=1) > 1e-9])
+        xy, wv = xy[keep], wv[keep]
+        if len(xy) < 2:
+            continue
+        clipped = shapely.intersection(shapely.LineString(xy), box)
+        for part in _line_parts(clipped):
+            pxy = np.asarray(shapely.get_coordinates(part), np.float64)
+            src.append(pxy)
+            src_w.append(np.interp(_project(xy, pxy), arc_length(xy), wv))
+    if not src:
+        raise RoadGraphError(f"no road lies inside the tile (x in [{m:g}, {width_m - m:g}], y in [{m:g}, "
+                             f"{height_m - m:g}] metres: the tile less edge_margin_m)")
+    src, src_w = _snap_ends(src, src_w, params.snap_m)
+    geoms = [shapely.LineString(xy) for xy in src]
+    noded = _line_parts(shapely.unary_union(shapely.MultiLineString(geoms)))
+    tree = STRtree(geoms)
+    g = nx.MultiGraph()
+    node_at: dict[tuple[int, int], int] = {}
+
+    def node(p: np.ndarray) -> int:
+        key = (int(round(p[0] * 100)), int(round(p[1] * 100)))     # 1 cm: the noding's own precision
+        if key not in node_at:
+            node_at[key] = len(node_at)
+            g.add_node(node_at[key], xy=np.asarray(p, np.float64))
+        return node_at[key]
+
+    for piece in noded:
+        xy = np.asarray(shapely.get_coordinates(piece), np.float64)
+        if len(xy) < 2 or shapely.length(piece) < 1e-6:
+            continue
+        j = int(tree.nearest(shapely.line_interpolate_point(piece, 0.5, normalized=True)))
+        w = np.interp(_project(src[j], xy), arc_length(src[j]), src_w[j])
+        u, v = node(xy[0]), node(xy[-1])
+        g.add_edge(u, v, xy=xy, w=w, length=float(arc_length(xy)[-1]), start=u)
+    rg = RoadGraph(g, float(width_m), float(height_m))
+    _drop_stubs(rg, params.snap_m)
+    _merge_degree_two(rg)
+    if g.number_of_edges() == 0:
+        raise RoadGraphError("the road graph is empty: every road inside the tile is shorter than snap_m")
+    return rg
+
+
+def road_area(lines, widths, graph: RoadGraph | None = None, curb_radius_m: float = 0.0):
+    """The roads' surface (a shapely geometry, map metres): each centre line buffered by half its width
+    (round ends and joins), and, at each junction of ``graph`` (a node where three or more roads meet), the
+    corners between the roads rounded with ``curb_radius_m`` (a morphological closing of the surface,
+    kept within the junction's reach: its widest road's half width plus twice the radius)."""
+    import shapely
+
+    polys = [shapely.buffer(shapely.LineString(np.asarray(xy, np.float64)), float(np.median(wd)) / 2.0)
+             for xy, wd in zip(lines, widths) if len(xy) >= 2]
+    area = shapely.union_all(polys)
+    if graph is None or curb_radius_m <= 0 or area.is_empty:
+        return area
+    g = graph.graph
+    discs = []
+    for n in g.nodes:
+        if g.degree(n) >= 3:
+            half = max(float(np.max(d["w"])) for *_, d in g.edges(n, data=True)) / 2.0
+            discs.append(shapely.Point(g.nodes[n]["xy"]).buffer(half + 2 * curb_radius_m))
+    if not discs:
+        return area
+    closed = area.buffer(curb_radius_m).buffer(-curb_radius_m)
+    return shapely.union(area, shapely.intersection(closed, shapely.union_all(discs)))
+
+
+def rasterize_area(area, shape: tuple[int, int], mpp: float) -> np.ndarray:
+    """(H, W) bool raster (north up, ``mpp`` metres per pixel, the map frame's origin at its south-west
+    corner) of a shapely geometry in map metres: a pixel is in when its centre is."""
+    from affine import Affine
+    from rasterio.features import rasterize
+
+    h, w = shape
+    if area is None or area.is_empty:
+        return np.zeros((h, w), bool)
+    out = rasterize([(area, 1)], out_shape=(h, w), transform=Affine(mpp, 0.0, 0.0, 0.0, -mpp, h * mpp), fill=0,
+                    dtype="uint8")
+    return out.astype(bool)
+
+
+def graph_from_mask(mask: np.ndarray, mpp: float, params: GraphParams = GraphParams()) -> RoadGraph:
+    """The road graph of a road mask (north-up raster, ``mpp`` metres per pixel, as
+    :func:`satloc_env.roadtrace.trace_route` reads it): the pruned skeleton cut into chains between
+    junctions and dead ends, the road width from the distance to the mask's edge. A mask finer than
+    :data:`GRAPH_MPP` is thinned at that resolution (the graph needs no finer detail)."""
+    import cv2
+    from scipy import ndimage
+
+    params.check()
+    m = np.asarray(mask).astype(bool)
+    if not m.any():
+        raise RoadGraphError("the road mask is empty (no road pixel)")
+    f = int(GRAPH_MPP // mpp) if mpp < GRAPH_MPP else 1
+    if f > 1:
+        h0, w0 = m.shape
+        # whole f x f blocks from the south-west corner (the map frame's origin)
+        m = cv2.resize(m[h0 % f:, :w0 - w0 % f].astype(np.float32), ((w0 - w0 % f) // f, (h0 - h0 % f) // f),
+                       interpolation=cv2.INTER_AREA) >= 0.5
+        mpp *= f
+    m = _clean(m, mpp, 20.0)
+    # the distance to the road's edge; the tile's border is none (the road goes on beyond it)
+    # (so the mask is thinned as if it went on: no fork towards the corners where a road meets the border)
+    pad = max(1, int(round(20.0 / mpp)))
+    big = np.pad(m, pad, mode="edge")
+    edt = ndimage.distance_transform_edt(big)[pad:-pad, pad:-pad] * mpp
+    skel = _skeleton(big)
+    if skel.sum() >= 2:
+        pruned = _prune(skel, max(1, int(round(params.prune_m / mpp))))
+        if pruned.sum() >= 2:
+            skel = pruned
+    skel = skel[pad:-pad, pad:-pad]
+    h = m.shape[0]
+    chains = _skeleton_chains(skel)
+    lines, widths = [], []
+    for rc in chains:
+        xy = np.stack([(rc[:, 1] + 0.5) * mpp, (h - rc[:, 0] - 0.5) * mpp], axis=1)
+        lines.append(xy)
+        widths.append(2.0 * edt[rc[:, 0], rc[:, 1]])
+    if not lines:
+        raise RoadGraphError("the road mask thins to points: no road to follow")
+    return graph_from_lines(lines, widths, m.shape[1] * mpp, h * mpp, params)
+
+
+def _line_parts(geom) -> list:
+    if geom is None or geom.is_empty:
+        return []
+    if geom.geom_type == "LineString":
+        return [geom]
+    if hasattr(geom, "geoms"):
+        return [p for g in geom.geoms for p in _line_parts(g)]
+    return []
+
+
+def _project(line: np.ndarray, pts: np.ndarray) -> np.ndarray:
+    """Arc length along the polyline ``line`` of the closest point to each of ``pts``."""
+    a, b = line[:-1], line[1:]
+    ab = b - a
+    l2 = np.maximum((ab ** 2).sum(1), 1e-18)
+    t = np.clip(np.einsum("pkd,kd->pk", pts[:, None] - a[None], ab) / l2, 0, 1)
+    q = a[None] + t[..., None] * ab[None]
+    d = np.linalg.norm(q - pts[:, None], axis=2)
+    k = np.argmin(d, axis=1)
+    cum = arc_length(line)
+    return cum[k] + t[np.arange(len(pts)), k] * np.sqrt(l2[k])
+
+
+def _snap_ends(lines: list[np.ndarray], widths: list[np.ndarray], tol: float
+               ) -> tuple[list[np.ndarray], list[np.ndarray]]:
+    """Join each line end that lies within ``tol`` of another line (but does not touch it) to that line:
+    extend it to the closest point, a centimetre beyond, so that noding cuts the other line there. Returns
+    the lines and their per-vertex widths."""
+    import shapely
+
+    if tol <= 0 or len(lines) < 1:
+        return lines, widths
+    geoms = [shapely.LineString(xy) for xy in lines]
+    out = [xy.copy() for xy in lines]
+    wout = [w.copy() for w in widths]
+    for i, xy in enumerate(lines):
+        for end in (0, -1):
+            p = shapely.Point(xy[end])
+            best, best_d = None, tol
+            for j, g in enumerate(geoms):
+                d = g.distance(p)
+                if j == i:   # the line's own far part may pass near its end (a loop)
+                    far = shapely.LineString(xy[1:] if end == 0 else xy[:-1]) if len(xy) > 2 else None
+                    if far is None or abs(g.project(p) - (0 if end == 0 else g.length)) < 2 * tol:
+                        continue
+                    d = far.distance(p)
+                if 1e-6 < d < best_d:
+                    best, best_d = g, d
+            if best is None:
+                continue
+            q = np.asarray(shapely.get_coordinates(best.interpolate(best.project(p))))[0]
+            direction = (q - xy[end]) / max(np.linalg.norm(q - xy[end]), 1e-12)
+            tip = q + 0.01 * direction
+            out[i] = np.vstack([tip[None], out[i]]) if end == 0 else np.vstack([out[i], tip[None]])
+            wout[i] = np.concatenate([wout[i][:1], wout[i]]) if end == 0 else np.append(wout[i], wout[i][-1])
+    return out, wout
+
+
+def _drop_stubs(rg: RoadGraph, min_len: float) -> None:
+    """Drop dead-end edges shorter than ``min_len`` (noding debris, snapped ends' overshoot) and isolated
+    nodes; merge the ends of other edges shorter than it."""
+    g = rg.graph
+    changed = True
+    while changed:
+        changed = False
+        for u, v, k, d in list(g.edges(keys=True, data=True)):
+            if not g.has_edge(u, v, k) or d["length"] >= min_len or u == v:
+                continue
+            if g.degree(u) == 1 or g.degree(v) == 1:
+                g.remove_edge(u, v, k)
+                changed = True
+        g.remove_nodes_from([n for n in list(g.nodes) if g.degree(n) == 0])
+    for u, v, k, d in list(g.edges(keys=True, data=True)):
+        if u != v and g.has_edge(u, v, k) and d["length"] < min_len and g.has_node(u) and g.has_node(v):
+            _contract(rg, u, v, k)
+
+
+def _contract(rg: RoadGraph, u, v, k) -> None:
+    """Remove the short edge (u, v, k) and merge ``v`` into ``u`` (the edges at ``v`` end at ``u``)."""
+    g = rg.graph
+    g.remove_edge(u, v, k)
+    pu = g.nodes[u]["xy"]
+    for a, b, kk, d in list(g.edges(v, keys=True, data=True)):
+        other = b if a == v else a
+        xy, w = rg.edge_xy(v, other, kk)
+        xy = np.vstack([pu[None], xy[1:]]) if len(xy) > 2 else np.vstack([pu[None], xy[-1:]])
+        w = np.concatenate([w[:1], w[1:]]) if len(w) > 2 else w[[0, -1]]
+        g.remove_edge(a, b, kk)
+        if other == v:
+            other = u
+            xy[-1] = pu
+        g.add_edge(u, other, xy=xy, w=w, length=float(arc_length(xy)[-1]), start=u)
+    g.remove_node(v)
+
+
+def _merge_degree_two(rg: RoadGraph) -> None:
+    """Remove the nodes where just two edges meet (not a loop's own node): one edge through them."""
+    g = rg.graph
+    for n in list(g.nodes):
+        if not g.has_node(n) or g.degree(n) != 2:
+            continue
+        es = list(g.edges(n, keys=True))
+        if len(es) != 2 or any(a == b for a, b, _ in es):
+            continue
+        (a1, b1, k1), (a2, b2, k2) = es
+        p = b1 if a1 == n else a1
+        q = b2 if a2 == n else a2
+        x1, w1 = rg.edge_xy(p, n, k1)
+        x2, w2 = rg.edge_xy(n, q, k2)
+        xy, w = np.vstack([x1, x2[1:]]), np.concatenate([w1, w2[1:]])
+        g.remove_node(n)
+        g.add_edge(p, q, xy=xy, w=w, length=float(arc_length(xy)[-1]), start=p)
+
+
+def _skeleton_chains(skel: np.ndarray) -> list[np.ndarray]:
+    """The skeleton as chains of pixels (row, col) between nodes (dead ends and junctions; a junction's
+    touching pixels are one node, its chains start at the node's centre pixel), plus cycles without nodes."""
+    from scipy import ndimage
+
+    nb = _neighbour_count(skel)
+    is_node = skel & (nb != 2)
+    lab, n_nodes = ndimage.label(is_node, structure=np.ones((3, 3), bool))
+    centre = {}
+    for i, sl in enumerate(ndimage.find_objects(lab), start=1):
+        rc = np.argwhere(lab[sl] == i) + [sl[0].start, sl[1].start]
+        c = rc.mean(axis=0)
+        centre[i] = rc[np.argmin(((rc - c) ** 2).sum(1))]
+    h, w = skel.shape
+    offs = [(-1, -1), (-1, 0), (-1, 1), (0, -1), (0, 1), (1, -1), (1, 0), (1, 1)]
+
+    def neighbours(r, c):
+        for dr, dc in offs:
+            rr, cc = r + dr, c + dc
+            if 0 <= rr < h and 0 <= cc < w and skel[rr, cc]:
+                yield rr, cc
+
+    seen = np.zeros_like(skel, bool)       # chain pixels (not node pixels) already walked
+    chains = []
+    for i in range(1, n_nodes + 1):
+        node_px = np.argwhere(lab == i)
+        for r, c in node_px:
+            for rr, cc in neighbours(r, c):
+                if lab[rr, cc] == i or seen[rr, cc]:
+                    continue
+                path = [tuple(centre[i]), (r, c)] if (r, c) != tuple(centre[i]) else [(r, c)]
+                cur, prev = (rr, cc), (r, c)
+                end = None
+                while True:
+                    if lab[cur]:
+                        end = lab[cur]
+                        path.append(cur)
+                        break
+                    seen[cur] = True
+                    path.append(cur)
+                    nxt = [p for p in neighbours(*cur) if p != prev and not seen[p] and p not in path[-3:]]
+                    if not nxt:
+                        break
+                    # prefer a 4-neighbour step (skeleton corners have both)
+                    nxt.sort(key=lambda p: abs(p[0] - cur[0]) + abs(p[1] - cur[1]))
+                    prev, cur = cur, nxt[0]
+                if end is not None:
+                    path.append(tuple(centre[end]))
+                chains.append(_dedupe(np.array(path)))
+    # cycles without any node (a ring road)
+    rest = skel & ~seen & (lab == 0)
+    while rest.any():
+        r, c = np.argwhere(rest)[0]
+        path, cur, prev = [(r, c)], (r, c), None
+        rest[r, c] = False
+        while True:
+            nxt = [p for p in neighbours(*cur) if rest[p]]
+            if not nxt:
+                break
+            prev, cur = cur, nxt[0]
+            rest[cur] = False
+            path.append(cur)
+        path.append((r, c))
+        if len(path) > 3:
+            chains.append(_dedupe(np.array(path)))
+    return [ch for ch in chains if len(ch) >= 2]
+
+
+def _dedupe(rc: np.ndarray) -> np.ndarray:
+    keep = np.concatenate([[True], np.any(np.diff(rc, axis=0) != 0, axis=1)])
+    return rc[keep]
+
+
+# --- the tour ---------------------------------------------------------------------------------------------
+def _heading(xy: np.ndarray, from_start: bool, reach: float = 5.0) -> float:
+    """Heading (radians) of a polyline leaving its first point (``from_start``) or arriving at its last,
+    over its first / last ``reach`` metres."""
+    p = xy if from_start else xy[::-1]
+    s = arc_length(p)
+    j = int(np.searchsorted(s, min(reach, s[-1])))
+    j = min(max(j, 1), len(p) - 1)
+    d = p[j] - p[0]
+    a = math.atan2(d[1], d[0])
+    return a if from_start else math.atan2(-d[1], -d[0])
+
+
+def _turn(a: float, b: float) -> float:
+    """Signed heading change from ``a`` to ``b`` in (-pi, pi] (left positive)."""
+    return (b - a + math.pi) % (2 * math.pi) - math.pi
+
+
+@dataclass
+class _DeadEnd:
+    centre: np.ndarray   # where the loop is centred
+    radius: float        # the loop's radius (the route's centre line)
+    turnable: bool
+
+
+def _turn_loop(arriving: np.ndarray, width: float, edt_m, mpp: float, height_m: float, params: GraphParams
+               ) -> _DeadEnd:
+    """Where and whether the car can turn round at the end of the polyline ``arriving`` (a road of
+    ``width``): the loop centred on one of its points within its last 20 m, of the largest radius that
+    leaves room for the lane offset and 0.75 m inside the drivable area, and that the polyline enters from
+    outside (the point at least a radius along it)."""
+    s = arc_length(arriving)
+    near = s >= s[-1] - 20.0
+    pts, along = arriving[near], s[near]
+    off = abs(params.lane_offset_m) * min(1.0, width / REFERENCE_ROAD_M)
+    radius = np.minimum(_edt_at(edt_m, pts, mpp, height_m) - off - 0.75, 10.0)
+    ok = (radius >= params.turn_radius_m) & (along >= radius)
+    if not ok.any():
+        return _DeadEnd(arriving[-1], params.turn_radius_m, False)
+    i = int(np.argmax(np.where(ok, radius, -np.inf)))
+    return _DeadEnd(pts[i], float(radius[i]), True)
+
+
+def _dead_end(rg: RoadGraph, n, edt_m, mpp: float, params: GraphParams) -> _DeadEnd:
+    """:func:`_turn_loop` at the dead end ``n``, arriving along its one edge."""
+    (a, b, k), = list(rg.graph.edges(n, keys=True))
+    xy, w = rg.edge_xy(b if a == n else a, n, k)
+    return _turn_loop(xy, float(w[-1]), edt_m, mpp, rg.height_m, params)
+
+
+def _edt_at(edt_m, pts: np.ndarray, mpp: float, height_m: float) -> np.ndarray:
+    if edt_m is None:
+        return np.zeros(len(pts))
+    h, w = edt_m.shape
+    u = np.clip(np.floor(pts[:, 0] / mpp).astype(int), 0, w - 1)
+    v = np.clip(np.floor((height_m - pts[:, 1]) / mpp).astype(int), 0, h - 1)
+    return edt_m[v, u]
+
+
+def covering_tour(rg: RoadGraph, drivable: np.ndarray | None, mpp: float, params: GraphParams = GraphParams()
+                  ) -> tuple[Tour, Tour]:
+    """The tour that covers the largest connected part of ``rg`` and its revisit (see the module
+    docstring). ``drivable``: the scene's drivable raster (``mpp`` metres per pixel, north up, covering the
+    tile), where the loops at dead ends must fit; None: no loop fits anywhere."""
+    import networkx as nx
+    from scipy import ndimage
+
+    params.check()
+    edt_m = None if drivable is None else ndimage.distance_transform_edt(
+        np.pad(np.asarray(drivable, bool), 1))[1:-1, 1:-1] * mpp
+    comp = rg.largest_component()
+    g = nx.MultiGraph(rg.graph.subgraph(comp))
+    sub = RoadGraph(g, rg.width_m, rg.height_m)
+    component_m = sub.length_m
+    stuck = [n for n in g.nodes if g.degree(n) == 1 and not _dead_end(sub, n, edt_m, mpp, params).turnable]
+    # the roads to dead ends beyond the first two that cannot be turned in are left out: keep the two
+    # whose roads are longest (the length of road up to the first junction)
+    if len(stuck) > 2:
+        stuck.sort(key=lambda n: -_pendant_length(g, n))
+        for n in stuck[2:]:
+            _cut_pendant(g, n)
+        stuck = stuck[:2]
+    if g.number_of_edges() == 0:
+        raise RoadGraphError("no road of the graph can be driven: every dead end is too narrow to turn in")
+    covered_m = sub.length_m
+    start = stuck[0] if stuck else min(g.nodes, key=lambda n: (-g.degree(n), n))
+    stop = stuck[1] if len(stuck) == 2 else start
+    doubled = RoadGraph(_eulerize(sub, start, stop), rg.width_m, rg.height_m)
+    walk = _euler_walk(doubled, start)
+    closed = not stuck
+    tours = []
+    for steps in (walk, [(v, u, k) for u, v, k in reversed(walk)]):
+        xy, w, loops = _walk_polyline(doubled, steps, edt_m, mpp, params, closed)
+        tours.append(Tour(xy, w, closed, covered_m, component_m, rg.length_m, steps, loops))
+    return tours[0], tours[1]
+
+
+def _pendant_length(g: nx.MultiGraph, n) -> float:
+    total, prev, cur = 0.0, None, n
+    while g.degree(cur) <= 2:
+        nxt = [(b if a == cur else a, d) for a, b, d in g.edges(cur, data=True) if (b if a == cur else a) != prev]
+        if not nxt:
+            break
+        prev, (cur, d) = cur, nxt[0]
+        total += d["length"]
+        if cur == n:
+            break
+    return total
+
+
+def _cut_pendant(g: nx.MultiGraph, n) -> None:
+    """Remove dead end ``n`` and the road up to the first junction."""
+    while g.has_node(n) and g.degree(n) == 1:
+        (a, b), = [(a, b) for a, b in g.edges(n)]
+        nxt = b if a == n else a
+        g.remove_node(n)
+        n = nxt
+
+
+def _eulerize(rg: RoadGraph, start, stop) -> nx.MultiGraph:
+    """A copy of the graph with the shortest paths between its odd nodes (all but ``start`` and ``stop``
+    when they differ) doubled, paired at the least total length: every node even but those two."""
+    import networkx as nx
+
+    g = rg.graph
+    h = nx.MultiGraph(g)
+    odd = [n for n in g.nodes if g.degree(n) % 2 == 1 and (start == stop or n not in (start, stop))]
+    if start != stop:   # an open walk: start and stop must be odd, the others even
+        odd += [n for n in (start, stop) if g.degree(n) % 2 == 0]
+    if not odd:
+        return h
+    dist = {n: nx.single_source_dijkstra(g, n, weight="length") for n in odd}
+    k = nx.Graph()
+    for i, a in enumerate(odd):
+        for b in odd[i + 1:]:
+            k.add_edge(a, b, weight=dist[a][0][b])
+    for a, b in nx.min_weight_matching(k, weight="weight"):
+        path = dist[a][1][b]
+        for p, q in zip(path[:-1], path[1:]):
+            kk = min(g[p][q], key=lambda key: g[p][q][key]["length"])
+            h.add_edge(p, q, **g.edges[p, q, kk])
+    return h
+
+
+def _euler_walk(rg: RoadGraph, start) -> list[tuple]:
+    """Fleury's walk over every edge of ``rg`` (every node even, or all but ``start`` and one other) from
+    ``start``, at each node taking the edge that turns least (right before left), never a bridge while
+    another edge is left and never back the way it came while another way is left. Returns (u, v, key)
+    steps."""
+    import networkx as nx
+
+    h = nx.MultiGraph(rg.graph)
+    steps = []
+    cur, heading = start, None
+    while h.degree(cur) > 0:
+        best, best_cost = None, math.inf
+        options = list(h.edges(cur, keys=True))
+        for a, b, k in options:
+            nxt = b if a == cur else a
+            xy, _ = rg.edge_xy(cur, nxt, k)
+            if heading is None:
+                cost = 0.0
+            else:
+                t = _turn(heading, _heading(xy, True))
+                cost = abs(t) + (0.05 if t > 0 else 0.0) + (10.0 if abs(t) > _UTURN else 0.0)
+            if len(options) > 1 and _is_bridge(h, cur, nxt, k):
+                cost += 100.0
+            if cost < best_cost:
+                best, best_cost = (cur, nxt, k), cost
+        u, v, k = best
+        xy, _ = rg.edge_xy(u, v, k)
+        heading = _heading(xy, False)
+        steps.append((u, v, k))
+        h.remove_edge(u, v, k)
+        cur = v
+    if h.number_of_edges():
+        raise RoadGraphError("internal: the Euler walk left edges undriven")
+    return steps
+
+
+def _is_bridge(h: nx.MultiGraph, u, v, k) -> bool:
+    """Whether removing edge (u, v, k) leaves ``v`` unreachable from ``u`` (a self-loop never is)."""
+    import networkx as nx
+
+    if u == v or h.number_of_edges(u, v) > 1:
+        return False
+    d = h.edges[u, v, k]
+    h.remove_edge(u, v, k)
+    try:
+        return not nx.has_path(h, u, v)
+    finally:
+        h.add_edge(u, v, key=k, **d)
+
+
+def _walk_polyline(rg: RoadGraph, steps, edt_m, mpp: float, params: GraphParams, closed: bool):
+    """The walk as a smoothed, resampled polyline with the road width at each point; a keyhole loop where
+    it turns back at a node. Returns (xy, widths, number of loops)."""
+    xs, ws = [], []
+    loops = 0
+    pending = None          # a loop's entry point: where the next edge is driven from
+    for i, (u, v, k) in enumerate(steps):
+        xy, w = rg.edge_xy(u, v, k)
+        if u == v and _signed_area(xy) < 0:    # a ring (a turning circle): counter-clockwise, car outside
+            xy, w = xy[::-1], w[::-1]
+        if pending is not None:
+            xy, w = _from_point(xy, w, pending)
+            pending = None
+        nxt = steps[i + 1] if i + 1 < len(steps) else (steps[0] if closed else None)
+        if nxt is not None:
+            nxy, _ = rg.edge_xy(*nxt)
+            if abs(_turn(_heading(xy, False), _heading(nxy, True))) > _UTURN:
+                end = _turn_loop(xy, float(w[-1]), edt_m, mpp, rg.height_m, params)
+                xy, w, loop = _keyhole(xy, w, end.centre, end.radius)
+                xs += [xy, loop]
+                ws += [w, np.full(len(loop), w[-1])]
+                pending = xy[-1]
+                loops += 1
+                continue
+        xs.append(xy)
+        ws.append(w)
+    if pending is not None:   # a closed walk that turns back where it started
+        xs[0], ws[0] = _from_point(xs[0], ws[0], pending)
+    xy, w = np.vstack(xs), np.concatenate(ws)
+    keep = np.concatenate([[True], np.linalg.norm(np.diff(xy, axis=0), axis=1) > 1e-6])
+    xy, w = xy[keep], w[keep]
+    if closed and len(xy) > 2 and np.linalg.norm(xy[-1] - xy[0]) < 1e-6:
+        xy, w = xy[:-1], w[:-1]
+    return _finish(xy, w, params, closed) + (loops,)
+
+
+def _signed_area(xy: np.ndarray) -> float:
+    """Signed area of the closed polygon ``xy`` (positive: counter-clockwise)."""
+    x, y = xy[:, 0], xy[:, 1]
+    return 0.5 * float(np.sum(x * np.roll(y, -1) - np.roll(x, -1) * y))
+
+
+def _keyhole(xy: np.ndarray, w: np.ndarray, centre: np.ndarray, radius: float):
+    """Cut the arriving polyline ``xy`` (widths ``w``) where it enters the circle (``centre``, ``radius``;
+    where it comes closest, if it never does) and return it with the loop: once round a circle about
+    ``centre`` counter-clockwise from that point, back to it. Returns (xy, w, loop)."""
+    s = arc_length(xy)
+    dense = np.linspace(0.0, s[-1], max(2, int(s[-1] / 0.05) + 1))
+    px, py = np.interp(dense, s, xy[:, 0]), np.interp(dense, s, xy[:, 1])
+    d = np.hypot(px - centre[0], py - centre[1])
+    inside = np.flatnonzero(d <= radius)
+    j = int(inside[0]) if len(inside) else int(np.argmin(d))
+    se = dense[j]
+    entry = np.array([px[j], py[j]])
+    cut = s < se - 1e-9
+    arriving = np.vstack([xy[cut], entry[None]])
+    warr = np.append(w[cut], np.interp(se, s, w))
+    if len(arriving) < 2:
+        arriving, warr = np.vstack([xy[:1], entry[None]]), np.append(w[:1], warr[-1])
+    r = max(float(np.linalg.norm(entry - centre)), 1e-3)
+    a0 = math.atan2(entry[1] - centre[1], entry[0] - centre[0])
+    n = max(16, int(2 * math.pi * r / 0.5))
+    ang = a0 + np.linspace(0, 2 * math.pi, n + 1)
+    loop = centre[None] + r * np.stack([np.cos(ang), np.sin(ang)], axis=1)
+    return arriving, warr, loop[1:]
+
+
+def _from_point(xy: np.ndarray, w: np.ndarray, p: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The polyline ``xy`` (widths ``w``) from its point closest to ``p`` on, starting at ``p``."""
+    s = _project(xy, p[None])[0]
+    cum = arc_length(xy)
+    j = int(np.searchsorted(cum, s, side="right"))
+    ws = float(np.interp(s, cum, w))
+    if j >= len(xy):
+        return np.vstack([p[None], xy[-1:]]), np.array([ws, w[-1]])
+    return np.vstack([p[None], xy[j:]]), np.concatenate([[ws], w[j:]])
+
+
+def _finish(xy: np.ndarray, w: np.ndarray, params: GraphParams, closed: bool) -> tuple[np.ndarray, np.ndarray]:
+    """Smooth and resample a walk's polyline; its widths follow, taken as the narrowest within 20 m and
+    smoothed: the car moves over to a narrower street's lane before it gets there (the autopilot looks 6 m
+    ahead and takes about three times that to settle on a new lateral offset)."""
+    from scipy import ndimage
+
+    s_raw = arc_length(np.vstack([xy, xy[:1]]) if closed else xy)
+    out = _smooth(xy, params.smooth_m, closed)
+    out = _resample(out, params.spacing_m, closed)
+    # widths: at each output point, the raw width at the same fraction of the arc length
+    s_out = arc_length(np.vstack([out, out[:1]]) if closed else out)
+    frac = s_out[:len(out)] / max(s_out[-1], 1e-9)
+    wr = np.append(w, w[:1]) if closed else w
+    wo = np.interp(frac * s_raw[-1], s_raw, wr)
+    k = max(1, int(round(20.0 / params.spacing_m)))
+    mode = "wrap" if closed else "nearest"
+    wo = ndimage.minimum_filter1d(wo, 2 * k + 1, mode=mode)
+    wo = ndimage.gaussian_filter1d(wo, max(1.0, 3.0 / params.spacing_m), mode=mode)
+    return out, wo
+
+
+# --- snapped routes ---------------------------------------------------------------------------------------
+def snapped_route(rg: RoadGraph, points: np.ndarray, closed: bool, params: GraphParams = GraphParams()
+                  ) -> tuple[np.ndarray, np.ndarray]:
+    """Waypoints along the roads through ``points`` (map metres), each moved to the nearest road: the
+    shortest way along the roads from one to the next (and back to the first when ``closed``), smoothed and
+    resampled as a tour. Returns (waypoints, widths); RoadGraphError naming the first point farther than
+    ``snap_route_m`` from every road."""
+    import networkx as nx
+
+    params.check()
+    g = nx.MultiGraph(rg.graph)
+    work = RoadGraph(g, rg.width_m, rg.height_m)
+    anchors = []
+    for i, p in enumerate(np.asarray(points, np.float64).reshape(-1, 2)):
+        best = None
+        for u, v, k, d in g.edges(keys=True, data=True):
+            s = _project(d["xy"], p[None])[0]
+            q = np.array([np.interp(s, arc_length(d["xy"]), d["xy"][:, 0]),
+                          np.interp(s, arc_length(d["xy"]), d["xy"][:, 1])])
+            dist = float(np.linalg.norm(q - p))
+            if best is None or dist < best[0]:
+                best = (dist, u, v, k, s)
+        if best is None or best[0] > params.snap_route_m:
+            raise RoadGraphError(f"[{i}]: the point ({p[0]:.1f}, {p[1]:.1f}) m lies "
+                                 f"{'nowhere near a road' if best is None else f'{best[0]:.1f} m from the nearest road'}"
+                                 f"; snap_route_m is {params.snap_route_m:g} m")
+        anchors.append(_split_at(work, *best[1:]))
+    seq = anchors + ([anchors[0]] if closed else [])
+    pieces, wpieces = [], []
+    for a, b in zip(seq[:-1], seq[1:]):
+        if a == b:
+            continue
+        path = nx.shortest_path(g, a, b, weight="length")
+        for p, q in zip(path[:-1], path[1:]):
+            kk = min(g[p][q], key=lambda key: g[p][q][key]["length"])
+            xy, w = work.edge_xy(p, q, kk)
+            pieces.append(xy)
+            wpieces.append(w)
+    if not pieces:
+        raise RoadGraphError("the snapped waypoints all lie at one point of the roads")
+    xy = np.vstack(pieces)
+    w = np.concatenate(wpieces)
+    keep = np.concatenate([[True], np.linalg.norm(np.diff(xy, axis=0), axis=1) > 1e-6])
+    xy, w = xy[keep], w[keep]
+    if closed and np.linalg.norm(xy[-1] - xy[0]) < 1e-6:
+        xy, w = xy[:-1], w[:-1]
+    return _finish(xy, w, params, closed)
+
+
+def _split_at(rg: RoadGraph, u, v, k, s: float):
+    """A node at arc length ``s`` (from the edge's ``start``) of edge (u, v, k): an end node when ``s`` is
+    within 1 cm of an end, else a new node splitting the edge."""
+    g = rg.graph
+    d = g.edges[u, v, k]
+    xy, w, start = d["xy"], d["w"], d["start"]
+    end = v if start == u else u
+    cum = arc_length(xy)
+    if s <= 0.01:
+        return start
+    if s >= cum[-1] - 0.01:
+        return end
+    p = np.array([np.interp(s, cum, xy[:, 0]), np.interp(s, cum, xy[:, 1])])
+    pw = float(np.interp(s, cum, w))
+    j = int(np.searchsorted(cum, s, side="right"))
+    a_xy, a_w = np.vstack([xy[:j], p[None]]), np.append(w[:j], pw)
+    b_xy, b_w = np.vstack([p[None], xy[j:]]), np.concatenate([[pw], w[j:]])
+    n = max((x for x in g.nodes if isinstance(x, int)), default=-1) + 1
+    g.add_node(n, xy=p)
+    g.remove_edge(u, v, k)
+    g.add_edge(start, n, xy=a_xy, w=a_w, length=float(arc_length(a_xy)[-1]), start=start)
+    g.add_edge(n, end, xy=b_xy, w=b_w, length=float(arc_length(b_xy)[-1]), start=n)
+    return n

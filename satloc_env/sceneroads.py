@@ -1,0 +1,78 @@
+"""A scene's roads: vector roads on an image scene's tile, its road graph, derived and snapped routes.
+
+The glue between a scene (:mod:`satloc_env.scene`) and :mod:`satloc.vectors` / :mod:`satloc_env.roadgraph`:
+every failure is a :class:`satloc.ConfigError` naming the scene and the field. The functions return plain
+arrays; the scene makes its specs from them.
+"""
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from satloc.errors import ConfigError, FormatError
+from satloc.labels import CLASS_ID
+
+from .roadgraph import (GraphParams, RoadGraph, RoadGraphError, Tour, covering_tour, graph_from_lines,
+                        graph_from_mask, rasterize_area, road_area, snapped_route)
+
+__all__ = ["DERIVED_ROUTES", "vector_roads", "road_graph", "derived_routes", "snap_waypoints"]
+
+#: names of the routes a scene without ``routes:`` gets: the tour and its revisit
+DERIVED_ROUTES = ("main", "revisit")
+
+
+def vector_roads(path: Path, frame, shape: tuple[int, int], mpp: float, default_width_m: float,
+                 params: GraphParams, where: str) -> tuple[RoadGraph, np.ndarray]:
+    """The road graph of the vector file ``path``'s centre lines (in the metres of ``frame``, the scene's
+    GeoFrame) and the road mask they make on the scene's raster (``shape``, ``mpp``): the lines buffered by
+    their widths, the corners at junctions rounded (``params.curb_radius_m``)."""
+    from satloc.vectors import read_road_lines
+
+    if frame is None:
+        raise ConfigError(f"{where}: generator.roads: {path} is a vector file, in map coordinates; the image is "
+                          f"not georeferenced, so the lines have no place on it (give a raster road mask)")
+    if not path.is_file():
+        raise ConfigError(f"{where}: generator.roads: vector file {path} not found")
+    try:
+        lines = read_road_lines(path, default_width_m).to_frame(frame)
+    except (FormatError, ConfigError) as e:
+        raise ConfigError(f"{where}: generator.roads: {e}") from e
+    h, w = shape
+    try:
+        graph = graph_from_lines(lines.lines, lines.widths, w * mpp, h * mpp, params)
+    except RoadGraphError as e:
+        raise ConfigError(f"{where}: generator.roads: {path}: {e}") from e
+    mask = rasterize_area(road_area(lines.lines, lines.widths, graph, params.curb_radius_m), shape, mpp)
+    if not mask.any():
+        raise ConfigError(f"{where}: generator.roads: no road of {path} lies in the loaded area of the image")
+    return graph, mask
+
+
+def road_graph(params: GraphParams, roads: np.ndarray | None, labels: np.ndarray, mpp: float, where: str
+               ) -> RoadGraph:
+    """The road graph of a road mask (else of the road classes of the ground labels): its skeleton's."""
+    if roads is None:
+        roads = np.isin(labels, (CLASS_ID["road"], CLASS_ID["lane_marking"]))
+    try:
+        return graph_from_mask(roads, mpp, params)
+    except RoadGraphError as e:
+        raise ConfigError(f"{where}: road_graph: {e}") from e
+
+
+def derived_routes(graph: RoadGraph, drivable: np.ndarray, mpp: float, params: GraphParams, where: str
+                   ) -> tuple[Tour, Tour]:
+    """The tour covering the graph's largest connected part and its revisit (:func:`covering_tour`)."""
+    try:
+        return covering_tour(graph, drivable, mpp, params)
+    except RoadGraphError as e:
+        raise ConfigError(f"{where}: routes: none given, and none could be derived from the road graph: {e}") from e
+
+
+def snap_waypoints(graph: RoadGraph, xy: np.ndarray, closed: bool, params: GraphParams, field: str, where: str
+                   ) -> tuple[np.ndarray, np.ndarray]:
+    """Waypoints (map metres) moved onto the roads and joined along them (:func:`snapped_route`)."""
+    try:
+        return snapped_route(graph, xy, closed, params)
+    except RoadGraphError as e:
+        raise ConfigError(f"{where}: {field}{e}") from e
