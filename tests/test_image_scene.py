@@ -1,5 +1,6 @@
 """Scenes over georeferenced imagery (``generator: {type: image}`` with a GeoTIFF or a world file), lon/lat
-routes, routes traced from a road mask (satloc_env.roadtrace), their errors, and the shipped `suburb_utm`.
+routes, routes traced from a road mask (satloc_env.roadtrace), their errors, and the shipped `suburb_utm`
+(its GeoJSON roads and derived routes, and the same image with its raster road mask and a traced route).
 
 The imagery is made here, in tmp_path: small GeoTIFFs in UTM zone 32N (EPSG:32632) near lon 8.43, lat
 49.01, whose colours encode the UTM position, and road masks drawn from known centre lines.
@@ -321,16 +322,43 @@ def suburb():
     return load_scene("suburb_utm")
 
 
-def test_shipped_suburb_loads_with_its_frame_and_traced_route(suburb):
+@pytest.fixture(scope="module")
+def suburb_raster(tmp_path_factory):
+    """The shipped suburb's image with its raster road mask (beside the GeoJSON) and a route traced from it."""
+    base = load_spec("suburb_utm")[1]
+    d = yaml.safe_load(open(base / "suburb_utm.yaml"))
+    d["generator"]["image"] = str(base / "suburb_utm.tif")
+    d["generator"]["roads"] = str(base / "suburb_utm_roads.png")
+    d["routes"] = {"main": {"trace": {"smooth_m": 2.0, "spacing_m": 2.0, "min_length_m": 300}}}
+    p = tmp_path_factory.mktemp("suburb_raster") / "suburb_raster.yaml"
+    p.write_text(yaml.safe_dump(d))
+    return load_scene(p)
+
+
+def test_shipped_suburb_loads_with_its_frame_and_derived_routes(suburb):
     spec, _ = load_spec("suburb_utm")
-    assert spec.generator["type"] == "image" and spec.routes["main"].trace is not None
+    assert spec.generator["type"] == "image" and spec.generator["roads"].endswith(".geojson") and not spec.routes
     f = suburb.satmap.frame
     assert f is not None and abs(f.lon0 - 8.43) < 0.01 and abs(f.lat0 - 49.01) < 0.01
+    assert sorted(suburb.routes) == ["main", "revisit"] and suburb.spec.query_route == "revisit"
     route = suburb.routes["main"]
-    assert route.length > 350 and not route.closed
-    # the route runs on the road mask's roads, with room for the right lane
+    assert route.length > 650 and not route.closed          # the main road and both cul-de-sacs, in and out
+    # the route runs on the roads, with room for the right lane
     on = [suburb.is_drivable(x, y) for x, y, _ in route.sample(np.arange(0, route.length, 2.0), -1.75)]
     assert all(on)
+    back = suburb.routes["revisit"]
+    assert back.length == pytest.approx(route.length, rel=0.01)
+    assert np.linalg.norm(back.points[0] - route.points[-1]) < 3 and np.linalg.norm(back.points[-1] - route.points[0]) < 3
+
+
+def test_suburb_raster_mask_still_traces_its_main_road(suburb_raster, suburb):
+    route = suburb_raster.routes["main"]
+    assert 350 < route.length < 420 and not route.closed
+    on = [suburb_raster.is_drivable(x, y) for x, y, _ in route.sample(np.arange(0, route.length, 2.0), -1.75)]
+    assert all(on)
+    # the raster mask and the GeoJSON roads make nearly the same drivable area
+    a, b = suburb_raster.drivable, suburb.drivable
+    assert a.shape == b.shape and (a ^ b).sum() < 0.08 * a.sum()
 
 
 def test_shipped_suburb_renders_the_image_on_the_ground(suburb):
@@ -394,11 +422,13 @@ def test_changing_the_mask_changes_the_auto_localizer_key(tmp_path):
 
 def test_shipped_suburb_spec_round_trips(tmp_path, suburb):
     d = copy.deepcopy(yaml.safe_load(open(load_spec("suburb_utm")[1] / "suburb_utm.yaml")))
-    assert d["generator"]["image"].endswith(".tif") and d["generator"]["roads"].endswith(".png")
+    assert d["generator"]["image"].endswith(".tif") and d["generator"]["roads"].endswith(".geojson")
     suburb.save(tmp_path / "saved")
     r = Scene.load(tmp_path / "saved")
     assert r.satmap.frame == suburb.satmap.frame
-    assert np.allclose(r.routes["main"].points, suburb.routes["main"].points)
+    for k in ("main", "revisit"):
+        assert np.allclose(r.routes[k].points, suburb.routes[k].points)
+        assert np.allclose(r.routes[k].offset_scale, suburb.routes[k].offset_scale)
 
 
 def test_experiment_records_again_when_a_scene_file_changes(tmp_path, monkeypatch):
