@@ -49,7 +49,7 @@ if TYPE_CHECKING:
     import networkx as nx
 
 __all__ = ["GraphParams", "RoadGraph", "RoadGraphError", "Tour", "covering_tour", "graph_from_lines",
-           "graph_from_mask", "rasterize_area", "road_area", "snapped_route"]
+           "graph_from_mask", "lane_widths", "rasterize_area", "road_area", "snapped_route"]
 
 #: the coarsest resolution a road mask is thinned at (metres per pixel)
 GRAPH_MPP = 0.2
@@ -736,12 +736,20 @@ def _from_point(xy: np.ndarray, w: np.ndarray, p: np.ndarray) -> tuple[np.ndarra
     return np.vstack([p[None], xy[j:]]), np.concatenate([[ws], w[j:]])
 
 
-def _finish(xy: np.ndarray, w: np.ndarray, params: GraphParams, closed: bool) -> tuple[np.ndarray, np.ndarray]:
-    """Smooth and resample a walk's polyline; its widths follow, taken as the narrowest within 20 m and
-    smoothed: the car moves over to a narrower street's lane before it gets there (the autopilot looks 6 m
-    ahead and takes about three times that to settle on a new lateral offset)."""
+def lane_widths(w: np.ndarray, spacing_m: float, closed: bool) -> np.ndarray:
+    """Road widths at a route's waypoints (``spacing_m`` apart) as its lane offsets should follow them: the
+    narrowest within 20 m, smoothed, so the car moves over to a narrower street's lane before it gets there
+    (the autopilot looks 6 m ahead and takes about three times that to settle on a new lateral offset)."""
     from scipy import ndimage
 
+    k = max(1, int(round(20.0 / spacing_m)))
+    mode = "wrap" if closed else "nearest"
+    w = ndimage.minimum_filter1d(np.asarray(w, np.float64), 2 * k + 1, mode=mode)
+    return ndimage.gaussian_filter1d(w, max(1.0, 3.0 / spacing_m), mode=mode)
+
+
+def _finish(xy: np.ndarray, w: np.ndarray, params: GraphParams, closed: bool) -> tuple[np.ndarray, np.ndarray]:
+    """Smooth and resample a walk's polyline; its widths follow (:func:`lane_widths`)."""
     s_raw = arc_length(np.vstack([xy, xy[:1]]) if closed else xy)
     out = _smooth(xy, params.smooth_m, closed)
     out = _resample(out, params.spacing_m, closed)
@@ -749,12 +757,7 @@ def _finish(xy: np.ndarray, w: np.ndarray, params: GraphParams, closed: bool) ->
     s_out = arc_length(np.vstack([out, out[:1]]) if closed else out)
     frac = s_out[:len(out)] / max(s_out[-1], 1e-9)
     wr = np.append(w, w[:1]) if closed else w
-    wo = np.interp(frac * s_raw[-1], s_raw, wr)
-    k = max(1, int(round(20.0 / params.spacing_m)))
-    mode = "wrap" if closed else "nearest"
-    wo = ndimage.minimum_filter1d(wo, 2 * k + 1, mode=mode)
-    wo = ndimage.gaussian_filter1d(wo, max(1.0, 3.0 / params.spacing_m), mode=mode)
-    return out, wo
+    return out, lane_widths(np.interp(frac * s_raw[-1], s_raw, wr), params.spacing_m, closed)
 
 
 # --- snapped routes ---------------------------------------------------------------------------------------

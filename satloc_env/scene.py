@@ -665,7 +665,7 @@ def _resolve_routes(spec: SceneSpec, ground: _ImageGround | None, lay: Layout, g
     from the road mask (or the label image's roads), ``snap`` routes snapped to the road graph; without
     routes, the derived ones (:mod:`satloc_env.sceneroads`)."""
     from .roadtrace import RoadTraceError, TraceParams, trace_route
-    from .sceneroads import DERIVED_ROUTES, derived_routes, road_graph, snap_waypoints
+    from .sceneroads import DERIVED_ROUTES, derived_routes, mask_widths, road_graph, snap_waypoints
 
     out: dict[str, RouteSpec] = {}
     traced: dict[TraceSpec, Any] = {}
@@ -735,7 +735,7 @@ def _resolve_routes(spec: SceneSpec, ground: _ImageGround | None, lay: Layout, g
             raise ConfigError(f"{where}: {field_}.closed: the road traced from {src} is not a loop (it has dead "
                               f"ends); drop closed: true")
         pts = tr.waypoints[::-1] if t.reverse else tr.waypoints
-        out[k] = RouteSpec(waypoints=[(float(x), float(y)) for x, y in pts], closed=tr.closed, laps=r.laps)
+        out[k] = as_route(pts, mask_widths(mask, lay.ground_mpp, pts, t.spacing_m, tr.closed), tr.closed, r.laps)
     return out
 
 

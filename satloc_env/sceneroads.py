@@ -14,9 +14,9 @@ from satloc.errors import ConfigError, FormatError
 from satloc.labels import CLASS_ID
 
 from .roadgraph import (GraphParams, RoadGraph, RoadGraphError, Tour, covering_tour, graph_from_lines,
-                        graph_from_mask, rasterize_area, road_area, snapped_route)
+                        graph_from_mask, lane_widths, rasterize_area, road_area, snapped_route)
 
-__all__ = ["DERIVED_ROUTES", "vector_roads", "road_graph", "derived_routes", "snap_waypoints"]
+__all__ = ["DERIVED_ROUTES", "vector_roads", "road_graph", "derived_routes", "snap_waypoints", "mask_widths"]
 
 #: names of the routes a scene without ``routes:`` gets: the tour and its revisit
 DERIVED_ROUTES = ("main", "revisit")
@@ -76,3 +76,17 @@ def snap_waypoints(graph: RoadGraph, xy: np.ndarray, closed: bool, params: Graph
         return snapped_route(graph, xy, closed, params)
     except RoadGraphError as e:
         raise ConfigError(f"{where}: {field}{e}") from e
+
+
+def mask_widths(mask: np.ndarray, mpp: float, xy: np.ndarray, spacing_m: float, closed: bool) -> np.ndarray:
+    """The road's width at waypoints ``xy`` (map metres, ``spacing_m`` apart) of a route traced through
+    ``mask``: twice the distance to the mask's edge (the tile's border is none: the road goes on beyond it),
+    as lane offsets should follow it (:func:`satloc_env.roadgraph.lane_widths`)."""
+    from scipy import ndimage
+
+    m = np.asarray(mask, bool)
+    h, w = m.shape
+    edt = ndimage.distance_transform_edt(np.pad(m, 1, mode="edge"))[1:-1, 1:-1] * mpp
+    u = np.clip(np.floor(xy[:, 0] / mpp).astype(int), 0, w - 1)
+    v = np.clip(np.floor(h - xy[:, 1] / mpp).astype(int), 0, h - 1)
+    return lane_widths(np.maximum(2.0 * edt[v, u], mpp), spacing_m, closed)

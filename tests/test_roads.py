@@ -391,3 +391,25 @@ def test_recorder_reports_leaving_the_road_as_a_config_error(scene_dir, tmp_path
             record_pass(env, PassConfig(spacing_m=20.0, depth=False), "main", tmp_path / "p", "p", progress=False)
     finally:
         env.close()
+
+
+def test_traced_routes_narrow_the_lane_on_a_narrow_road(tmp_path):
+    """``trace`` routes carry the road's width too: on a 4 m road the right lane is 1 m right of the centre,
+    where a 1.75 m offset would leave 0.25 m to the edge."""
+    import cv2
+
+    cv2.imwrite(str(tmp_path / "tile.png"), np.full((240, 320, 3), 90, np.uint8))
+    m = np.zeros((240, 320), np.uint8)
+    m[116:124, 10:310] = 255                                       # a 4 m road, 150 m long, at 0.5 m/px
+    cv2.imwrite(str(tmp_path / "roads.png"), m)
+    p = tmp_path / "narrow.yaml"
+    p.write_text(yaml.safe_dump({"name": "narrow", "generator": {"type": "image", "image": "tile.png",
+                                                                 "roads": "roads.png"},
+                                 "meters_per_pixel": 0.5, "ground_mpp": 0.5,
+                                 "routes": {"main": {"trace": {"min_length_m": 100}}}}))
+    s = load_scene(p)
+    r = s.routes["main"]
+    assert np.median(s.spec.routes["main"].widths) == pytest.approx(4.0, abs=0.3)
+    mid = r.length / 2
+    c, lane = r.pose_at(mid, 0.0), r.pose_at(mid, -1.75)
+    assert math.hypot(lane.x - c.x, lane.y - c.y) == pytest.approx(1.0, abs=0.1)
