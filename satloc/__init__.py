@@ -3,7 +3,7 @@
 The method package. It defines the shared data model (poses, camera, frames, sequences, satellite maps)
 and never imports the simulator (:mod:`satloc_env`).
 """
-from .errors import ConfigError, FormatError, SatlocError
+from .errors import ConfigError, FormatError, SatlocError, SatlocWarning
 from .geometry import Pose2, StereoCamera, wrap_angle
 from .satmap import SatelliteMap
 from .sequence import Frame, Sequence, SequenceWriter
@@ -11,6 +11,6 @@ from .sequence import Frame, Sequence, SequenceWriter
 __version__ = "0.1.0"
 
 __all__ = [
-    "ConfigError", "FormatError", "SatlocError", "Pose2", "StereoCamera", "wrap_angle", "SatelliteMap",
+    "ConfigError", "FormatError", "SatlocError", "SatlocWarning", "Pose2", "StereoCamera", "wrap_angle", "SatelliteMap",
     "Frame", "Sequence", "SequenceWriter", "__version__",
 ]

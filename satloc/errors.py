@@ -14,3 +14,8 @@ class ConfigError(SatlocError, ValueError):
 
 class FormatError(SatlocError, ValueError):
     """A saved artefact is damaged, of another format or written by an incompatible version."""
+
+
+class SatlocWarning(UserWarning):
+    """Input that satloc reads but that is probably not what was meant (e.g. a satellite image that converts
+    to a nearly black or constant picture); the message names the file."""

@@ -28,10 +28,14 @@ much less than the largest inscribed rectangle when it is turned by tens of degr
 then). A ``region`` is widened outwards to the lattice and must lie in the image (within half an output
 pixel). :func:`map_bounds` gives a load's frame, resolution and extent without reading pixels.
 
-Band handling: grey (1 band) becomes three equal channels; grey + alpha and RGBA are composited over
-black (a transparent pixel is black); a palette image is expanded through its colour table; more than four
-bands take the red, green and blue bands (or the first three). 16-bit bands are scaled by 1/257; other
-sample types are rejected.
+Radiometry (:mod:`satloc.radiometry`, chosen by ``radiometry=``): any integer or float sample type and any
+band count. Grey (1 band) becomes three equal channels; grey + alpha and RGBA are composited over black (a
+transparent pixel is black); a palette image is expanded through its colour table; more than four bands
+take the bands GDAL interprets as red, green and blue, or those of ``Radiometry(bands=...)``. Nodata,
+GDAL masks and NaN are invalid and come out black. The default stretch takes 8-bit samples as they are and
+maps every other type per band from its 0.5-99.5 % percentiles of the area read to 0..255. The returned
+map's ``radiometry`` records what was applied; a picture that comes out nearly constant or mostly dark is
+warned about (:class:`~satloc.errors.SatlocWarning`, naming the file).
 
 :func:`input_files` lists the files a load reads (for caches of loaded maps), :func:`is_georeferenced` tells a
 georeferenced image from a plain one, and :func:`reproject_band` takes a raster aligned with an image (a label
@@ -53,6 +57,7 @@ import numpy as np
 from .errors import ConfigError, FormatError
 from .geoframe import GeoFrame
 from .persist import atomic_path
+from .radiometry import Radiometry, Samples, plan_bands, read_samples, to_rgb8
 from .satmap import SatelliteMap
 
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".tif", ".tiff")
@@ -63,7 +68,7 @@ _AVERAGE_ABOVE = 1.25  # output pixels this much coarser than the source's: area
 # --- public API ------------------------------------------------------------------------------------------
 def load_map(path: str | os.PathLike, mpp: float | None = None, frame: GeoFrame | None = None,
              region: tuple[float, float, float, float] | None = None, crs=None,
-             zoom: int | None = None) -> SatelliteMap:
+             zoom: int | None = None, radiometry: Radiometry | None = None) -> SatelliteMap:
     """Load a georeferenced image (GeoTIFF, image + world file, XYZ tile folder) as a :class:`SatelliteMap`.
 
     ``mpp``: output metres per pixel (default: the image's ground resolution at its centre, rounded to two
@@ -71,16 +76,25 @@ def load_map(path: str | os.PathLike, mpp: float | None = None, frame: GeoFrame 
     ``region``: ``(x_min, y_min, x_max, y_max)`` in the frame's metres to load (default: the whole image).
     ``crs``: the CRS of a file that carries none (anything pyproj reads: ``"EPSG:32632"``, WKT, PROJ).
     ``zoom``: the zoom level of a tile folder (default: the highest present).
+    ``radiometry``: the bands to read and how to stretch them to 8 bits (:class:`satloc.radiometry.Radiometry`;
+    default ``Radiometry()``: the image's colour bands, 8-bit samples as stored, other types stretched per
+    band over their 0.5-99.5 % percentiles). The map's ``radiometry`` records what was applied.
 
     Raises :class:`FormatError` for missing, unreadable or ungeoreferenced input (naming the file and, for a
-    world file, the line) and :class:`ConfigError` for bad arguments or a region the image does not cover.
+    world file, the line) and :class:`ConfigError` for bad arguments, a region the image does not cover, or
+    bands the image does not have. Warns (:class:`~satloc.errors.SatlocWarning`, naming the file) when the
+    8-bit picture comes out nearly constant or mostly dark.
     """
     from affine import Affine
     from rasterio.enums import Resampling
     from rasterio.warp import reproject
 
     mpp = _check_args(mpp, frame, region, zoom)
-    src = _open_source(Path(path), crs, zoom)
+    if radiometry is None:
+        radiometry = Radiometry()
+    elif not isinstance(radiometry, Radiometry):
+        raise ConfigError(f"radiometry: expected a satloc.radiometry.Radiometry, got {type(radiometry).__name__}")
+    src = _open_source(Path(path), crs, zoom, radiometry)
     frame, frame_crs, mpp, src_gsd, (x0, y0, x1, y1) = _plan(src, mpp, frame, region)
     width, height = int(round((x1 - x0) / mpp)), int(round((y1 - y0) / mpp))
     if width < 1 or height < 1:
@@ -89,7 +103,9 @@ def load_map(path: str | os.PathLike, mpp: float | None = None, frame: GeoFrame 
         raise ConfigError(f"{src.where}: a {width}x{height} px map at {mpp:g} m/px is too large; "
                           f"pass a larger mpp or a region")
     dst_transform = Affine(mpp, 0.0, x0, 0.0, -mpp, y1)
-    src_rgb, src_transform = src.read_for(_src_window(src, frame_crs, (x0, y0, x1, y1), mpp / src_gsd))
+    samples, src_transform = src.read_for(_src_window(src, frame_crs, (x0, y0, x1, y1), mpp / src_gsd))
+    src_rgb, record = to_rgb8(samples, radiometry, src.where)
+    del samples
     out = np.zeros((3, height, width), np.uint8)
     resampling = Resampling.average if mpp > _AVERAGE_ABOVE * src_gsd else Resampling.bilinear
     try:
@@ -98,7 +114,8 @@ def load_map(path: str | os.PathLike, mpp: float | None = None, frame: GeoFrame 
                   num_threads=1)
     except _gdal_error() as e:
         raise FormatError(f"{src.where}: could not be reprojected ({str(e)[:200]})") from e
-    return SatelliteMap(np.ascontiguousarray(out.transpose(1, 2, 0)), float(mpp), (x0, y1), None, frame)
+    return SatelliteMap(np.ascontiguousarray(out.transpose(1, 2, 0)), float(mpp), (x0, y1), None, frame,
+                        radiometry=record)
 
 
 def map_bounds(path: str | os.PathLike, mpp: float | None = None, frame: GeoFrame | None = None, crs=None,
@@ -113,8 +130,8 @@ def map_bounds(path: str | os.PathLike, mpp: float | None = None, frame: GeoFram
 
 def input_files(path: str | os.PathLike, zoom: int | None = None) -> list[Path]:
     """Every existing file that :func:`load_map` may read for ``path``: the image, then its world file,
-    ``.prj`` and GDAL ``.aux.xml`` sidecars; for a tile folder, every tile of the zoom level it loads
-    (``zoom``, default the highest), sorted. What a cache of a loaded map must depend on."""
+    ``.prj``, GDAL ``.aux.xml`` and ``.msk`` (valid pixels) sidecars; for a tile folder, every tile of the zoom
+    level it loads (``zoom``, default the highest), sorted. What a cache of a loaded map must depend on."""
     path = Path(path)
     if path.is_dir():
         tiles = _scan_tiles(path)
@@ -124,7 +141,8 @@ def input_files(path: str | os.PathLike, zoom: int | None = None) -> list[Path]:
         return sorted(level.values())
     if not path.is_file():
         return []
-    sidecars = [*world_file_candidates(path), path.with_suffix(".prj"), path.with_name(path.name + ".aux.xml")]
+    sidecars = [*world_file_candidates(path), path.with_suffix(".prj"), path.with_name(path.name + ".aux.xml"),
+                path.with_name(path.name + ".msk")]
     return [path] + [p for p in sidecars if p.is_file()]
 
 
@@ -296,7 +314,7 @@ class _Source:
     transform: object  # affine.Affine
     width: int
     height: int
-    read: Callable[[int, int, int, int], np.ndarray]  # (col0, row0, cols, rows) -> (3, rows, cols) uint8 RGB
+    read: Callable[[int, int, int, int], Samples]  # (col0, row0, cols, rows) -> the window's samples
     where: str = ""  # how messages name the source: the path, and the world file that georeferences it
 
     def __post_init__(self):
@@ -309,17 +327,19 @@ class _Source:
         return self.read(c0, r0, w, h), _compose(self.transform, Affine.translation(c0, r0))
 
 
-def _open_source(path: Path, crs, zoom: int | None) -> _Source:
-    """The raster at ``path``: a tile folder or an image file (``crs``: the user's CRS argument)."""
+def _open_source(path: Path, crs, zoom: int | None, radiometry: Radiometry | None = None) -> _Source:
+    """The raster at ``path``: a tile folder or an image file (``crs``: the user's CRS argument; ``radiometry``:
+    the bands its reader reads, default ``Radiometry()``)."""
     user_crs = _parse_crs(crs) if crs is not None else None
+    radiometry = radiometry or Radiometry()
     if path.is_dir():
         if user_crs is not None:
             raise ConfigError(f"crs: a tile folder ({path}) is always in EPSG:3857; do not pass crs=")
-        return _tile_source(path, zoom)
+        return _tile_source(path, zoom, radiometry)
     if path.is_file():
         if zoom is not None:
             raise ConfigError(f"zoom: only a tile folder has zoom levels; {path} is a file")
-        return _file_source(path, user_crs)
+        return _file_source(path, user_crs, radiometry)
     raise FormatError(f"{path}: file or tile folder not found")
 
 
@@ -341,7 +361,7 @@ def _plan(src: _Source, mpp: float | None, frame: GeoFrame | None, region):
     return frame, frame_crs, mpp, src_gsd, _output_bounds(src, frame_crs, mpp, region, src_gsd)
 
 
-def _file_source(path: Path, user_crs) -> _Source:
+def _file_source(path: Path, user_crs, radiometry: Radiometry) -> _Source:
     import rasterio
     from rasterio.errors import RasterioIOError
 
@@ -360,7 +380,6 @@ def _file_source(path: Path, user_crs) -> _Source:
                 width, height, driver = ds.width, ds.height, ds.driver
                 own_transform = None if ds.transform.is_identity else ds.transform
                 own_crs = ds.crs
-                info = _band_info(ds, path)
     except (RasterioIOError, _gdal_error()) as e:
         sidecars = ", ".join(p.name for p in input_files(path)[1:])
         raise FormatError(f"{path}: not a readable image{f' (or sidecar {sidecars})' if sidecars else ''} "
@@ -385,10 +404,9 @@ def _file_source(path: Path, user_crs) -> _Source:
 
         try:
             with _quiet(), rasterio.Env(GDAL_GEOREF_SOURCES="NONE"), rasterio.open(path) as ds:
-                arr = ds.read(window=Window(c0, r0, w, h))
+                return read_samples(ds, plan_bands(ds, path, radiometry), Window(c0, r0, w, h))
         except (RasterioIOError, _gdal_error()) as e:
             raise FormatError(f"{path}: not a readable image ({type(e).__name__}: {str(e)[:200]})") from e
-        return _to_rgb(arr, info, path)
 
     where = f"{path} (georeferenced by {' and '.join(map(str, sidecars))})" if sidecars else ""
     return _Source(path, src_crs, own_transform, width, height, read, where)
@@ -410,7 +428,7 @@ def _scan_tiles(root: Path) -> dict[int, dict[tuple[int, int], Path]]:
     return tiles
 
 
-def _tile_source(root: Path, zoom: int | None) -> _Source:
+def _tile_source(root: Path, zoom: int | None, radiometry: Radiometry) -> _Source:
     import rasterio
     from affine import Affine
     from rasterio.crs import CRS
@@ -448,7 +466,7 @@ def _tile_source(root: Path, zoom: int | None) -> _Source:
     transform = Affine(res, 0.0, -half + tx0 * tile_m, 0.0, -res, half - ty0 * tile_m)
 
     def read(c0, r0, w, h):
-        out = np.zeros((3, h, w), np.uint8)
+        mosaic = _Mosaic(h, w)
         for ty in range(r0 // size, (r0 + h - 1) // size + 1):
             for tx in range(c0 // size, (c0 + w - 1) // size + 1):
                 key = (tx0 + tx, ty0 + ty)
@@ -465,17 +483,47 @@ def _tile_source(root: Path, zoom: int | None) -> _Source:
                         if (ds.width, ds.height) != (size, size):
                             raise FormatError(f"{f}: tile of {ds.width}x{ds.height} px; the folder's tiles "
                                               f"are {size}x{size} (as {first})")
-                        rgb = _to_rgb(ds.read(), _band_info(ds, f), f)
+                        tile = read_samples(ds, plan_bands(ds, f, radiometry))
                 except (RasterioIOError, _gdal_error()) as e:
                     raise FormatError(f"{f}: not a readable tile image ({type(e).__name__}: {str(e)[:200]})") from e
                 # the part of this tile inside the window
                 a0, b0 = max(c0, tx * size), max(r0, ty * size)
                 a1, b1 = min(c0 + w, (tx + 1) * size), min(r0 + h, (ty + 1) * size)
-                out[:, b0 - r0:b1 - r0, a0 - c0:a1 - c0] = rgb[:, b0 - ty * size:b1 - ty * size,
-                                                              a0 - tx * size:a1 - tx * size]
-        return out
+                mosaic.put(tile, (slice(b0 - r0, b1 - r0), slice(a0 - c0, a1 - c0)),
+                           (slice(b0 - ty * size, b1 - ty * size), slice(a0 - tx * size, a1 - tx * size)), f, first)
+        return mosaic.samples()
 
     return _Source(root, CRS.from_epsg(3857), transform, nx * size, ny * size, read)
+
+
+class _Mosaic:
+    """The samples of a tile folder's window, tile by tile: one sample type (the stretch is decided once over
+    all the tiles read), grey tiles beside colour ones widened to three channels, alpha and validity kept
+    where any tile has them."""
+
+    def __init__(self, h: int, w: int):
+        self.shape = (h, w)
+        self.values = self.alpha = self.valid = self.plan = None
+
+    def put(self, tile: Samples, dst, src, path: Path, first: Path) -> None:
+        if self.values is None:
+            self.plan = tile.plan
+            self.values = np.zeros((tile.values.shape[0], *self.shape), tile.values.dtype)
+        elif tile.values.dtype != self.values.dtype:
+            raise FormatError(f"{path}: tile of {tile.values.dtype} samples; the folder's tiles hold "
+                              f"{self.values.dtype} (as {first}), and one stretch must serve them all")
+        k = max(tile.values.shape[0], self.values.shape[0])
+        if self.values.shape[0] < k:
+            self.values = np.repeat(self.values, k, axis=0)
+        self.values[(slice(None), *dst)] = tile.values[(slice(None), *src)]
+        for name, value, fill in (("alpha", tile.alpha, 255), ("valid", tile.valid, True)):
+            if value is not None or getattr(self, name) is not None:
+                if getattr(self, name) is None:
+                    setattr(self, name, np.full(self.shape, fill, np.uint8 if name == "alpha" else bool))
+                getattr(self, name)[dst] = fill if value is None else value[src]
+
+    def samples(self) -> Samples:
+        return Samples(self.values, self.alpha, self.valid, self.plan)
 
 
 # --- helpers ---------------------------------------------------------------------------------------------
@@ -534,56 +582,6 @@ def _resolve_crs(path: Path, own, user):
             raise FormatError(f"{prj}: not a readable CRS (expected WKT) ({e})") from e
     raise FormatError(f"{path}: has no CRS (no coordinate reference system in the file and no {prj.name} "
                       f"beside it); pass crs=, e.g. 'EPSG:32632'")
-
-
-def _band_info(ds, path: Path) -> dict:
-    from rasterio.enums import ColorInterp
-
-    dtypes = set(ds.dtypes)
-    if not dtypes <= {"uint8", "uint16"}:
-        raise FormatError(f"{path}: expected 8- or 16-bit unsigned bands, got {sorted(dtypes)}")
-    ci = list(ds.colorinterp)
-    cmap = None
-    if ds.count == 1 and ci[0] == ColorInterp.palette:
-        try:
-            cmap = ds.colormap(1)
-        except ValueError:
-            cmap = None
-    return {"count": ds.count, "colorinterp": ci, "colormap": cmap}
-
-
-def _to_rgb(arr: np.ndarray, info: dict, path: Path) -> np.ndarray:
-    """(bands, h, w) samples -> (3, h, w) uint8 RGB: grey, grey+alpha, palette, RGB, RGBA, multi-band."""
-    from rasterio.enums import ColorInterp
-
-    if arr.dtype == np.uint16:
-        arr = (arr.astype(np.uint32) * 255 + 32767) // 65535
-    arr = arr.astype(np.uint8, copy=False)
-    ci = info["colorinterp"]
-    count = arr.shape[0]
-    alpha = None
-    if info["colormap"] is not None:
-        lut = np.zeros((256, 4), np.uint8)
-        for k, v in info["colormap"].items():
-            if 0 <= k < 256:
-                lut[k] = v
-        rgba = lut[arr[0]]
-        rgb, alpha = rgba[..., :3].transpose(2, 0, 1), rgba[..., 3]
-    elif count == 1:
-        rgb = np.repeat(arr, 3, axis=0)
-    elif count == 2:
-        rgb, alpha = np.repeat(arr[:1], 3, axis=0), arr[1]
-    elif count in (3, 4) or not {ColorInterp.red, ColorInterp.green, ColorInterp.blue} <= set(ci):
-        rgb = arr[:3]
-        if count == 4:
-            alpha = arr[3]
-    else:
-        rgb = np.stack([arr[ci.index(c)] for c in (ColorInterp.red, ColorInterp.green, ColorInterp.blue)])
-        if ColorInterp.alpha in ci:
-            alpha = arr[ci.index(ColorInterp.alpha)]
-    if alpha is not None:
-        rgb = ((rgb.astype(np.uint16) * alpha[None] + 127) // 255).astype(np.uint8)
-    return np.ascontiguousarray(rgb)
 
 
 MAX_COORD = 1e10  # |coordinate| of a georeference: GDAL's transformer loops for ages on values near 1e20

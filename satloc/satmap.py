@@ -8,6 +8,10 @@ Pixel (u, v) has its centre at map point ``(origin_x + (u + 0.5) * mpp, origin_y
 by :func:`satloc.georef.load_map`), ``None`` for the local frame of a synthetic scene, which has no place on
 Earth. ``map.json`` records it as ``"geo_frame"`` (the frame's ``to_dict()``, or null); a ``map.json`` written
 before the key existed loads with no frame.
+
+``radiometry`` records how a map read from imagery got its 8-bit colours (the source's sample type, the bands,
+the stretch and its per-band levels: :func:`satloc.radiometry.to_rgb8`), None for other maps; ``map.json``
+keeps it as ``"radiometry"``.
 """
 from __future__ import annotations
 
@@ -31,6 +35,7 @@ class SatelliteMap:
     origin: tuple[float, float] = (0.0, 0.0)
     labels: np.ndarray | None = field(default=None, repr=False)  # optional (H, W) uint8 semantic classes
     frame: GeoFrame | None = None  # where the map plane lies on Earth; None: a synthetic local frame
+    radiometry: dict | None = field(default=None, repr=False, compare=False)  # how imagery became 8-bit RGB
 
     def __post_init__(self):
         img = np.asarray(self.image)
@@ -42,6 +47,8 @@ class SatelliteMap:
             raise ConfigError(f"SatelliteMap.labels: expected shape {img.shape[:2]}, got {self.labels.shape}")
         if self.frame is not None and not isinstance(self.frame, GeoFrame):
             raise ConfigError(f"SatelliteMap.frame: expected a GeoFrame or None, got {type(self.frame).__name__}")
+        if self.radiometry is not None and not isinstance(self.radiometry, dict):
+            raise ConfigError(f"SatelliteMap.radiometry: expected a dict or None, got {type(self.radiometry).__name__}")
         self.origin = (float(self.origin[0]), float(self.origin[1]))
 
     @property
@@ -145,6 +152,8 @@ class SatelliteMap:
                     image="map.png", labels="labels.png" if self.labels is not None else None,
                     width=int(self.shape[1]), height=int(self.shape[0]),
                     geo_frame=self.frame.to_dict() if self.frame is not None else None)
+        if self.radiometry is not None:
+            meta["radiometry"] = self.radiometry
         write_json(d / "map.json", meta)
 
     @staticmethod
@@ -193,7 +202,10 @@ class SatelliteMap:
                 frame = GeoFrame.from_dict(meta["geo_frame"], where="geo_frame")
             except ConfigError as e:
                 raise FormatError(f"{mj}: {e}") from e
-        return SatelliteMap(img, float(mpp), origin, labels, frame)
+        radiometry = meta.get("radiometry")
+        if radiometry is not None and not isinstance(radiometry, dict):
+            raise FormatError(f"{mj}: field 'radiometry': expected a mapping or null, got {type(radiometry).__name__}")
+        return SatelliteMap(img, float(mpp), origin, labels, frame, radiometry)
 
 
 _PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"

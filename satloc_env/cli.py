@@ -163,11 +163,7 @@ def cmd_scene(args) -> int:
         scene.save(args.save)
     if args.picture:
         _save_rgb(Path(args.picture), route_overview(scene, np.zeros((0, 3))))
-    w, h = scene.layout.width_m, scene.layout.height_m
-    print(json.dumps({"scene": scene.name, "size_m": [w, h], "tile_px": list(scene.satmap.image.shape[1::-1]),
-                      "routes_m": {k: round(r.length, 1) for k, r in scene.routes.items()},
-                      "buildings": len(scene.layout.buildings), "trees": len(scene.layout.trees),
-                      "cars": len(scene.layout.cars)}))
+    print(json.dumps(scene.summary()))
     return 0
 
 

@@ -31,6 +31,11 @@ consecutive evaluated queries with ``odometry_noise``.
 method and its shipped FCN are tuned for: the simulator's 620x188 at fx 361; Malaga 1024x768 -> 512x384,
 800x600 -> 400x300); ``"full"`` keeps the data's size.
 
+``satellite_bands`` and ``satellite_stretch`` choose the satellite image's bands and its conversion to 8 bits
+(:class:`satloc.radiometry.Radiometry`: by default the image's colour bands, 8-bit samples as stored and any
+other type stretched per band from its 0.5-99.5 % percentiles); ``summary.json`` records what was applied
+(``map.radiometry``).
+
 The output folder ``out`` holds::
 
     map/                       the satellite map in the frame (SatelliteMap layout), reused by later runs
@@ -51,6 +56,7 @@ import re
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -64,6 +70,7 @@ from satloc.geoframe import GeoFrame
 from satloc.geometry import StereoCamera, arc_length, wrap_angle
 from satloc.persist import atomic_dir, atomic_path
 from satloc.projection import ProjectionConfig
+from satloc.radiometry import Radiometry
 from satloc.satmap import SatelliteMap
 from satloc.sequence import Sequence
 
@@ -89,6 +96,9 @@ class EvaluateConfig:
     margin_m: float = 60.0                   # the map covers every pose's bounding box plus this
     satellite_crs: str | None = None         # CRS of a satellite image that carries none (load_map's crs=)
     satellite_zoom: int | None = None        # zoom level of an XYZ tile folder (default: the highest)
+    satellite_bands: Any = None              # bands of the satellite image: [r, g, b] or [grey], from 1 (GDAL's)
+    satellite_stretch: Any = "auto"          # to 8 bits: auto, none, [low, high], [[low, high], ...]
+                                             # (satloc.radiometry; auto: 8 bit as stored, else 0.5-99.5 %)
     split: str = "random:0.4"                # without queries=: "random:F" (F = database fraction) or "passes"
     split_seed: int = 0
     passes_near_m: float = 5.0               # passes: a frame this close to an earlier one has come back ...
@@ -122,6 +132,7 @@ class EvaluateConfig:
         if self.query_stride < 1:
             raise ConfigError(f"query_stride: expected an integer >= 1, got {self.query_stride!r}")
         parse_split(self.split)
+        self.satellite_radiometry  # bad satellite_bands or satellite_stretch: ConfigError naming the field
         if len(self.odometry_noise) != 2 or min(self.odometry_noise) < 0:
             raise ConfigError(f"odometry_noise: expected 2 non-negative numbers, got {list(self.odometry_noise)}")
         bad = [m for m in self.modes if m not in METHOD_NAMES]
@@ -130,6 +141,14 @@ class EvaluateConfig:
         if self.kitti.camera not in CAMERAS or self.kitti.missing not in MISSING:
             raise ConfigError(f"kitti: expected camera in {sorted(CAMERAS)} and missing in {list(MISSING)}, got "
                               f"camera {self.kitti.camera!r}, missing {self.kitti.missing!r}")
+
+    @property
+    def satellite_radiometry(self) -> Radiometry:
+        """The :class:`satloc.radiometry.Radiometry` of ``satellite_bands`` and ``satellite_stretch``."""
+        try:
+            return Radiometry(self.satellite_bands, self.satellite_stretch)
+        except ConfigError as e:
+            raise ConfigError(f"satellite_{e}") from e
 
 
 # --- splits ----------------------------------------------------------------------------------------------
@@ -254,19 +273,24 @@ def load_satellite(path: str | Path, cfg: EvaluateConfig, frame: GeoFrame, poses
               float(xy[:, 1].max() + m))
     stamp = {"satellite": str(path.resolve()), "satellite_files": _files_stamp(path, cfg.satellite_zoom),
              "mpp": cfg.mpp, "region": [round(v, 3) for v in region], "geo_frame": frame.to_dict(),
-             "crs": cfg.satellite_crs, "zoom": cfg.satellite_zoom}
+             "crs": cfg.satellite_crs, "zoom": cfg.satellite_zoom,
+             "radiometry": cfg.satellite_radiometry.to_dict()}
     mdir = out / "map"
     if _stage_done(out / "map_stage.json", stamp) and (mdir / "map.json").is_file():
         return SatelliteMap.load(mdir), stamp, time.perf_counter() - t
     log(f"loading the satellite map {path} at {cfg.mpp:g} m/px over x [{region[0]:.0f}, {region[2]:.0f}] "
         f"y [{region[1]:.0f}, {region[3]:.0f}] m (every pose plus {m:g} m)")
     try:
-        sm = load_map(path, cfg.mpp, frame=frame, region=region, crs=cfg.satellite_crs, zoom=cfg.satellite_zoom)
+        sm = load_map(path, cfg.mpp, frame=frame, region=region, crs=cfg.satellite_crs, zoom=cfg.satellite_zoom,
+                      radiometry=cfg.satellite_radiometry)
     except ConfigError as e:
         if str(e).startswith("region:"):
             raise ConfigError(f"satellite map {path} does not cover the route and its {m:g} m margin "
                               f"(lower margin_m or use a larger image): {e}") from e
+        if str(e).startswith(("bands:", "stretch:")):
+            raise ConfigError(f"satellite_{e}") from e
         raise
+    log(f"satellite map radiometry: {sm.radiometry}")
     with atomic_dir(mdir) as tmp:
         sm.save(tmp)
     _stamp(out / "map_stage.json", stamp)
@@ -330,7 +354,7 @@ def evaluate(database: str | Path, satellite: str | Path, out: str | Path, confi
             "queries_from": str(Path(queries).resolve()) if queries is not None else None, "split": split,
             "satellite": str(Path(satellite).resolve()), "geo_frame": frame.to_dict(),
             "map": {"meters_per_pixel": sm.meters_per_pixel, "size_px": [int(sm.shape[1]), int(sm.shape[0])],
-                    "extent_m": [round(v, 2) for v in sm.extent]},
+                    "extent_m": [round(v, 2) for v in sm.extent], "radiometry": sm.radiometry},
             "camera": camera.to_dict(), "config": to_dict(cfg)}
     summary = localize_and_report(cfg, name, db, q, sel, bdir, sm, out, head, times, progress, log)
     write_results(out, summary, name)

@@ -38,6 +38,12 @@ is the same image. ``image`` is
 * or a plain image (no georeference), taken as it is: north up, ``meters_per_pixel`` per pixel, its
   south-west corner at the origin.
 
+A georeferenced image may be of any bit depth and band count (:mod:`satloc.radiometry`): ``bands: [r, g, b]``
+(or ``[grey]``; numbered from 1, as GDAL counts) picks the bands, and ``stretch`` says how samples become 8
+bits: ``auto`` (the default: 8-bit images as stored, any other type stretched per band from its 0.5-99.5 %
+percentiles to 0..255), ``none`` (the type's full range), ``[low, high]`` or ``[[low, high], ...]`` (one per
+band). What was applied is the scene's ``satmap.radiometry``, in its :meth:`Scene.summary` (``satloc scene``).
+
 ``labels`` (class ids of :mod:`satloc.labels`) and ``roads`` (a road mask: non-zero is road) are images of
 the same size as ``image``, pixel for pixel, and follow it through the reprojection (nearest class; the
 mask bilinear, then halved). The drivable area and the ground classes come from them: with ``roads``,
@@ -125,7 +131,19 @@ class ImageGeneratorSpec:
     roads: str | None = None     #: road mask (non-zero: road), same size as ``image``
     crs: str | None = None       #: CRS of an image with a world file and no ``.prj`` (e.g. "EPSG:32632")
     region: tuple[float, float, float, float] | None = None   #: lon_min, lat_min, lon_max, lat_max (degrees)
+    bands: Any = None            #: [r, g, b] or [grey], numbered from 1 (satloc.radiometry.Radiometry.bands)
+    stretch: Any = "auto"        #: auto, none, [low, high] or [[low, high], ...] (Radiometry.stretch)
     road_width_m: float = 7.0    #: width of vector roads whose attributes give none (width, lanes, lane_number)
+
+    def __post_init__(self):
+        self.radiometry   # bad bands or stretch: ConfigError naming the field
+
+    @property
+    def radiometry(self):
+        """The :class:`satloc.radiometry.Radiometry` of ``bands`` and ``stretch``."""
+        from satloc.radiometry import Radiometry
+
+        return Radiometry(self.bands, self.stretch)
 
     def files(self, base: Path) -> list[tuple[str, Path]]:
         """(field, path) of every existing file the generator reads: the image, its world file and ``.prj``
@@ -402,6 +420,18 @@ class Scene:
     def name(self) -> str:
         return self.spec.name
 
+    def summary(self) -> dict:
+        """What ``satloc scene`` prints: name, size, tile pixels, route lengths, object counts and, for a scene
+        over imagery, how the image got its 8-bit colours (``radiometry``: :func:`satloc.radiometry.to_rgb8`)."""
+        out = {"scene": self.name, "size_m": [self.layout.width_m, self.layout.height_m],
+               "tile_px": list(self.satmap.image.shape[1::-1]),
+               "routes_m": {k: round(r.length, 1) for k, r in self.routes.items()},
+               "buildings": len(self.layout.buildings), "trees": len(self.layout.trees),
+               "cars": len(self.layout.cars)}
+        if self.satmap.radiometry is not None:
+            out["radiometry"] = self.satmap.radiometry
+        return out
+
     @functools.cached_property
     def world(self):
         """Renderable geometry of the scene (:class:`satloc_env.world.World`), built once per scene."""
@@ -536,6 +566,7 @@ class _ImageGround:
     layout: Layout
     frame: Any                      # satloc.geoframe.GeoFrame | None
     roads: np.ndarray | None        # (H, W) bool road mask on the layout's raster, if any
+    radiometry: dict | None = None  # how a georeferenced image became 8-bit RGB (SatelliteMap.radiometry)
     road_graph: Any = None          # the road graph of vector roads (satloc_env.roadgraph.RoadGraph), if any
 
 
@@ -558,6 +589,10 @@ def _image_layout(g: ImageGeneratorSpec, spec: SceneSpec, base: Path, where: str
             if getattr(g, k) is not None:
                 raise ConfigError(f"{where}: generator.{k}: {img_path} is not georeferenced (no geotransform "
                                   f"and no world file beside it), so it has no place on Earth to apply {k} to")
+        for k, default in (("bands", None), ("stretch", "auto")):
+            if getattr(g, k) != default:
+                raise ConfigError(f"{where}: generator.{k}: {img_path} is not georeferenced, so it is read as an "
+                                  f"8-bit picture as it is; {k} applies to georeferenced imagery only")
         try:
             rgb = read_image(img_path)
         except FormatError as e:
@@ -616,7 +651,8 @@ def _image_layout(g: ImageGeneratorSpec, spec: SceneSpec, base: Path, where: str
     elif labels is None:
         labels = np.full(rgb.shape[:2], CLASS_ID["road"], np.uint8)
     h, w = labels.shape
-    return _ImageGround(Layout(w * mpp, h * mpp, spec.ground_mpp, rgb, labels), frame, roads, road_graph=road_graph)
+    return _ImageGround(Layout(w * mpp, h * mpp, spec.ground_mpp, rgb, labels), frame, roads,
+                        geo.radiometry if geo is not None else None, road_graph=road_graph)
 
 
 def _load_georeferenced(path: Path, g: ImageGeneratorSpec, mpp: float, where: str):
@@ -631,8 +667,8 @@ def _load_georeferenced(path: Path, g: ImageGeneratorSpec, mpp: float, where: st
             raise ConfigError(f"{where}: generator.image: {e}") from e
         except ConfigError as e:
             msg = str(e)
-            field = "region" if msg.startswith("region") and g.region is not None else (
-                "crs" if msg.startswith("crs") else "image")
+            field = "region" if msg.startswith("region") and g.region is not None else next(
+                (k for k in ("crs", "bands", "stretch") if msg.startswith(k + ":")), "image")
             raise ConfigError(f"{where}: generator.{field}: {msg}") from e
 
     if g.region is None:                                  # the largest north-up rectangle in the footprint
@@ -651,7 +687,7 @@ def _load_georeferenced(path: Path, g: ImageGeneratorSpec, mpp: float, where: st
     if w_m < mpp or h_m < mpp:
         raise ConfigError(f"{where}: generator.region: {list(g.region or ())} is smaller than one "
                           f"{mpp:g} m pixel")
-    sm = call(load_map, path, mpp, frame=frame, region=(0.0, 0.0, w_m, h_m))
+    sm = call(load_map, path, mpp, frame=frame, region=(0.0, 0.0, w_m, h_m), radiometry=g.radiometry)
     ox = sm.origin[0]
     if abs(ox) > 1e-6 or abs(sm.extent[2]) > 1e-6:
         raise ConfigError(f"{where}: generator.image: the loaded map's south-west corner lies at ({ox:.3f}, "
@@ -785,7 +821,8 @@ def build_scene(spec: SceneSpec, base_dir: Path | None = None, aliasing: float |
     else:
         tile, tile_labels = lay.ground_rgb, lay.ground_labels
     frame = ground.frame if ground is not None else None
-    satmap = SatelliteMap(tile, spec.meters_per_pixel, (0.0, lay.height_m), tile_labels, frame)
+    satmap = SatelliteMap(tile, spec.meters_per_pixel, (0.0, lay.height_m), tile_labels, frame,
+                          radiometry=ground.radiometry if ground is not None else None)
     spec = replace(spec, routes=routes, knobs=replace(spec.knobs, aliasing=aliasing))
     return Scene(spec, lay, satmap, src, where=where)
 

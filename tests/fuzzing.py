@@ -868,22 +868,27 @@ def op_image(t: Target, path: Path, rng) -> tuple[str, str]:
 
 
 def _op_tiff(t: Target, path: Path, rng) -> tuple[str, str]:
-    """A GeoTIFF rewritten with one property changed: no CRS, another CRS, a float band, a degenerate or
-    non-finite transform."""
+    """A GeoTIFF rewritten with one property changed: no CRS, float or 11-bit bands (with a nodata value), one
+    or two bands, a degenerate transform."""
     import rasterio
 
     with rasterio.open(path) as ds:
         arr, profile = ds.read(), dict(ds.profile)
-    ops = ["no_crs", "float", "degenerate", "one_band", "two_bands"]
+    ops = ["no_crs", "float", "degenerate", "one_band", "two_bands", "eleven_bit"]
     op = ops[int(rng.integers(len(ops)))]
     expect = "valid"
     if op == "no_crs":
         profile.pop("crs", None)
         desc, expect = "GeoTIFF without a CRS", "reject"
     elif op == "float":
-        arr = arr.astype(np.float32)
+        arr = arr.astype(np.float32) / 255
+        arr[:, :3, :3] = np.nan
         profile["dtype"] = "float32"
-        desc, expect = "float32 bands", "reject"
+        desc = "float32 bands in 0..1 with NaN"
+    elif op == "eleven_bit":
+        arr = arr.astype(np.uint16) * 8
+        profile.update(dtype="uint16", nodata=0)
+        desc = "11-bit samples in 16-bit bands, nodata 0"
     elif op == "degenerate":
         from affine import Affine
 

@@ -88,6 +88,21 @@ def make_geotiff(path, crs, gsd_m: float = 0.5, bands: str = "rgb",
     return Path(path), img, tr
 
 
+def write_raster(path, bands: np.ndarray, transform: Affine, crs=UTM, **profile) -> Path:
+    """Write (count, H, W) samples of any type as a GeoTIFF with rasterio (``profile``: creation options such
+    as ``nodata``, ``photometric``, ``alpha``; ``colorinterp``: a list of ``rasterio.enums.ColorInterp``)."""
+    import rasterio
+
+    colorinterp = profile.pop("colorinterp", None)
+    prof = dict(driver="GTiff", width=bands.shape[2], height=bands.shape[1], count=bands.shape[0],
+                dtype=bands.dtype.name, transform=transform, crs=crs, compress="deflate", **profile)
+    with rasterio.Env(GDAL_PAM_ENABLED="NO"), rasterio.open(path, "w", **prof) as dst:
+        dst.write(bands)
+        if colorinterp is not None:
+            dst.colorinterp = colorinterp
+    return Path(path)
+
+
 def make_world_image(path, crs, gsd_m: float = 0.5, prj: bool = True, bands: str = "rgb",
                      world_name: str | None = None, **grid_kw) -> tuple[Path, np.ndarray, Affine]:
     """Write the pattern as a plain image (PNG/JPEG by suffix) + world file (+ ``.prj`` in WKT)."""
