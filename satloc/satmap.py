@@ -16,6 +16,7 @@ keeps it as ``"radiometry"``.
 from __future__ import annotations
 
 import math
+import struct
 import zlib
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -244,8 +245,39 @@ def check_image_bytes(data: bytes, path: str | Path, what: str = "image") -> Non
         bad("damaged JPEG (truncated: no end-of-image marker)")
 
 
+#: the GeoTIFF tags (ModelPixelScale, ModelTiepoint, ModelTransformation, GeoKeyDirectory, GeoDoubleParams,
+#: GeoAsciiParams): OpenCV's libtiff does not know them and prints a TIFF_Warning line for each
+GEOTIFF_TAGS = frozenset({33550, 33922, 34264, 34735, 34736, 34737})
+
+
+def has_geotiff_tags(data: bytes) -> bool:
+    """Whether the first image directory of TIFF (or BigTIFF) bytes holds a GeoTIFF tag (False for anything
+    else, damaged bytes included: the decoder judges those)."""
+    try:
+        order = {b"II": "<", b"MM": ">"}[data[:2]]
+        (magic,) = struct.unpack(order + "H", data[2:4])
+        if magic == 42:
+            (ifd,) = struct.unpack(order + "I", data[4:8])
+            (n,) = struct.unpack(order + "H", data[ifd:ifd + 2])
+            first, size = ifd + 2, 12
+        elif magic == 43:
+            (ifd,) = struct.unpack(order + "Q", data[8:16])
+            (n,) = struct.unpack(order + "Q", data[ifd:ifd + 8])
+            first, size = ifd + 8, 20
+        else:
+            return False
+        tags = {struct.unpack(order + "H", data[first + i * size:first + i * size + 2])[0] for i in range(min(n, 4096))}
+    except (KeyError, struct.error):
+        return False
+    return bool(tags & GEOTIFF_TAGS)
+
+
 def read_image(path: str | Path, grayscale: bool = False) -> np.ndarray:
-    """Read an image file as RGB uint8 (or single-channel); clear error if missing, damaged or unreadable."""
+    """Read an image file as RGB uint8 (or single-channel); clear error if missing, damaged or unreadable.
+
+    OpenCV decodes it, except a GeoTIFF (a TIFF with GeoTIFF tags, e.g. a road mask aligned with an
+    orthophoto): GDAL decodes that (with OpenCV's conventions), because OpenCV's libtiff prints a warning
+    line for every GeoTIFF tag it does not know."""
     path = Path(path)
     try:
         if not path.is_file():
@@ -254,6 +286,8 @@ def read_image(path: str | Path, grayscale: bool = False) -> np.ndarray:
     except OSError as e:  # a name too long, a permission, ...
         raise FormatError(f"{path}: not readable ({e})") from e
     check_image_bytes(data, path)
+    if data[:4] in (b"II*\x00", b"MM\x00*", b"II+\x00", b"MM\x00+") and has_geotiff_tags(data):
+        return _read_tiff_gdal(data, path, grayscale)
     flag = cv2.IMREAD_UNCHANGED if grayscale else cv2.IMREAD_COLOR
     try:
         img = cv2.imdecode(np.frombuffer(data, np.uint8), flag) if data else None
@@ -264,3 +298,41 @@ def read_image(path: str | Path, grayscale: bool = False) -> np.ndarray:
     if grayscale:
         return img if img.ndim == 2 else img[..., 0]
     return cv2.cvtColor(img, cv2.COLOR_BGR2RGB)
+
+
+def _read_tiff_gdal(data: bytes, path: str | Path, grayscale: bool) -> np.ndarray:
+    """The pixels of TIFF bytes decoded by GDAL (rasterio), as :func:`read_image` gives them (OpenCV's
+    conventions): ``grayscale``: one channel in the stored sample type (band 1, or band 3 of three or more
+    bands: the first channel of OpenCV's BGR order); else (H, W, 3) uint8 RGB of an 8- or 16-bit image
+    (grey repeated, alpha dropped, 16 bit as OpenCV scales it: grey by 1/256, colour by 1/257). A palette
+    image is expanded. :class:`FormatError` naming ``path`` for what it cannot decode."""
+    import warnings
+
+    import rasterio
+    from rasterio._err import CPLE_BaseError
+    from rasterio.enums import ColorInterp
+    from rasterio.errors import NotGeoreferencedWarning, RasterioIOError
+
+    from .radiometry import expand_palette, palette_table
+
+    try:
+        with warnings.catch_warnings(), rasterio.MemoryFile(data) as mem:
+            warnings.simplefilter("ignore", NotGeoreferencedWarning)
+            with mem.open() as ds:
+                arr = ds.read()
+                ci = list(ds.colorinterp)
+                cmap = ds.colormap(1) if ds.count == 1 and ci[0] == ColorInterp.palette else None
+    except (RasterioIOError, CPLE_BaseError, ValueError) as e:
+        raise FormatError(f"{path}: not a readable image ({type(e).__name__}: {str(e)[:200]})") from e
+    if cmap:
+        arr = expand_palette(palette_table(cmap), arr[0])[..., :3].transpose(2, 0, 1)
+    count = arr.shape[0]
+    if grayscale:
+        return np.ascontiguousarray(arr[2 if count >= 3 else 0])
+    if arr.dtype not in (np.uint8, np.uint16) or count > 4:
+        raise FormatError(f"{path}: not a readable image ({count} bands of {arr.dtype}; expected 1 to 4 bands of "
+                          f"8- or 16-bit samples)")
+    rgb = arr[:3] if count >= 3 else np.repeat(arr[:1], 3, axis=0)
+    if rgb.dtype == np.uint16:
+        rgb = (rgb >> 8 if count < 3 else (rgb.astype(np.uint32) * 255 + 32767) // 65535).astype(np.uint8)
+    return np.ascontiguousarray(rgb.transpose(1, 2, 0))

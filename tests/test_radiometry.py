@@ -1,6 +1,7 @@
 """Radiometry of georeferenced imagery (satloc.radiometry through satloc.georef.load_map): any bit depth and
 band count, band selection, nodata / alpha / NaN masks, the per-band stretch (recorded, overridable), the
-warnings for pictures that come out dark or constant, and scenes' ``bands:``/``stretch:``.
+warnings for pictures that come out dark or constant, scenes' ``bands:``/``stretch:``, and GeoTIFFs read
+without OpenCV's TIFF tag warnings.
 
 The imagery is the ground pattern of :mod:`geofixtures` (colours in 60..190) written in other sample types
 and band layouts, so each load can be compared with the 8-bit load of the same ground.
@@ -21,6 +22,7 @@ from rasterio.enums import ColorInterp
 from satloc import ConfigError, FormatError, SatelliteMap, SatlocWarning
 from satloc.georef import load_map, save_geotiff, write_geotiff
 from satloc.radiometry import Radiometry
+from satloc.satmap import read_image
 
 GSD = 2.0   # metres per source pixel: small rasters, quick loads
 
@@ -377,3 +379,43 @@ def test_evaluate_config_fields():
         from_dict(EvaluateConfig, {"satellite_bands": [0, 1, 2]})
     with pytest.raises(ConfigError, match=r"satellite_stretch: expected 'auto'"):
         from_dict(EvaluateConfig, {"satellite_stretch": "max"})
+
+
+# --- OpenCV's TIFF tag warnings --------------------------------------------------------------------------
+def test_geotiff_masks_are_read_without_tiff_tag_warnings(tmp_path, ground, capfd):
+    """A road mask written as a GeoTIFF: OpenCV's libtiff prints a ``TIFF_Warning ... Unknown field with tag``
+    line for each GeoTIFF tag; read_image hands GeoTIFFs to GDAL, with OpenCV's conventions."""
+    tr, rgb = ground
+    mask = np.zeros(rgb.shape[:2], np.uint8)
+    mask[40:60, :] = 255
+    write_geotiff(tmp_path / "roads.tif", mask, tr, UTM)
+    write_geotiff(tmp_path / "rgb.tif", rgb, tr, UTM)
+    data = (tmp_path / "roads.tif").read_bytes()
+    capfd.readouterr()
+    via_cv2 = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED)
+    opencv_warns = "Unknown field with tag" in capfd.readouterr().err   # as OpenCV is configured here
+    grey = read_image(tmp_path / "roads.tif", grayscale=True)
+    colour = read_image(tmp_path / "rgb.tif")
+    err = capfd.readouterr().err
+    assert "TIFF_Warning" not in err and "Unknown field with tag" not in err, err
+    assert np.array_equal(grey, via_cv2) and np.array_equal(colour, rgb)
+    (tmp_path / "cut.tif").write_bytes(data[: len(data) // 2])   # damaged: an error naming the file
+    with pytest.raises(FormatError, match=r"cut\.tif: not a readable image"):
+        read_image(tmp_path / "cut.tif", grayscale=True)
+    if not opencv_warns:
+        pytest.skip("this OpenCV does not print TIFF tag warnings: the silence above proves nothing")
+
+
+def test_scene_with_a_geotiff_road_mask_prints_no_tiff_warnings(tmp_path, ground, capfd):
+    from satloc_env.scene import load_scene
+
+    tr, rgb = ground
+    write_geotiff(tmp_path / "img.tif", rgb, tr, UTM)
+    mask = np.zeros(rgb.shape[:2], np.uint8)
+    mask[70:80, 20:-20] = 255
+    write_geotiff(tmp_path / "roads.tif", mask, tr, UTM)
+    capfd.readouterr()
+    scene = load_scene(_scene_yaml(tmp_path, "img.tif", roads="roads.tif"))
+    err = capfd.readouterr().err
+    assert "TIFF_Warning" not in err and "Unknown field with tag" not in err, err
+    assert scene.drivable.any() and scene.summary()["radiometry"]["dtype"] == "uint8"
