@@ -336,22 +336,25 @@ def _snap_ends(lines: list[np.ndarray], widths: list[np.ndarray], tol: float
 
 
 def _drop_stubs(rg: RoadGraph, min_len: float) -> None:
-    """Drop dead-end edges shorter than ``min_len`` (noding debris, snapped ends' overshoot) and isolated
-    nodes; merge the ends of other edges shorter than it."""
+    """Drop dead-end edges and loops shorter than ``min_len`` (noding debris, snapped ends' overshoot) and
+    isolated nodes; merge the ends of other edges shorter than it."""
     g = rg.graph
     changed = True
     while changed:
         changed = False
         for u, v, k, d in list(g.edges(keys=True, data=True)):
-            if not g.has_edge(u, v, k) or d["length"] >= min_len or u == v:
+            if not g.has_edge(u, v, k) or d["length"] >= max(min_len, 1e-3):
                 continue
-            if g.degree(u) == 1 or g.degree(v) == 1:
+            if u == v or g.degree(u) == 1 or g.degree(v) == 1:
                 g.remove_edge(u, v, k)
                 changed = True
         g.remove_nodes_from([n for n in list(g.nodes) if g.degree(n) == 0])
-    for u, v, k, d in list(g.edges(keys=True, data=True)):
-        if u != v and g.has_edge(u, v, k) and d["length"] < min_len and g.has_node(u) and g.has_node(v):
-            _contract(rg, u, v, k)
+        if changed:
+            continue
+        short = [(u, v, k) for u, v, k, d in g.edges(keys=True, data=True) if u != v and d["length"] < min_len]
+        if short:                                   # one at a time: a contraction may leave a short loop
+            _contract(rg, *short[0])
+            changed = True
 
 
 def _contract(rg: RoadGraph, u, v, k) -> None:
