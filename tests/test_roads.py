@@ -413,3 +413,18 @@ def test_traced_routes_narrow_the_lane_on_a_narrow_road(tmp_path):
     mid = r.length / 2
     c, lane = r.pose_at(mid, 0.0), r.pose_at(mid, -1.75)
     assert math.hypot(lane.x - c.x, lane.y - c.y) == pytest.approx(1.0, abs=0.1)
+
+
+def test_a_street_ending_centimetres_off_a_ring_joins_it_once():
+    """A street ending 5 cm short of a turning ring, 7.5 cm along the ring from its first vertex (as in
+    suburb_utm): one junction, one loop, no debris."""
+    a = np.linspace(0, 2 * math.pi, 41)
+    ring_xy = np.stack([50 + 6 * np.cos(a), 50 + 6 * np.sin(a)], 1)
+    ring_xy[-1] = ring_xy[0]
+    on_ring = ring_xy[0] + 0.075 * (ring_xy[1] - ring_xy[0]) / np.linalg.norm(ring_xy[1] - ring_xy[0])
+    street = np.array([[on_ring[0] + 0.05, 10.0], on_ring + [0.05, 0.0]])   # 5 cm short of the ring, 7.5 cm
+    #                                                                        along it from its first vertex
+    g = graph_from_lines([street, ring_xy], [6.0, 5.0], 100.0, 100.0).graph
+    lengths = sorted(round(d["length"], 1) for *_, d in g.edges(data=True))
+    assert g.number_of_edges() == 2 and lengths[0] > 30, lengths
+    assert sorted(d for _, d in g.degree()) == [1, 3]
