@@ -178,7 +178,7 @@ def test_tour_covers_the_network_and_its_revisit_drives_it_back(derived):
     from satloc_env.drivecheck import first_off_road
 
     rg_main = local(derived, np.asarray(MAIN))
-    assert sorted(derived.routes) == ["main", "revisit"] and derived.spec.query_route == "revisit"
+    assert sorted(derived.routes) == ["main", "revisit"] and derived.spec.query_route == "main"
     tour, back = derived.routes["main"], derived.routes["revisit"]
     assert not tour.closed                       # it starts and ends where the main road leaves the tile
     # every road is driven: the route passes within a metre of points all along every road
@@ -369,8 +369,8 @@ def test_recording_and_experiments_check_before_any_work(scene_dir, tmp_path, mo
     assert not (tmp_path / "rec").exists()                       # nothing written
     # the query pass's own route and lane are checked too: -4 m is off a 3.5 m street
     with pytest.raises(ConfigError, match=r"routes\.revisit: the autopilot leaves the road .* lane offset -4 m"):
-        record_passes(RecordConfig(scene=str(good), query=PassConfig(lane_offset_m=-4.0)), tmp_path / "rec2",
-                      progress=False)
+        record_passes(RecordConfig(scene=str(good), query=PassConfig(route="revisit", lane_offset_m=-4.0)),
+                      tmp_path / "rec2", progress=False)
     stages = []
     monkeypatch.setattr(compare, "_stages", lambda *a, **k: stages.append(a) or (_ for _ in ()).throw(
         AssertionError("recorded before checking")))
