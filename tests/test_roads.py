@@ -428,3 +428,18 @@ def test_a_street_ending_centimetres_off_a_ring_joins_it_once():
     lengths = sorted(round(d["length"], 1) for *_, d in g.edges(data=True))
     assert g.number_of_edges() == 2 and lengths[0] > 30, lengths
     assert sorted(d for _, d in g.degree()) == [1, 3]
+
+
+def test_a_generated_scene_without_routes_gets_them_from_its_ground(tmp_path):
+    """A grid scene with no routes: the road graph of its painted roads, a tour over them and its revisit;
+    the streets' stubs that end at the tile's edge are left out but two (where the tour starts and ends)."""
+    from satloc_env.drivecheck import first_off_road
+
+    p = tmp_path / "grid.yaml"
+    p.write_text(yaml.safe_dump({"name": "grid", "seed": 3, "meters_per_pixel": 0.2, "ground_mpp": 0.2,
+                                 "generator": {"type": "grid", "style": "city", "blocks": [2, 2], "pitch_m": 60,
+                                               "margin_m": 10}}))
+    s = load_scene(p)
+    assert sorted(s.routes) == ["main", "revisit"] and s.routes["main"].length > 700
+    for r in ("main", "revisit"):
+        assert first_off_road(s, r, -1.75) is None
