@@ -21,6 +21,36 @@ def _save_rgb(path: Path, img: np.ndarray) -> None:
             raise OSError(f"{path}: could not write image")
 
 
+def scene_picture(scene, max_px: int = 1400) -> np.ndarray:
+    """The whole satellite tile with the scene's map drawn on it: building footprints (magenta), trees
+    (green rings), the road graph's edges (yellow) and nodes (red: dead ends, white: junctions), and the
+    database route (light blue)."""
+    sm = scene.satmap
+    img = sm.image.copy()
+    k = 16   # sub-pixel drawing (shift=4)
+
+    def px(xy):
+        return np.round(sm.world_to_pixel(np.asarray(xy, np.float64)) * k).astype(np.int32)
+
+    for b in scene.layout.buildings:
+        cv2.polylines(img, [px(b.footprint).reshape(-1, 1, 2)], True, (255, 0, 255), 2, cv2.LINE_AA, shift=4)
+    for t in scene.layout.trees:
+        cv2.circle(img, tuple(px(t.center)), int(round(t.canopy_radius / sm.meters_per_pixel * k)), (60, 230, 60), 1,
+                   cv2.LINE_AA, shift=4)
+    rg = scene.road_graph
+    for u, v, key in rg.graph.edges(keys=True):
+        xy, _ = rg.edge_xy(u, v, key)
+        cv2.polylines(img, [px(xy).reshape(-1, 1, 2)], False, (255, 220, 0), 3, cv2.LINE_AA, shift=4)
+    for n, d in rg.graph.nodes(data=True):
+        deg = rg.graph.degree(n)
+        cv2.circle(img, tuple(px(d["xy"])), 5 * k, (255, 40, 40) if deg == 1 else (255, 255, 255), -1,
+                   cv2.LINE_AA, shift=4)
+    route = scene.routes[scene.spec.database_route]
+    cv2.polylines(img, [px(route.points).reshape(-1, 1, 2)], False, (80, 200, 255), 1, cv2.LINE_AA, shift=4)
+    s = min(1.0, max_px / max(img.shape[:2]))
+    return cv2.resize(img, None, fx=s, fy=s, interpolation=cv2.INTER_AREA) if s < 1 else img
+
+
 def route_overview(scene, poses: np.ndarray, max_px: int = 1400) -> np.ndarray:
     """The whole satellite tile with the route and the given poses drawn on it."""
     sm = scene.satmap
@@ -162,7 +192,7 @@ def cmd_scene(args) -> int:
     if args.save:
         scene.save(args.save)
     if args.picture:
-        _save_rgb(Path(args.picture), route_overview(scene, np.zeros((0, 3))))
+        _save_rgb(Path(args.picture), scene_picture(scene))
     print(json.dumps(scene.summary()))
     return 0
 
@@ -344,7 +374,7 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("scene")
     s.add_argument("--aliasing", type=float, default=None)
     s.add_argument("--save", help="directory to save the generated scene to")
-    s.add_argument("--picture", help="PNG of the tile with the route")
+    s.add_argument("--picture", help="PNG (or JPEG) of the tile with its road graph, buildings, trees and route")
     s.set_defaults(func=cmd_scene)
     return p
 

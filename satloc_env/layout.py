@@ -18,6 +18,7 @@ class Building:
     height: float              # metres
     facade: int = 0            # facade style index (texture variant)
     roof_rgb: tuple[int, int, int] = (120, 110, 100)
+    roof_from_ground: bool = False   # the roof shows the layout's ground image under it (real imagery)
 
 
 @dataclass

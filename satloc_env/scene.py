@@ -137,9 +137,16 @@ class ImageGeneratorSpec:
     bands: Any = None            #: [r, g, b] or [grey], numbered from 1 (satloc.radiometry.Radiometry.bands)
     stretch: Any = "auto"        #: auto, none, [low, high] or [[low, high], ...] (Radiometry.stretch)
     road_width_m: float = 7.0    #: width of vector roads whose attributes give none (width, lanes, lane_number)
+    buildings: str | None = None  #: building footprints (vector file), extruded (satloc_env.scenebuildings)
+    trees: str | None = None      #: trees: points or canopy polygons (vector file)
+    building_height_m: tuple[float, float] = (5.0, 9.0)   #: height range of footprints whose attributes give none
 
     def __post_init__(self):
         self.radiometry   # bad bands or stretch: ConfigError naming the field
+        lo, hi = (float(v) for v in self.building_height_m)
+        if not 1.0 <= lo <= hi <= 500.0:
+            raise ConfigError(f"building_height_m: expected [low, high] metres with 1 <= low <= high <= 500, got "
+                              f"{list(self.building_height_m)}")
 
     @property
     def radiometry(self):
@@ -156,11 +163,12 @@ class ImageGeneratorSpec:
         img = base / self.image
         out = [("image", img)]
         out += [("image_sidecar", p) for p in input_files(img)[1:]]
-        out += [(k, base / getattr(self, k)) for k in ("labels", "roads") if getattr(self, k)]
-        if self.roads:
-            from satloc.vectors import vector_files
+        out += [(k, base / getattr(self, k)) for k in ("labels", "roads", "buildings", "trees") if getattr(self, k)]
+        from satloc.vectors import vector_files
 
-            out += [("roads_sidecar", p) for p in vector_files(base / self.roads)[1:]]
+        for k in ("roads", "buildings", "trees"):
+            if getattr(self, k):
+                out += [(f"{k}_sidecar", p) for p in vector_files(base / getattr(self, k))[1:]]
         return out
 
 
@@ -432,6 +440,15 @@ class Scene:
         return out
 
     @functools.cached_property
+    def road_graph(self):
+        """The scene's road graph (:class:`satloc_env.roadgraph.RoadGraph`): the one its routes were made
+        from, else the skeleton's of the road classes of its ground labels."""
+        from .sceneroads import road_graph
+
+        return road_graph(self.spec.road_graph, None, self.layout.ground_labels, self.layout.ground_mpp,
+                          f"scene {self.name!r}")
+
+    @functools.cached_property
     def world(self):
         """Renderable geometry of the scene (:class:`satloc_env.world.World`), built once per scene."""
         from .world import build_world
@@ -473,6 +490,7 @@ class Scene:
                 "bld_nverts": np.array([len(x.footprint) for x in b], np.int64),
                 "bld_verts": np.concatenate([x.footprint for x in b]) if b else np.zeros((0, 2)),
                 "bld_params": np.array([[x.height, x.facade, *x.roof_rgb] for x in b], np.float64).reshape(-1, 5),
+                "bld_roof_ground": np.array([x.roof_from_ground for x in b], np.uint8),
                 "trees": np.array([[*t.center, t.canopy_radius, t.canopy_bottom, t.canopy_top, t.shade]
                                    for t in lay.trees], np.float64).reshape(-1, 6),
                 "cars": np.array([[*c.center, c.yaw, c.length, c.width, c.height, *c.rgb] for c in lay.cars],
@@ -504,6 +522,7 @@ class Scene:
             "ground_rgb": ArraySpec("u", ("H", "W", 3)), "ground_labels": ArraySpec("u", ("H", "W")),
             "alias_source": ArraySpec("iu", (None,), min=0), "bld_nverts": ArraySpec("iu", ("B",), min=3),
             "bld_verts": ArraySpec("f", (None, 2)), "bld_params": ArraySpec("f", ("B", 5)),
+            "bld_roof_ground": ArraySpec("iub", ("B",), min=0, max=1, required=False),
             "trees": ArraySpec("f", (None, 6)), "cars": ArraySpec("f", (None, 9))})
         if a["ground_rgb"].dtype != np.uint8 or a["ground_labels"].dtype != np.uint8 or min(a["ground_rgb"].shape) < 1:
             raise FormatError(f"{lz}: ground_rgb and ground_labels must be non-empty uint8 rasters, got "
@@ -531,8 +550,10 @@ class Scene:
             raise FormatError(f"{lz}: facade, shade and colour values must be integers (colours 0..255) and every "
                               f"tree's canopy bottom below its top")
         verts_split = np.split(verts, np.cumsum(nv)[:-1]) if len(nv) else []
-        buildings = [Building(v, float(q[0]), int(q[1]), tuple(int(c) for c in q[2:5]))
-                     for v, q in zip(verts_split, bp)]
+        roof_ground = a.get("bld_roof_ground")
+        roof_ground = np.zeros(len(bp), bool) if roof_ground is None else roof_ground.astype(bool)
+        buildings = [Building(v, float(q[0]), int(q[1]), tuple(int(c) for c in q[2:5]), bool(rg))
+                     for v, q, rg in zip(verts_split, bp, roof_ground)]
         trees = [Tree((t[0], t[1]), t[2], t[3], t[4], int(t[5])) for t in tr]
         cars = [Car((c[0], c[1]), c[2], c[3], c[4], c[5], tuple(int(v) for v in c[6:9])) for c in ca]
         lay = Layout(w_m, h_m, mpp, a["ground_rgb"], a["ground_labels"], buildings, trees, cars, az, el)
@@ -650,7 +671,19 @@ def _image_layout(g: ImageGeneratorSpec, spec: SceneSpec, base: Path, where: str
     elif labels is None:
         labels = np.full(rgb.shape[:2], CLASS_ID["road"], np.uint8)
     h, w = labels.shape
-    return _ImageGround(Layout(w * mpp, h * mpp, spec.ground_mpp, rgb, labels), frame, roads,
+    buildings, trees = [], []
+    if g.buildings or g.trees:
+        from .scenebuildings import vector_buildings, vector_trees
+
+        drivable = np.isin(labels, DRIVABLE)
+        if g.trees:
+            trees, crowns = vector_trees(base / g.trees, frame, labels.shape, mpp, drivable, spec.seed, where)
+            labels = np.where(crowns, CLASS_ID["tree"], labels).astype(np.uint8)
+        if g.buildings:
+            buildings, fp_mask = vector_buildings(base / g.buildings, frame, labels.shape, mpp, drivable,
+                                                  g.building_height_m, spec.seed, where)
+            labels = np.where(fp_mask, CLASS_ID["building"], labels).astype(np.uint8)
+    return _ImageGround(Layout(w * mpp, h * mpp, spec.ground_mpp, rgb, labels, buildings, trees), frame, roads,
                         geo.radiometry if geo is not None else None, road_graph=road_graph)
 
 
@@ -695,7 +728,7 @@ def _load_georeferenced(path: Path, g: ImageGeneratorSpec, mpp: float, where: st
 
 
 def _resolve_routes(spec: SceneSpec, ground: _ImageGround | None, lay: Layout, g, base: Path,
-                    where: str) -> dict[str, RouteSpec]:
+                    where: str, graph_out: list | None = None) -> dict[str, RouteSpec]:
     """Every route as waypoints in map metres: ``lonlat`` converted through the geo frame, ``trace`` traced
     from the road mask (or the label image's roads), ``snap`` routes snapped to the road graph; without
     routes, the derived ones (:mod:`satloc_env.sceneroads`)."""
@@ -708,9 +741,13 @@ def _resolve_routes(spec: SceneSpec, ground: _ImageGround | None, lay: Layout, g
     @functools.lru_cache(maxsize=1)
     def graph():
         if ground is not None and ground.road_graph is not None:
-            return ground.road_graph
-        return road_graph(spec.road_graph, ground.roads if ground is not None else None, lay.ground_labels,
-                          lay.ground_mpp, where)
+            rg = ground.road_graph
+        else:
+            rg = road_graph(spec.road_graph, ground.roads if ground is not None else None, lay.ground_labels,
+                            lay.ground_mpp, where)
+        if graph_out is not None:
+            graph_out.append(rg)
+        return rg
 
     def as_route(xy, widths, closed: bool, laps: int) -> RouteSpec:
         return RouteSpec(waypoints=[(float(x), float(y)) for x, y in xy], closed=closed, laps=laps,
@@ -805,7 +842,10 @@ def build_scene(spec: SceneSpec, base_dir: Path | None = None, aliasing: float |
         ground = _image_layout(g, spec, base_dir, where)
         lay = ground.layout
     _check_objects_inside(spec, lay.width_m, lay.height_m, where)
-    routes = _resolve_routes(spec, ground, lay, g, base_dir, where)
+    graphs: list = []
+    routes = _resolve_routes(spec, ground, lay, g, base_dir, where, graphs)
+    if not graphs and ground is not None and ground.road_graph is not None:
+        graphs.append(ground.road_graph)
     b, t, c = _objects_from_spec(spec.objects)
     lay.buildings += b
     lay.trees += t
@@ -823,7 +863,10 @@ def build_scene(spec: SceneSpec, base_dir: Path | None = None, aliasing: float |
     satmap = SatelliteMap(tile, spec.meters_per_pixel, (0.0, lay.height_m), tile_labels, frame,
                           radiometry=ground.radiometry if ground is not None else None)
     spec = replace(spec, routes=routes, knobs=replace(spec.knobs, aliasing=aliasing))
-    return Scene(spec, lay, satmap, src, where=where)
+    scene = Scene(spec, lay, satmap, src, where=where)
+    if graphs:
+        scene.__dict__["road_graph"] = graphs[0]
+    return scene
 
 
 @functools.lru_cache(maxsize=4)

@@ -16,10 +16,30 @@ from satloc.labels import CLASS_ID
 from .roadgraph import (GraphParams, RoadGraph, RoadGraphError, Tour, covering_tour, graph_from_lines,
                         graph_from_mask, lane_widths, rasterize_area, road_area, snapped_route)
 
-__all__ = ["DERIVED_ROUTES", "vector_roads", "road_graph", "derived_routes", "snap_waypoints", "mask_widths"]
+__all__ = ["DERIVED_ROUTES", "read_vectors", "vector_roads", "road_graph", "derived_routes", "snap_waypoints", "mask_widths"]
 
 #: names of the routes a scene without ``routes:`` gets: the tour and its revisit
 DERIVED_ROUTES = ("main", "revisit")
+
+
+def read_vectors(field: str, reader, path: Path, frame, where: str):
+    """``reader(path)`` (a reader of :mod:`satloc.vectors`) taken to the metres of ``frame``, the scene's
+    GeoFrame; ConfigError naming ``generator.<field>`` and the file."""
+    from satloc.vectors import VECTOR_SUFFIXES, is_vector_file
+
+    if not is_vector_file(path):
+        raise ConfigError(f"{where}: generator.{field}: {path} is not a vector file (expected one of "
+                          f"{', '.join(VECTOR_SUFFIXES)})")
+    if frame is None:
+        raise ConfigError(f"{where}: generator.{field}: {path} is a vector file, in map coordinates; the image is "
+                          f"not georeferenced, so its features have no place on it"
+                          + (" (give a raster road mask)" if field == "roads" else ""))
+    if not path.is_file():
+        raise ConfigError(f"{where}: generator.{field}: vector file {path} not found")
+    try:
+        return reader(path).to_frame(frame)
+    except (FormatError, ConfigError) as e:
+        raise ConfigError(f"{where}: generator.{field}: {e}") from e
 
 
 def vector_roads(path: Path, frame, shape: tuple[int, int], mpp: float, default_width_m: float,
@@ -29,15 +49,7 @@ def vector_roads(path: Path, frame, shape: tuple[int, int], mpp: float, default_
     their widths, the corners at junctions rounded (``params.curb_radius_m``)."""
     from satloc.vectors import read_road_lines
 
-    if frame is None:
-        raise ConfigError(f"{where}: generator.roads: {path} is a vector file, in map coordinates; the image is "
-                          f"not georeferenced, so the lines have no place on it (give a raster road mask)")
-    if not path.is_file():
-        raise ConfigError(f"{where}: generator.roads: vector file {path} not found")
-    try:
-        lines = read_road_lines(path, default_width_m).to_frame(frame)
-    except (FormatError, ConfigError) as e:
-        raise ConfigError(f"{where}: generator.roads: {e}") from e
+    lines = read_vectors("roads", lambda p: read_road_lines(p, default_width_m), path, frame, where)
     h, w = shape
     try:
         graph = graph_from_lines(lines.lines, lines.widths, w * mpp, h * mpp, params)

@@ -116,7 +116,7 @@ def build_world(layout: Layout, chunk_m: float = 204.8, pad_m: float = 0.0) -> W
     members: list[list[Callable[[_MeshBuilder], None]]] = [[] for _ in range(nx * ny)]
     for k, b in enumerate(layout.buildings):
         c = np.asarray(b.footprint, dtype=np.float64).mean(axis=0)
-        members[chunk_of(*c)].append(lambda mb, b=b, k=k: _add_building(mb, b, k))
+        members[chunk_of(*c)].append(lambda mb, b=b, k=k: _add_building(mb, b, k, layout))
     for k, t in enumerate(layout.trees):
         members[chunk_of(*t.center)].append(lambda mb, t=t, k=k: _add_tree(mb, t, k))
     for k, c in enumerate(layout.cars):
@@ -245,14 +245,16 @@ class _MeshBuilder:
         self._patches.append((np.ascontiguousarray(rgb, dtype=np.uint8), np.full((h, w), label, np.uint8)))
         return len(self._patches) - 1
 
-    def add_polygon_faces(self, pos: np.ndarray, st: np.ndarray, faces: np.ndarray, patch: int) -> None:
+    def add_polygon_faces(self, pos: np.ndarray, st: np.ndarray, faces: np.ndarray, patch: int,
+                          shade: float | None = None) -> None:
         """Add triangles (``faces`` into ``pos``) sharing one flat normal; ``st`` are (column, row) fractions
-        of ``patch``. The shading factor comes from the first triangle's normal."""
+        of ``patch``. The shading factor is ``shade``, else it comes from the first triangle's normal."""
         p = np.asarray(pos, dtype=np.float64)
-        a, b, c = p[faces[0]]
-        n = np.cross(b - a, c - a)
-        norm = np.linalg.norm(n)
-        shade = _AMBIENT + (1 - _AMBIENT) * max(0.0, float(n @ self.sun) / norm) if norm > 0 else _AMBIENT
+        if shade is None:
+            a, b, c = p[faces[0]]
+            n = np.cross(b - a, c - a)
+            norm = np.linalg.norm(n)
+            shade = _AMBIENT + (1 - _AMBIENT) * max(0.0, float(n @ self.sun) / norm) if norm > 0 else _AMBIENT
         self._append(p, st, faces, patch, np.full(len(p), shade))
 
     def add_quads(self, quads: np.ndarray, st: np.ndarray, patch: int) -> None:
@@ -384,13 +386,14 @@ def _bbox_st(poly: np.ndarray) -> np.ndarray:
 
 def _add_prism(mb: _MeshBuilder, footprint: np.ndarray, z0: float, z1: float, texel: float, label: int,
                wall_texture: Callable[[list[tuple[int, float]], int], np.ndarray],
-               top_texture: Callable[[int, int], np.ndarray] | None) -> None:
+               top_texture: Callable[[int, int], np.ndarray] | None, top_shade: float | None = None) -> None:
     """Vertical walls of ``footprint`` (made counter-clockwise) from ``z0`` to ``z1`` plus an optional flat top.
 
     The walls are unrolled into strips of texture ``texel`` metres per texel: walls longer than an atlas row
     are split, consecutive walls are grouped into strips that fit a row, and ``wall_texture(walls, height_px)``
     paints each strip, ``walls`` being its segments as (footprint edge index, length in metres), left to right;
-    the strip is ``ceil(total length / texel)`` texels wide. ``top_texture(h_px, w_px)`` paints the top.
+    the strip is ``ceil(total length / texel)`` texels wide. ``top_texture(h_px, w_px)`` paints the top,
+    shaded by the sun unless ``top_shade`` gives its factor.
     """
     fp = _ccw(np.asarray(footprint, dtype=np.float64))
     max_len = (mb.max_patch_width - 1) * texel
@@ -427,7 +430,7 @@ def _add_prism(mb: _MeshBuilder, footprint: np.ndarray, z0: float, z1: float, te
         span = fp.max(axis=0) - fp.min(axis=0)
         h, w = (max(2, min(math.ceil(v / texel), mb.max_patch_width)) for v in (span[1], span[0]))
         patch = mb.add_patch(top_texture(h, w), label)
-        mb.add_polygon_faces(np.c_[fp, np.full(len(fp), z1)], _bbox_st(fp), _triangulate(fp), patch)
+        mb.add_polygon_faces(np.c_[fp, np.full(len(fp), z1)], _bbox_st(fp), _triangulate(fp), patch, top_shade)
 
 
 def _add_loft(mb: _MeshBuilder, rings: list[np.ndarray], patch: int, top_patch: int | None = None) -> None:
@@ -477,13 +480,31 @@ def _rng(*key) -> np.random.Generator:
     return np.random.default_rng([sum(map(ord, k)) if isinstance(k, str) else int(k) for k in key])
 
 
-def _add_building(mb: _MeshBuilder, b: Building, index: int) -> None:
+def _add_building(mb: _MeshBuilder, b: Building, index: int, layout: Layout | None = None) -> None:
+    """A building: walls from the facade painters; its roof painted in ``roof_rgb``, or, with
+    ``roof_from_ground``, the layout's ground image over the footprint's bounding box (the roof as the
+    imagery shows it, unshaded: the imagery has its light already)."""
     rng = _rng("building", index, b.facade)
     style = _FACADE_STYLES[b.facade % len(_FACADE_STYLES)]
     roof = np.asarray(b.roof_rgb, dtype=np.float32)
-    _add_prism(mb, np.asarray(b.footprint), 0.0, float(b.height), _FACADE_M, CLASS_ID["building"],
+    fp = np.asarray(b.footprint, dtype=np.float64)
+    top = lambda h, w: _paint(rng, roof, h, w)  # noqa: E731
+    if b.roof_from_ground and layout is not None:
+        top = lambda h, w: _ground_crop(layout, fp, h, w)  # noqa: E731
+    _add_prism(mb, fp, 0.0, float(b.height), _FACADE_M, CLASS_ID["building"],
                lambda walls, h: _facade_texture(rng, style, [length for _, length in walls], h, _FACADE_M),
-               lambda h, w: _paint(rng, roof, h, w))
+               top, top_shade=1.0 if b.roof_from_ground and layout is not None else None)
+
+
+def _ground_crop(layout: Layout, poly: np.ndarray, h: int, w: int) -> np.ndarray:
+    """(h, w, 3) the layout's ground image over ``poly``'s bounding box (north up), resampled bilinearly."""
+    lo, hi = poly.min(axis=0), poly.max(axis=0)
+    mpp = float(layout.ground_mpp)
+    # pixel-centre coordinates of the (h, w) texels' centres in the ground raster
+    cols = (lo[0] + (np.arange(w) + 0.5) * (hi[0] - lo[0]) / w) / mpp - 0.5
+    rows = (layout.height_m - (hi[1] - (np.arange(h) + 0.5) * (hi[1] - lo[1]) / h)) / mpp - 0.5
+    mx, my = np.meshgrid(cols.astype(np.float32), rows.astype(np.float32))
+    return cv2.remap(layout.ground_rgb, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
 
 
 def _add_tree(mb: _MeshBuilder, t: Tree, index: int) -> None:
