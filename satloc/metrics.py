@@ -2,8 +2,17 @@
 precision and recall. Pure numpy, no satloc state.
 
 Errors are planar distances in metres from a method's estimate to the query's true position, one per query.
-A query a method could not answer (no result at all) has error NaN: it counts in ``count`` and ``failed``, is
-left out of the mean, std, median and max, and is never "within" any radius.
+A query a method could not answer (no result at all) has error NaN. **One rule for every method:** such a
+query is a gross failure. It counts in ``count``, ``failed`` and ``failure_rate``, is never "within" any
+radius (within X m means error <= X, everywhere), and, when the caller gives ``gross_m`` (the tables do:
+:func:`worst_case_errors`, the distance from the query's true position to the farthest place of the map, the
+worst answer a method could have given), takes that error in the mean, std, median and max. Without
+``gross_m`` the failures are left out of those four (what a single localization stage reports about its own
+answers).
+
+**Confidence intervals.** :func:`bootstrap_ci` gives a percentile bootstrap interval of any statistic over
+the queries (resampled with replacement, seeded); :func:`precision_recall_ci` of precision and recall at a
+fixed threshold.
 
 Outside-the-map detection (the paper's Table II). Every method gives each query an inlier score (higher: more
 sure the query lies inside the mapped area). With a threshold ``t``:
@@ -49,30 +58,73 @@ def _vector(x, name: str, dtype=np.float64) -> np.ndarray:
     return a
 
 
-def error_stats(errors) -> dict:
+def worst_case_errors(truth_xy, map_xy) -> np.ndarray:
+    """(Q,) for each query, the distance (metres) from its true position ``truth_xy`` (Q, 2) to the farthest of
+    the map's places ``map_xy`` (P, 2) (e.g. the database poses): the error of the worst answer on the map, the
+    error a failed query counts with (:func:`error_stats`' ``gross_m``). NaN where the truth is unknown."""
+    t = np.asarray(truth_xy, np.float64).reshape(-1, 2)
+    m = np.asarray(map_xy, np.float64).reshape(-1, 2)
+    m = m[np.all(np.isfinite(m), axis=1)]
+    if not len(m):
+        raise ConfigError("map_xy: no finite place")
+    from scipy.spatial import ConvexHull, QhullError
+
+    try:   # the farthest point of a set is one of its convex hull's vertices
+        m = m[ConvexHull(m).vertices] if len(m) > 3 else m
+    except QhullError:   # collinear or repeated places: all of them
+        pass
+    return np.sqrt(((t[:, None, :] - m[None, :, :]) ** 2).sum(-1)).max(axis=1)
+
+
+def error_stats(errors, gross_m=None) -> dict:
     """Statistics of per-query errors (metres):
 
-    ``count`` (all queries), ``failed`` (NaN or infinite errors), ``mean``, ``std`` (population, ddof 0),
-    ``median``, ``max`` over the finite errors (NaN when there is none), ``within_1m`` and ``within_10m``: the
-    fraction of *all* queries (failed ones included, as misses) with error <= 1 m / 10 m (NaN with no query).
+    ``count`` (all queries), ``failed`` (NaN or infinite errors: queries not answered) and ``failure_rate``;
+    ``mean``, ``std`` (population, ddof 0), ``median``, ``max``: over every query, a failed one counting with
+    its ``gross_m`` (a scalar or one value per query, see the module docstring), else over the answered ones
+    (NaN when there is none); ``within_1m`` and ``within_10m``: the fraction of *all* queries (failed ones
+    included, as misses) with error <= 1 m / 10 m (NaN with no query).
     """
     e = _vector(errors, "errors")
     finite = np.isfinite(e)
-    ok = e[finite]
     n = int(e.size)
     nan = float("nan")
-    if ok.size and np.any(ok < 0):
-        raise ConfigError(f"errors: distances must be >= 0, got {float(ok.min())}")
+    if np.any(e[finite] < 0):
+        raise ConfigError(f"errors: distances must be >= 0, got {float(e[finite].min())}")
+    if gross_m is not None:
+        g = np.broadcast_to(np.asarray(gross_m, np.float64), e.shape)
+        if not np.all(np.isfinite(g[~finite])):
+            raise ConfigError("gross_m: expected a finite error for every failed query")
+        ok = np.where(finite, e, g)
+    else:
+        ok = e[finite]
     return {
         "count": n,
-        "failed": int(n - ok.size),
+        "failed": int(n - finite.sum()),
+        "failure_rate": float((n - finite.sum()) / n) if n else nan,
         "mean": float(ok.mean()) if ok.size else nan,
         "std": float(ok.std()) if ok.size else nan,
         "median": float(np.median(ok)) if ok.size else nan,
         "max": float(ok.max()) if ok.size else nan,
-        "within_1m": float(np.sum(ok <= 1.0) / n) if n else nan,
-        "within_10m": float(np.sum(ok <= 10.0) / n) if n else nan,
+        "within_1m": float(np.sum(e[finite] <= 1.0) / n) if n else nan,
+        "within_10m": float(np.sum(e[finite] <= 10.0) / n) if n else nan,
     }
+
+
+def bootstrap_ci(values, statistic=np.mean, n_boot: int = 2000, level: float = 0.95, seed: int = 0
+                 ) -> tuple[float, float]:
+    """Percentile bootstrap interval (low, high) at ``level`` of ``statistic`` over ``values`` (one per query,
+    resampled with replacement ``n_boot`` times, seeded); (NaN, NaN) for no value. ``statistic`` takes a
+    (n_boot, n) array and an ``axis=1`` keyword (numpy's mean, median, ...)."""
+    v = _vector(values, "values")
+    if not 0 < level < 1 or n_boot < 1:
+        raise ConfigError(f"bootstrap: expected 0 < level < 1 and n_boot >= 1, got {level}, {n_boot}")
+    if v.size == 0:
+        return float("nan"), float("nan")
+    idx = np.random.default_rng(seed).integers(0, v.size, (n_boot, v.size))
+    stats = statistic(v[idx], axis=1)
+    a = (1 - level) / 2
+    return float(np.quantile(stats, a)), float(np.quantile(stats, 1 - a))
 
 
 def _inputs(errors, scores, inside) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -112,6 +164,31 @@ def precision_recall(errors, scores, threshold: float, inside=None, radius_m: fl
     r = tp / npos if npos else float("nan")
     return {"precision": p, "recall": r, "f1": float(_f1(np.array(p), np.array(r))), "tp": tp,
             "declared": nd, "positives": npos, "threshold": float(threshold), "radius_m": float(radius_m)}
+
+
+def precision_recall_ci(errors, scores, threshold: float, inside=None, radius_m: float = 10.0,
+                        n_boot: int = 2000, level: float = 0.95, seed: int = 0) -> dict:
+    """Percentile bootstrap intervals of precision and recall at a fixed ``threshold`` (queries resampled
+    with replacement, seeded; a resample where one is undefined is left out of its interval):
+    ``precision_ci`` and ``recall_ci``, each (low, high)."""
+    e, s, ins = _inputs(errors, scores, inside)
+    with np.errstate(invalid="ignore"):
+        declared = s >= threshold
+        good = declared & ins & (e <= radius_m)
+    if e.size == 0:
+        return {"precision_ci": (float("nan"),) * 2, "recall_ci": (float("nan"),) * 2}
+    idx = np.random.default_rng(seed).integers(0, e.size, (n_boot, e.size))
+    tp, nd, npos = good[idx].sum(1), declared[idx].sum(1), ins[idx].sum(1)
+    a = (1 - level) / 2
+
+    def ci(num, den):
+        ok = den > 0
+        if not ok.any():
+            return float("nan"), float("nan")
+        r = num[ok] / den[ok]
+        return float(np.quantile(r, a)), float(np.quantile(r, 1 - a))
+
+    return {"precision_ci": ci(tp, nd), "recall_ci": ci(tp, npos)}
 
 
 @dataclass

@@ -31,6 +31,7 @@ from .dictionary import Dictionary, GridConfig, SatelliteFeatures, build_diction
 from .errors import ConfigError, FormatError
 from .features import FEATURE_SETS, make_extractor
 from .localizer import Localization, Localizer, LocalizerConfig
+from .metrics import error_stats, worst_case_errors
 from .persist import header, nonfinite_path, read_json, save_npz, write_json
 from .projection import ProjectionConfig, Projections, plot_loss, train_projections
 from .satmap import SatelliteMap
@@ -210,8 +211,14 @@ def localize(build_dir: str | Path, queries: str | Path, config: LocalizerConfig
         top_poses[i], top_probs[i] = r.top(k)
     secs = time.perf_counter() - t0
     err = np.hypot(est[:, 0] - truth[:, 0], est[:, 1] - truth[:, 1])
-    summary = {"mode": loc.config.name, "queries": n, "mean_m": float(np.nanmean(err)) if n else None,
-               "std_m": float(np.nanstd(err)) if n else None, "median_m": float(np.nanmedian(err)) if n else None,
+    # a frame not answered is a gross failure: its error is the worst answer on the map (satloc.metrics)
+    gross = np.where(np.all(np.isfinite(truth[:, :2]), axis=1),
+                     worst_case_errors(np.nan_to_num(truth[:, :2]), loc.candidates[:, :2]), np.nan)
+    known = np.isfinite(gross)
+    st = error_stats(err[known], gross[known]) if known.any() else None
+    summary = {"mode": loc.config.name, "queries": n,
+               **{f"{k}_m": (st[k] if st else None) for k in ("mean", "std", "median")},
+               **({k: st[k] for k in ("within_1m", "within_10m", "failure_rate")} if st else {}),
                "queries_per_s": round(n / secs, 2) if secs > 0 else None, "failed": len(failed)}
     if out is not None:
         out = Path(out)

@@ -40,7 +40,7 @@ import numpy as np
 from satloc.baselines import Efm, FabMap
 from satloc.config import from_dict, to_dict
 from satloc.errors import ConfigError
-from satloc.metrics import error_stats, pr_curve, precision_recall, select_threshold
+from satloc.metrics import pr_curve, precision_recall, precision_recall_ci, select_threshold
 from satloc.persist import atomic_path, load_npz, save_npz, write_json
 from satloc.satmap import SatelliteMap
 from satloc.sequence import Sequence
@@ -50,7 +50,7 @@ from satloc.persist import read_json
 from .experiment import (BASELINE_NAMES, METHOD_NAMES, CompareConfig, ExperimentConfig,  # noqa: F401
                          _covered, _stage_done, _stages, _stamp, build_and_learn, covered_queries,
                          check_recordings, localize_and_report, markdown_table, record_config, scene_label,
-                         scene_labels)
+                         scene_labels, table_stats)
 from .record import PassConfig, RecordConfig, check_passes, make_env, pass_routes, record_pass
 from .scene import load_scene
 
@@ -143,9 +143,7 @@ def run_baseline(name: str, cc: CompareConfig, test_scene: str, db: Sequence, q:
     save_npz(Path(out) / f"baseline_{name}.npz", "localization",
              {"frames": np.asarray(sel, np.int64), "estimates": est, "truth": truth, "errors": err,
               "inlier_score": score, "inlier": inl}, meta)
-    st = error_stats(err)
-    s = {"mode": name, "queries": n, "mean_m": st["mean"], "std_m": st["std"], "median_m": st["median"],
-         "within_1m": st["within_1m"], "within_10m": st["within_10m"], "index_s": round(t_index, 2),
+    s = {"mode": name, "queries": n, **table_stats(err, truth, db.poses), "index_s": round(t_index, 2),
          "s_per_query": secs / n if n else float("nan"), "queries_per_s": round(n / secs, 2) if secs > 0 else None}
     log(f"[{test_scene}] {BASELINE_NAMES[name]:9s} mean {s['mean_m']:.2f} m (std {s['std_m']:.2f}), median "
         f"{s['median_m']:.2f} m, {100 * s['within_1m']:.0f} % within 1 m, {s['s_per_query']:.3f} s per query")
@@ -197,12 +195,22 @@ class Table2Config:
     radius_m: float = 10.0                # a true positive is declared inside, inside and within this
     rule: str = "max_f1"                  # satloc.metrics.select_threshold's rule
     min_precision: float = 0.9            # rule "recall_at_precision"
+    # calibration: a second revisit of the ring and a second branch pass, disjoint from the test passes (other
+    # seeds for occluders and appearance, queries every calibration_spacing_m instead of the experiment's
+    # query_spacing_m, so at other places); each method's threshold is picked there and frozen for the test
+    calibration_seeds: tuple[int, int] = (3, 4)
+    calibration_spacing_m: float = 7.0
 
     def __post_init__(self):
         if self.rule not in ("max_f1", "recall_at_precision"):
             raise ConfigError(f"rule: expected 'max_f1' or 'recall_at_precision', got {self.rule!r}")
         if self.radius_m <= 0:
             raise ConfigError(f"radius_m: expected > 0, got {self.radius_m}")
+        if len(self.calibration_seeds) != 2 or set(self.calibration_seeds) & {0, 1, 2}:
+            raise ConfigError(f"calibration_seeds: expected two seeds other than the database (0) and test "
+                              f"passes' (1, 2), got {list(self.calibration_seeds)}")
+        if self.calibration_spacing_m <= 0:
+            raise ConfigError(f"calibration_spacing_m: expected > 0, got {self.calibration_spacing_m}")
 
 
 def operating_point(errors, scores, inside, rule: str = "max_f1", min_precision: float = 0.9,
@@ -218,77 +226,126 @@ def operating_point(errors, scores, inside, rule: str = "max_f1", min_precision:
             "declared": pr["declared"], "positives": pr["positives"], "rule": rule, "curve": curve}
 
 
-def _record_table2(t2: Table2Config, out: Path, progress: bool, log) -> tuple[Sequence, Sequence, Sequence, dict]:
+def _record_table2(t2: Table2Config, out: Path, progress: bool, log) -> tuple[Sequence, dict[str, Sequence], dict]:
+    """The database pass of the ring, then the query passes: ``inside`` (a revisit of the ring) and ``outside``
+    (the branch) for the test, ``calib_inside`` and ``calib_outside`` for calibration (other seeds and
+    spacing); stage-stamped. Returns the database, the query passes by name and the stamp."""
     e = t2.experiment
     rec = RecordConfig(scene=t2.scene, aliasing=e.aliasing,
                        database=PassConfig(route=t2.inside_route, max_frames=e.database_frames),
                        query=PassConfig(route=t2.inside_route, lane_offset_m=e.query_lane_m,
                                         spacing_m=e.query_spacing_m, occlusion=e.occlusion, appearance=e.appearance, seed=1,
                                         max_frames=e.query_frames))
-    branch = PassConfig(route=t2.outside_route, lane_offset_m=e.query_lane_m, spacing_m=e.query_spacing_m,
-                        occlusion=e.occlusion, appearance=e.appearance, seed=2, max_frames=t2.outside_frames)
-    scene = load_scene(t2.scene, e.aliasing)   # before any work: the three passes drivable by the autopilot
-    check_passes(scene, pass_routes(scene, rec) + [(t2.outside_route, branch)], rec.speed_mps, f"scene {t2.scene!r}")
+
+    def extra(route, seed, spacing, frames):
+        return PassConfig(route=route, lane_offset_m=e.query_lane_m, spacing_m=spacing, occlusion=e.occlusion,
+                          appearance=e.appearance, seed=seed, max_frames=frames)
+
+    cs, cb = t2.calibration_seeds
+    more = {"outside": extra(t2.outside_route, 2, e.query_spacing_m, t2.outside_frames),
+            "calib_inside": extra(t2.inside_route, cs, t2.calibration_spacing_m, e.query_frames),
+            "calib_outside": extra(t2.outside_route, cb, t2.calibration_spacing_m, t2.outside_frames)}
+    scene = load_scene(t2.scene, e.aliasing)   # before any work: every pass drivable by the autopilot
+    check_passes(scene, pass_routes(scene, rec) + [(p.route, p) for p in more.values()], rec.speed_mps,
+                 f"scene {t2.scene!r}")
     from .autoloc import cache_key
     from .record import record_passes
 
-    rc = dict(to_dict(rec), branch=to_dict(branch), scene_sha256=cache_key(t2.scene, e.aliasing)["scene_sha256"])
+    rc = dict(to_dict(rec), scene_sha256=cache_key(t2.scene, e.aliasing)["scene_sha256"],
+              **{name: to_dict(p) for name, p in more.items()})
     if not _stage_done(out / "record.json", rc):
-        log(f"[{t2.scene}] recording the database, revisit ({t2.inside_route}) and {t2.outside_route} passes")
+        log(f"[{t2.scene}] recording the database pass, and the test and calibration passes on "
+            f"{t2.inside_route} and {t2.outside_route}")
         record_passes(rec, out / "rec", progress)
         env = make_env(scene=t2.scene, resolution=rec.resolution, aliasing=e.aliasing, speed_mps=rec.speed_mps,
-                       depth=branch.depth, labels=False, localizer=None)
+                       depth=True, labels=False, localizer=None)
         try:
-            env.reset(seed=branch.seed)
-            record_pass(env, branch, t2.outside_route, out / "rec" / "outside", "outside", progress,
-                        {"source": "satloc_env", "scene": env.scene.name})
+            for name, p in more.items():
+                env.reset(seed=p.seed)
+                record_pass(env, p, p.route, out / "rec" / name, name, progress,
+                            {"source": "satloc_env", "scene": env.scene.name})
         finally:
             env.close()
         _stamp(out / "record.json", rc)
-    return (Sequence.load(out / "rec" / "database"), Sequence.load(out / "rec" / "query"),
-            Sequence.load(out / "rec" / "outside"), rc)
+    passes = {"inside": Sequence.load(out / "rec" / "query")}
+    passes.update({name: Sequence.load(out / "rec" / name) for name in more})
+    return Sequence.load(out / "rec" / "database"), passes, rc
 
 
 def table2(out: str | Path, config: dict | None = None, progress: bool = True, log=print) -> list[dict]:
-    """Outside-the-map detection (the paper's Table II). Records (stage-stamped) the database pass of
-    ``inside_route``, a revisit of it (the experiment's query lane, appearance and occluders) and a pass on
-    ``outside_route``; runs :func:`compare` on each query pass against the same build; a query is *inside*
-    when its true position lies within ``experiment.coverage_m`` of the database path (so branch frames
-    where the branch rejoins the ring are inside). Each method's threshold is picked on its PR curve over
-    all queries by :func:`operating_point`. Writes ``table2.csv`` (method,precision,recall,threshold),
-    ``table2.md``, ``table2.json`` and ``pr_curves.png`` into ``out``; returns the rows."""
+    """Outside-the-map detection (the paper's Table II), calibrated on data disjoint from the test.
+
+    Records (stage-stamped) the database pass of ``inside_route`` and four query passes: for the test a
+    revisit of the ring (the experiment's query lane, appearance and occluders) and a pass on
+    ``outside_route``; for calibration the same two with other seeds and another spacing
+    (``calibration_seeds``, ``calibration_spacing_m``). Runs :func:`compare` on each against the same build; a
+    query is *inside* when its true position lies within ``experiment.coverage_m`` of the database path (so
+    branch frames where the branch rejoins the ring are inside). Each method's threshold is picked on its PR
+    curve over the **calibration** queries (:func:`operating_point`) and frozen; precision and recall are
+    those of the **test** queries at it, with 95 % bootstrap intervals. The oracle (the rule applied to the
+    test queries' own curve) is reported beside it, labelled. Writes ``table2.csv`` (:data:`TABLE2_COLUMNS`),
+    ``table2.md``, ``table2.json`` and ``pr_curves.png`` (the test curves, the frozen operating points) into
+    ``out``; returns the rows."""
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     t2 = from_dict(Table2Config, dict(config or {}), "table2 config")
     e = t2.experiment
     if scene_label(e.scene) != scene_label(t2.scene):
         e = from_dict(ExperimentConfig, dict(to_dict(e), scene=t2.scene), "table2 config: experiment")
-    db, q_in, q_out, rc = _record_table2(t2, out, progress, log)
+    db, passes, rc = _record_table2(t2, out, progress, log)
     bdir, times = build_and_learn(e, t2.scene, db, out / "rec" / "map", out, {"record": rc}, progress, log)
     satmap = SatelliteMap.load(out / "rec" / "map")
-    parts = []
-    for part, q in (("inside", q_in), ("outside", q_out)):
+    res: dict[str, tuple[np.ndarray, dict]] = {}
+    for part, q in passes.items():
         sel = np.arange(len(q))
         inside = np.zeros(len(q), bool)
         inside[covered_queries(db, q, e.coverage_m)] = True
         (out / part).mkdir(exist_ok=True)
-        res = compare(e, e.compare, t2.scene, db, q, sel, bdir, satmap, out / part,
-                      {"scene": t2.scene, "part": part}, times, progress, log, fabmap_dir=out)
-        parts.append((inside, res))
-    inside = np.concatenate([p[0] for p in parts])
+        res[part] = (inside, compare(e, e.compare, t2.scene, db, q, sel, bdir, satmap, out / part,
+                                     {"scene": t2.scene, "part": part}, times, progress, log, fabmap_dir=out))
+
+    def joined(parts, method, key):
+        return np.concatenate([res[p][1][method][key] for p in parts])
+
+    test, calib = ("inside", "outside"), ("calib_inside", "calib_outside")
+    inside_t = np.concatenate([res[p][0] for p in test])
+    inside_c = np.concatenate([res[p][0] for p in calib])
+    calibrated_on = (f"{t2.scene}: calibration passes (seeds {t2.calibration_seeds[0]}, {t2.calibration_seeds[1]}, a "
+                     f"query every {t2.calibration_spacing_m:g} m; {len(inside_c)} queries, {int(inside_c.sum())} "
+                     f"inside)")
     rows, curves = [], {}
-    for method in parts[0][1]:
-        err = np.concatenate([p[1][method]["errors"] for p in parts])
-        sc = np.concatenate([p[1][method]["inlier_score"] for p in parts])
-        op = operating_point(err, sc, inside, t2.rule, t2.min_precision, t2.radius_m)
-        curves[method_name(method)] = op.pop("curve")
-        spq = np.mean([p[1][method]["s_per_query"] for p in parts])
-        rows.append(dict({"method": method_name(method)}, **op, queries=int(len(err)),
-                         inside_queries=int(inside.sum()), s_per_query=float(spq)))
-        log(f"[table2] {method_name(method):22s} precision {op['precision']:.3f} recall {op['recall']:.3f} "
-            f"threshold {op['threshold']:.4g}")
+    for method in res["inside"][1]:
+        err, sc = joined(test, method, "errors"), joined(test, method, "inlier_score")
+        cal = operating_point(joined(calib, method, "errors"), joined(calib, method, "inlier_score"), inside_c,
+                              t2.rule, t2.min_precision, t2.radius_m)
+        cal.pop("curve")
+        pr = precision_recall(err, sc, cal["threshold"], inside_t, t2.radius_m)
+        ci = precision_recall_ci(err, sc, cal["threshold"], inside_t, t2.radius_m)
+        oracle = operating_point(err, sc, inside_t, t2.rule, t2.min_precision, t2.radius_m)
+        curves[method_name(method)] = oracle.pop("curve")
+        spq = np.mean([res[p][1][method]["s_per_query"] for p in test])
+        rows.append({"method": method_name(method), "precision": pr["precision"], "recall": pr["recall"],
+                     "threshold": cal["threshold"], "tp": pr["tp"], "declared": pr["declared"],
+                     "positives": pr["positives"], "rule": t2.rule,
+                     "precision_ci95_low": ci["precision_ci"][0], "precision_ci95_high": ci["precision_ci"][1],
+                     "recall_ci95_low": ci["recall_ci"][0], "recall_ci95_high": ci["recall_ci"][1],
+                     "oracle_precision": oracle["precision"], "oracle_recall": oracle["recall"],
+                     "oracle_threshold": oracle["threshold"], "calibration_precision": cal["precision"],
+                     "calibration_recall": cal["recall"], "calibrated_on": calibrated_on,
+                     "odometry": odometry_label(e, method), "queries": int(len(err)),
+                     "inside_queries": int(inside_t.sum()), "s_per_query": float(spq)})
+        log(f"[table2] {method_name(method):22s} precision {pr['precision']:.3f} recall {pr['recall']:.3f} at the "
+            f"calibrated threshold {cal['threshold']:.4g} (oracle {oracle['precision']:.3f} / {oracle['recall']:.3f})")
     _write_table2(out, rows, curves, t2)
     return rows
+
+
+#: table2.csv's columns: precision and recall of the test queries at the threshold calibrated on
+#: ``calibrated_on``, their 95 % bootstrap intervals, the oracle (the rule on the test queries' own curve) and
+#: the tracked rows' odometry
+TABLE2_COLUMNS = ("method", "precision", "recall", "threshold", "precision_ci95_low", "precision_ci95_high",
+                  "recall_ci95_low", "recall_ci95_high", "oracle_precision", "oracle_recall", "calibrated_on",
+                  "odometry")
 
 
 def _fmt(v: float, f: str = ".3f") -> str:
@@ -296,22 +353,39 @@ def _fmt(v: float, f: str = ".3f") -> str:
 
 
 def _write_table2(out: Path, rows: list[dict], curves: dict, t2: Table2Config) -> None:
+    def cell(v, c):
+        if isinstance(v, str) or v is None:
+            return v or ""
+        return _fmt(v, ".6g" if "threshold" in c else ".3f")
+
     with atomic_path(out / "table2.csv", suffix=".csv") as tmp:
         with open(tmp, "w", newline="") as f:
             w = csv.writer(f)
-            w.writerow(["method", "precision", "recall", "threshold"])
+            w.writerow(TABLE2_COLUMNS)
             for r in rows:
-                w.writerow([r["method"], _fmt(r["precision"]), _fmt(r["recall"]), _fmt(r["threshold"], ".6g")])
+                w.writerow([cell(r.get(c), c) for c in TABLE2_COLUMNS])
     rule = ("maximal F1 = 2PR/(P+R) on the method's PR curve" if t2.rule == "max_f1" else
             f"the highest recall with precision >= {t2.min_precision:.0%}")
-    lines = [f"Queries: {rows[0]['queries']} ({rows[0]['inside_queries']} inside the map) on `{t2.scene}`; a true "
-             f"positive is declared inside and localized within {t2.radius_m:g} m. Threshold rule: {rule}.", "",
-             "| method | precision | recall | threshold | TP / declared / inside | s per query |",
-             "|---|---|---|---|---|---|"]
+
+    def pct(v):
+        return "" if v is None or not np.isfinite(v) else f"{100 * v:.1f} %"
+
+    def ci(r, k):
+        lo, hi = r.get(f"{k}_ci95_low"), r.get(f"{k}_ci95_high")
+        return "" if lo is None or not np.isfinite(lo) else f"{100 * lo:.1f}-{100 * hi:.1f}"
+
+    lines = [f"Test queries: {rows[0]['queries']} ({rows[0]['inside_queries']} inside the map) on `{t2.scene}`; a "
+             f"true positive is declared inside and localized within {t2.radius_m:g} m. Threshold rule: {rule}, "
+             f"applied to the calibration queries ({rows[0].get('calibrated_on', '')}) and frozen. The oracle "
+             f"applies it to the test queries themselves (optimistic; for comparison only).", "",
+             "| method | precision | 95 % CI | recall | 95 % CI | threshold | TP / declared / inside | oracle precision "
+             "| oracle recall | odometry | s per query |",
+             "|---|---|---|---|---|---|---|---|---|---|---|"]
     for r in rows:
-        p = "" if not np.isfinite(r["precision"]) else f"{100 * r['precision']:.1f} %"
-        lines.append(f"| {r['method']} | {p} | {100 * r['recall']:.1f} % | {_fmt(r['threshold'], '.4g')} | "
-                     f"{r['tp']} / {r['declared']} / {r['positives']} | {r['s_per_query']:.3f} |")
+        lines.append(f"| {r['method']} | {pct(r['precision'])} | {ci(r, 'precision')} | {pct(r['recall'])} | "
+                     f"{ci(r, 'recall')} | {_fmt(r['threshold'], '.4g')} | {r['tp']} / {r['declared']} / "
+                     f"{r['positives']} | {pct(r.get('oracle_precision'))} | {pct(r.get('oracle_recall'))} | "
+                     f"{r.get('odometry', '')} | {r['s_per_query']:.3f} |")
     with atomic_path(out / "table2.md", suffix=".md") as tmp:
         tmp.write_text("\n".join(lines) + "\n")
     write_json(out / "table2.json", {"format": "table2", "config": to_dict(t2),
@@ -344,7 +418,8 @@ def plot_pr_curves(curves: dict, rows: list[dict], path: Path) -> None:
         ax.grid(alpha=0.3)
         ax.set_title(title)
     axes[0].legend(fontsize=7, loc="lower left")
-    fig.suptitle("inside/outside the map: precision-recall (dots: chosen thresholds)")
+    fig.suptitle("inside/outside the map: the test queries' precision-recall curves (dots: at the thresholds "
+                 "calibrated on other passes)")
     fig.tight_layout()
     with atomic_path(path, suffix=".png") as tmp:
         fig.savefig(tmp, dpi=120)
@@ -470,7 +545,8 @@ def protocol_split(protocol: str, n: int, fraction: float = 0.4, seed: int = 0, 
 def _protocol(cfg: ExperimentConfig, protocol: str, label: str, sdir: Path, db_full: Sequence, rc: dict,
               progress: bool, log) -> dict:
     """Table I's ``city`` or ``residential`` protocol on the scene folder ``sdir`` (its recorded database pass
-    and its full-rate build), in ``sdir/protocol_<protocol>``; returns :func:`satloc_env.compare.compare`."""
+    and its map), in ``sdir/protocol_<protocol>``: the dictionary and the projections of the protocol's database
+    frames alone; returns :func:`satloc_env.compare.compare`."""
     pdir = sdir / f"protocol_{protocol}"
     pdir.mkdir(exist_ok=True)
     speed = float(rc.get("speed_mps", RecordConfig().speed_mps))
@@ -504,22 +580,23 @@ def _protocol(cfg: ExperimentConfig, protocol: str, label: str, sdir: Path, db_f
         sel = covered_queries(db_full, q, cfg.coverage_m)
         if len(sel) == 0:
             raise ConfigError(f"[{label}] residential protocol: no second-pass frame lies on the database path")
-    # the dictionary of the protocol's database; projections: those learned on the full-rate database pass
-    nofull = from_dict(ExperimentConfig, dict(to_dict(cfg), modes=[m for m in cfg.modes if not m.startswith("full")]
-                                              or ["go"]), "experiment config")
-    bdir, times = build_and_learn(nofull, f"{label} {protocol}", db, sdir / "rec" / "map", pdir, source, progress, log)
-    if any(m.startswith("full") for m in cfg.modes):
-        import shutil
-
-        src = sdir / "build" / "projections.pt"
-        if not (bdir / "projections.pt").is_file() or \
-                (bdir / "projections.pt").read_bytes() != src.read_bytes():
-            shutil.copyfile(src, bdir / "projections.pt")
-            for f in bdir.glob("satellite_table_full*.npz"):
-                f.unlink()
+    # the dictionary of the protocol's database and projections learned on it alone: no learned state has seen
+    # a query (the city protocol's queries are frames of the database pass)
+    bdir, times = build_and_learn(cfg, f"{label} {protocol}", db, sdir / "rec" / "map", pdir, source, progress, log)
     return compare(cfg, cfg.compare, label, db, q, sel, bdir, SatelliteMap.load(sdir / "rec" / "map"), pdir,
                    {"scene": cfg.scene, "protocol": protocol, "config": to_dict(cfg)}, times, progress, log,
                    fabmap_dir=sdir)
+
+
+#: table1.csv's columns (failure_rate: queries not answered, counted as gross failures in the mean; ci95_*: the
+#: bootstrap interval of the mean; odometry: what moved the tracked rows' belief, empty for single images)
+TABLE1_COLUMNS = ("method", "scene", "mean_m", "std_m", "protocol", "ci95_low", "ci95_high", "median_m", "within_1m",
+                  "within_10m", "failure_rate", "queries", "odometry")
+
+
+def odometry_label(cfg: ExperimentConfig, method: str) -> str:
+    """The odometry a table row used: ``cfg.odometry`` for the tracked modes, empty for the rest."""
+    return cfg.odometry if "track" in method.split("+") else ""
 
 
 def table1(out: str | Path, scenes: tuple[str, ...] = ("city", "residential"), config: dict | None = None,
@@ -548,15 +625,16 @@ def table1(out: str | Path, scenes: tuple[str, ...] = ("city", "residential"), c
         for protocol, res in results.items():
             for method, m in res.items():
                 rows.append({"method": method_name(method), "scene": label, "protocol": protocol,
-                             "mean_m": round(m["mean_m"], 3), "std_m": round(m["std_m"], 3),
-                             "median_m": round(m["median_m"], 3), "within_1m": round(m["within_1m"], 3),
-                             "queries": m["queries"], "s_per_query": round(m["s_per_query"], 4)})
+                             **{k: round(m[k], 3) for k in ("mean_m", "std_m", "median_m", "within_1m",
+                                                            "within_10m", "failure_rate", "ci95_low", "ci95_high")},
+                             "queries": m["queries"], "s_per_query": round(m["s_per_query"], 4),
+                             "odometry": odometry_label(cfg, method)})
     with atomic_path(out / "table1.csv", suffix=".csv") as tmp:
         with open(tmp, "w", newline="") as f:
             w = csv.writer(f)
-            w.writerow(["method", "scene", "mean_m", "std_m", "protocol"])
+            w.writerow(TABLE1_COLUMNS)
             for r in rows:
-                w.writerow([r["method"], r["scene"], f"{r['mean_m']:.3f}", f"{r['std_m']:.3f}", r["protocol"]])
+                w.writerow([f"{r[c]:.3f}" if isinstance(r[c], float) else r[c] for c in TABLE1_COLUMNS])
     write_json(out / "table1.json", {"format": "table1", "rows": rows})
     with atomic_path(out / "table1.md", suffix=".md") as tmp:
         tmp.write_text(markdown_table(rows))

@@ -6,8 +6,10 @@ queries with the ablations GO, NP and full (single images, refined by bird's-eye
 over the query sequence with simulated odometry), and writes per-mode results and pictures. :func:`table1` runs
 every method (the modes and the baselines FAB-MAP and EFM, :mod:`satloc_env.compare`) on several scenes under
 the protocols ``revisit`` (the above), ``city`` (a seeded random 40 % of the database pass is the database, the
-rest the queries) and ``residential`` (the database pass and a second pass, both at one frame per second; the
-projections learned on the full-rate pass) and writes ``table1.csv`` (``method,scene,mean_m,std_m,protocol``).
+rest the queries) and ``residential`` (the database pass and a second pass, both at one frame per second), each
+protocol's dictionary and projections learned on its own database frames only, and writes ``table1.csv``
+(:data:`satloc_env.compare.TABLE1_COLUMNS`). Every table row follows one rule (:func:`table_stats`): a query
+a method does not answer is a gross failure, counted with the worst answer on the map.
 ``satloc demo`` and ``satloc experiment table1`` call these. :func:`aliasing` (``satloc experiment aliasing``) measures, on the same
 folders, how often each single-image cue scores a place more than 10 m away above the truth.
 
@@ -37,6 +39,7 @@ from satloc.persist import atomic_path, read_json, write_json
 from satloc.pipeline import BuildConfig, build, load_localizer, localize, train_projection
 from satloc.projection import ProjectionConfig
 from satloc.satmap import SatelliteMap
+from satloc.metrics import bootstrap_ci, error_stats, worst_case_errors
 from satloc.sequence import Sequence
 from satloc.track import noisy_odometry
 
@@ -92,6 +95,9 @@ class CompareConfig:
 
 
 PROTOCOLS = ("revisit", "city", "residential")
+#: odometry sources of the tracked modes: noisy_truth, the true motion between queries plus noise
+#: (satloc.track.noisy_odometry)
+ODOMETRY = ("noisy_truth",)
 
 
 @dataclass
@@ -110,7 +116,8 @@ class ExperimentConfig:
     projection: ProjectionConfig = field(default_factory=ProjectionConfig)
     localizer: dict = field(default_factory=dict)   # LocalizerConfig fields other than mode
     modes: tuple[str, ...] = MODES
-    odometry_noise: tuple[float, float] = (0.02, 0.01)  # tracked modes: simulated odometry between queries, std
+    odometry: str = "noisy_truth"           # tracked modes: what moves the belief between queries (ODOMETRY)
+    odometry_noise: tuple[float, float] = (0.02, 0.01)  # noisy_truth: simulated odometry between queries, std
                                                         # (fraction of the distance, radians)
     odometry_seed: int = 0
     # table1: the protocols (revisit: the query pass above; city: a seeded random ``city_database_fraction`` of
@@ -134,6 +141,21 @@ class ExperimentConfig:
         bad = [m for m in self.modes if m not in METHOD_NAMES]
         if bad:
             raise ConfigError(f"modes: unknown {bad}; expected a subset of {list(METHOD_NAMES)}")
+        if self.odometry not in ODOMETRY:
+            raise ConfigError(f"odometry: expected one of {list(ODOMETRY)}, got {self.odometry!r}")
+
+
+def table_stats(errors, truth, db_poses, seed: int = 0) -> dict:
+    """The error columns of every table row, one rule for every method (:mod:`satloc.metrics`): a query not
+    answered is a gross failure, counted with the worst answer on the map (the farthest database pose from its
+    truth); ``mean_m, std_m, median_m, within_1m, within_10m`` (error <= 1 m, 10 m), ``failure_rate`` and the
+    95 % bootstrap interval of the mean (``ci95_low, ci95_high``, over the queries, seeded)."""
+    e = np.asarray(errors, np.float64)
+    gross = worst_case_errors(np.asarray(truth, np.float64)[:, :2], np.asarray(db_poses, np.float64)[:, :2])
+    st = error_stats(e, gross)
+    lo, hi = bootstrap_ci(np.where(np.isfinite(e), e, gross), seed=seed)
+    return {"mean_m": st["mean"], "std_m": st["std"], "median_m": st["median"], "within_1m": st["within_1m"],
+            "within_10m": st["within_10m"], "failure_rate": st["failure_rate"], "ci95_low": lo, "ci95_high": hi}
 
 
 def _stage_done(path: Path, config: dict) -> bool:
@@ -269,8 +291,7 @@ def localize_and_report(cfg, label: str, db: Sequence, q: Sequence, sel: np.ndar
         s = localize(bdir, q, lc, out, progress, localizer=loc, select=sel, odometry=odo,
                      on_result=kept.__setitem__)
         err = s.pop("errors")
-        s.update(localizer_init_s=round(t_init, 2), within_1m=float(np.mean(err < 1.0)),
-                 within_10m=float(np.mean(err < 10.0)))
+        s.update(localizer_init_s=round(t_init, 2), **table_stats(err, q.poses[sel], db.poses))
         results[mode] = s
         log(f"[{label}] {METHOD_NAMES[mode]:9s} mean {s['mean_m']:.2f} m (std {s['std_m']:.2f}), median "
             f"{s['median_m']:.2f} m, {100 * s['within_1m']:.0f} % within 1 m, {s['queries_per_s']:.1f} queries/s "
@@ -435,7 +456,8 @@ def aliasing(out: str | Path, scenes: tuple[str, ...] = ("city", "residential"),
 
 def markdown_table(rows: list[dict]) -> str:
     """Table I as Markdown: one table per protocol (rows without ``protocol``: one table), a column group per
-    scene: mean (std), median, within 1 m and seconds per query."""
+    scene: mean (std), the 95 % bootstrap interval of the mean, median, within 1 m, the failure rate and
+    seconds per query; then the odometry of the tracked rows."""
     out = []
     for protocol in dict.fromkeys(r.get("protocol") for r in rows):
         part = [r for r in rows if r.get("protocol") == protocol]
@@ -444,17 +466,23 @@ def markdown_table(rows: list[dict]) -> str:
         cell = {(r["method"], r["scene"]): r for r in part}
         if protocol is not None:
             out.append(f"Protocol **{protocol}**:\n")
-        lines = ["| method | " + " | ".join(f"{s}: mean (std) m | {s}: median m | {s}: within 1 m | {s}: s per query"
-                                           for s in scenes) + " |",
-                 "|---|" + "---|---|---|---|" * len(scenes)]
+        lines = ["| method | " + " | ".join(f"{s}: mean (std) m | {s}: 95 % CI of the mean | {s}: median m | "
+                                           f"{s}: within 1 m | {s}: failed | {s}: s per query" for s in scenes)
+                 + " | odometry |", "|---|" + "---|---|---|---|---|---|" * len(scenes) + "---|"]
         for m in methods:
             parts = []
+            odo = ""
             for s in scenes:
                 r = cell.get((m, s))
-                spq = r.get("s_per_query") if r else None
-                parts += ([f"{r['mean_m']:.2f} ({r['std_m']:.2f})", f"{r['median_m']:.2f}",
-                           f"{100 * r['within_1m']:.0f} %", "" if spq is None else f"{spq:.3f}"]
-                          if r else ["", "", "", ""])
-            lines.append(f"| {m} | " + " | ".join(parts) + " |")
+                if not r:
+                    parts += [""] * 6
+                    continue
+                spq, lo, fr = r.get("s_per_query"), r.get("ci95_low"), r.get("failure_rate")
+                parts += [f"{r['mean_m']:.2f} ({r['std_m']:.2f})",
+                          "" if lo is None else f"{lo:.2f}-{r['ci95_high']:.2f}", f"{r['median_m']:.2f}",
+                          f"{100 * r['within_1m']:.0f} %", "" if fr is None else f"{100 * fr:.0f} %",
+                          "" if spq is None else f"{spq:.3f}"]
+                odo = odo or r.get("odometry", "")
+            lines.append(f"| {m} | " + " | ".join(parts) + f" | {odo} |")
         out.append("\n".join(lines) + "\n")
     return "\n".join(out)

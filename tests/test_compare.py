@@ -54,9 +54,10 @@ def test_table2_files_and_headers(tmp_path):
     rows = [dict({"method": "A"}, **op, queries=3, inside_queries=2, s_per_query=0.1)]
     _write_table2(tmp_path, rows, {"A": curve}, Table2Config())
     lines = (tmp_path / "table2.csv").read_text().splitlines()
-    assert lines[0] == "method,precision,recall,threshold"
-    assert lines[1] == "A,1.000,0.500,3"
-    assert "| A | 100.0 % | 50.0 % |" in (tmp_path / "table2.md").read_text()
+    assert lines[0] == ("method,precision,recall,threshold,precision_ci95_low,precision_ci95_high,recall_ci95_low,"
+                        "recall_ci95_high,oracle_precision,oracle_recall,calibrated_on,odometry")
+    assert lines[1] == "A,1.000,0.500,3,,,,,,,,"
+    assert "| A | 100.0 % |  | 50.0 % |" in (tmp_path / "table2.md").read_text()
     assert (tmp_path / "pr_curves.png").stat().st_size > 5000
 
 
@@ -95,7 +96,7 @@ def test_table1_protocols_on_a_tiny_section(tmp_path):
              "modes": ["go", "np"], "compare": TINY_BASELINES, "pictures": False}
     rows = table1(tmp_path, ("city",), small, progress=False, log=lambda m: None)
     lines = (tmp_path / "table1.csv").read_text().splitlines()
-    assert lines[0] == "method,scene,mean_m,std_m,protocol"
+    assert lines[0] == "method,scene,mean_m,std_m,protocol,ci95_low,ci95_high,median_m,within_1m,within_10m,failure_rate,queries,odometry"
     assert [(r["protocol"], r["method"]) for r in rows] == [(p, m) for p in ("revisit", "city", "residential")
                                                            for m in ("Ours-GO", "Ours-NP", "FAB-MAP", "FAB-MAP + seq", "EFM")]
     assert all(np.isfinite(r["mean_m"]) and r["s_per_query"] > 0 for r in rows)
@@ -132,3 +133,48 @@ def test_sweep_config_and_figure(tmp_path):
             for a in (0.0, 1.0) for o in (0.0, 0.6) for m, e, r in (("Ours-full", 0.5, 1.0), ("EFM", 3.0, 0.8))]
     plot_sweep(rows, tmp_path / "sweep.png")
     assert (tmp_path / "sweep.png").stat().st_size > 5000
+
+
+def test_table2_calibrates_on_other_passes_and_reports_the_test(tmp_path):
+    """table2() end to end on a tiny configuration of loop: the thresholds come from the calibration passes
+    (other seeds and spacing), the test figures are computed at them, with intervals, beside the oracle."""
+    from satloc.metrics import precision_recall
+    from satloc_env.compare import TABLE2_COLUMNS, table2
+
+    exp = {"database_frames": 30, "query_frames": 4, "query_spacing_m": 6.0, "features": "rgb",
+           "modes": ["go", "go+track"], "compare": dict(TINY_BASELINES, baselines=["efm"]), "pictures": False}
+    cfg = {"experiment": exp, "outside_frames": 4, "calibration_spacing_m": 4.0}
+    rows = table2(tmp_path, cfg, progress=False, log=lambda m: None)
+    assert [r["method"] for r in rows] == ["Ours-GO", "Ours-GO + track", "EFM"]
+    lines = (tmp_path / "table2.csv").read_text().splitlines()
+    assert lines[0] == ",".join(TABLE2_COLUMNS) and len(lines) == 4
+    comp = {p: json.loads((tmp_path / p / "compare.json").read_text())
+            for p in ("inside", "outside", "calib_inside", "calib_outside")}
+    # the calibration passes are other frames at other places: other seeds and a 4 m spacing against 6 m
+    q = {p: Sequence.load(tmp_path / "rec" / ("query" if p == "inside" else p)) for p in comp}
+    assert len(q["calib_inside"]) == len(q["inside"]) == 4
+    assert np.abs(q["calib_inside"].poses[1:, :2] - q["inside"].poses[1:, :2]).max() > 1.0
+    assert q["calib_outside"].meta["pass_config"]["seed"] == 4 and q["outside"].meta["pass_config"]["seed"] == 2
+    for r in rows:
+        assert "seeds 3, 4" in r["calibrated_on"] and r["queries"] == 8
+        # the precision and recall are the test queries' at the calibrated threshold, recomputed here
+        key = {"Ours-GO": "go", "Ours-GO + track": "go+track", "EFM": "efm"}[r["method"]]
+        err = np.concatenate([np.load(tmp_path / p / (f"localization_{key}.npz" if key != "efm" else
+                                                       "baseline_efm.npz"))["errors"] for p in ("inside", "outside")])
+        sc = np.concatenate([np.load(tmp_path / p / (f"localization_{key}.npz" if key != "efm" else
+                                                      "baseline_efm.npz"))["inlier_score"] for p in ("inside", "outside")])
+        inside = np.zeros(8, bool)
+        from satloc_env.experiment import covered_queries
+        db = Sequence.load(tmp_path / "rec" / "database")
+        inside[covered_queries(db, q["inside"], 5.0)] = True
+        inside[4 + covered_queries(db, q["outside"], 5.0)] = True
+        sc = np.where(np.isfinite(err), sc, np.nan)
+        pr = precision_recall(err, sc, r["threshold"], inside)
+        assert pr["tp"] == r["tp"] and pr["declared"] == r["declared"]
+        assert r["odometry"] == ("noisy_truth" if "track" in r["method"] else "")
+        if np.isfinite(r["recall"]):
+            assert r["recall_ci95_low"] <= r["recall"] <= r["recall_ci95_high"]
+    md = (tmp_path / "table2.md").read_text()
+    assert "calibration queries" in md and "oracle" in md
+    with pytest.raises(ConfigError, match="calibration_seeds"):
+        Table2Config(calibration_seeds=(1, 5))

@@ -5,7 +5,8 @@ import numpy as np
 import pytest
 
 from satloc import ConfigError
-from satloc.metrics import PRCurve, error_stats, pr_curve, precision_recall, select_threshold
+from satloc.metrics import (PRCurve, bootstrap_ci, error_stats, pr_curve, precision_recall, precision_recall_ci,
+                            select_threshold, worst_case_errors)
 
 
 def test_error_stats_by_hand():
@@ -34,6 +35,56 @@ def test_error_stats_edge_cases():
         error_stats([1.0, -0.5])
     with pytest.raises(ConfigError, match="errors"):
         error_stats(["a", "b"])
+
+
+def test_a_failed_query_counts_as_a_gross_failure():
+    # the same five queries; the failed one counts with its worst-case error, 100 m
+    s = error_stats([0.5, 1.0, 3.0, 20.0, float("nan")], gross_m=[7.0, 7.0, 7.0, 7.0, 100.0])
+    assert s["failed"] == 1 and s["failure_rate"] == pytest.approx(0.2)
+    assert s["mean"] == pytest.approx((0.5 + 1.0 + 3.0 + 20.0 + 100.0) / 5)
+    assert s["median"] == 3.0 and s["max"] == 100.0
+    assert s["within_1m"] == pytest.approx(2 / 5) and s["within_10m"] == pytest.approx(3 / 5)   # a miss still
+    assert error_stats([2.0, float("nan")], gross_m=50.0)["mean"] == pytest.approx(26.0)       # a scalar
+    with pytest.raises(ConfigError, match="gross_m"):
+        error_stats([2.0, float("nan")], gross_m=[1.0, float("nan")])
+
+
+def test_worst_case_errors_are_the_farthest_place():
+    places = np.array([[0.0, 0.0], [10.0, 0.0], [10.0, 10.0], [0.0, 10.0], [5.0, 5.0], [2.0, 3.0]])
+    truth = np.array([[0.0, 0.0], [5.0, 5.0], [20.0, 0.0]])
+    brute = np.sqrt(((truth[:, None] - places[None]) ** 2).sum(-1)).max(1)
+    np.testing.assert_allclose(worst_case_errors(truth, places), brute)
+    line = np.array([[0.0, 0.0], [1.0, 0.0], [2.0, 0.0], [3.0, 0.0], [4.0, 0.0]])   # collinear: no hull
+    np.testing.assert_allclose(worst_case_errors([[0.0, 1.0]], line), [math.hypot(4, 1)])
+
+
+def test_bootstrap_intervals():
+    rng = np.random.default_rng(3)
+    x = rng.normal(10.0, 2.0, 400)
+    lo, hi = bootstrap_ci(x, seed=1)
+    # the normal-theory interval of the mean: mean +- 1.96 s / sqrt(n)
+    half = 1.96 * x.std() / math.sqrt(len(x))
+    assert lo == pytest.approx(x.mean() - half, abs=0.05) and hi == pytest.approx(x.mean() + half, abs=0.05)
+    assert bootstrap_ci(x, seed=1) == (lo, hi)                                  # seeded
+    assert bootstrap_ci([5.0, 5.0, 5.0]) == (5.0, 5.0)
+    assert all(math.isnan(v) for v in bootstrap_ci([]))
+    lo_m, hi_m = bootstrap_ci(x, np.median)
+    assert lo_m < np.median(x) < hi_m
+    with pytest.raises(ConfigError, match="level"):
+        bootstrap_ci(x, level=1.5)
+
+
+def test_precision_recall_intervals_contain_the_estimate():
+    rng = np.random.default_rng(0)
+    n = 300
+    inside = rng.random(n) < 0.7
+    err = np.where(rng.random(n) < 0.8, 1.0, 50.0)
+    score = np.where(inside, rng.normal(1.0, 0.5, n), rng.normal(0.0, 0.5, n))
+    pr = precision_recall(err, score, 0.5, inside)
+    ci = precision_recall_ci(err, score, 0.5, inside, seed=2)
+    assert ci["precision_ci"][0] < pr["precision"] < ci["precision_ci"][1]
+    assert ci["recall_ci"][0] < pr["recall"] < ci["recall_ci"][1]
+    assert 0.02 < ci["recall_ci"][1] - ci["recall_ci"][0] < 0.2     # about 2 x 1.96 x sqrt(r(1-r)/n)
 
 
 # six queries: four taken inside the map, two outside
