@@ -105,17 +105,27 @@ def load_map(path: str | os.PathLike, mpp: float | None = None, frame: GeoFrame 
     dst_transform = Affine(mpp, 0.0, x0, 0.0, -mpp, y1)
     samples, src_transform = src.read_for(_src_window(src, frame_crs, (x0, y0, x1, y1), mpp / src_gsd))
     src_rgb, record = to_rgb8(samples, radiometry, src.where)
+    src_valid = np.full(src_rgb.shape[1:], 255, np.uint8)       # where the source holds imagery
+    if samples.valid is not None:
+        src_valid[~samples.valid] = 0
+    if samples.alpha is not None:
+        src_valid[samples.alpha == 0] = 0
     del samples
     out = np.zeros((3, height, width), np.uint8)
+    valid = np.zeros((height, width), np.uint8)                 # beyond the source's footprint: no imagery
     resampling = Resampling.average if mpp > _AVERAGE_ABOVE * src_gsd else Resampling.bilinear
     try:
         reproject(src_rgb, out, src_transform=src_transform, src_crs=src.crs, src_nodata=None,
                   dst_transform=dst_transform, dst_crs=frame_crs, dst_nodata=None, resampling=resampling,
                   num_threads=1)
+        reproject(src_valid, valid, src_transform=src_transform, src_crs=src.crs, src_nodata=None,
+                  dst_transform=dst_transform, dst_crs=frame_crs, dst_nodata=None, resampling=Resampling.nearest,
+                  num_threads=1)
     except _gdal_error() as e:
         raise FormatError(f"{src.where}: could not be reprojected ({str(e)[:200]})") from e
+    ok = valid > 0
     return SatelliteMap(np.ascontiguousarray(out.transpose(1, 2, 0)), float(mpp), (x0, y1), None, frame,
-                        radiometry=record)
+                        radiometry=record, valid=None if ok.all() else ok)
 
 
 def map_bounds(path: str | os.PathLike, mpp: float | None = None, frame: GeoFrame | None = None, crs=None,

@@ -37,6 +37,9 @@ class SatelliteMap:
     labels: np.ndarray | None = field(default=None, repr=False)  # optional (H, W) uint8 semantic classes
     frame: GeoFrame | None = None  # where the map plane lies on Earth; None: a synthetic local frame
     radiometry: dict | None = field(default=None, repr=False, compare=False)  # how imagery became 8-bit RGB
+    # (H, W) bool: the pixels that hold imagery (False: nodata, masked, transparent or beyond the image's
+    # footprint, black in ``image``); None: every pixel. Set by satloc.georef.load_map; not saved.
+    valid: np.ndarray | None = field(default=None, repr=False, compare=False)
 
     def __post_init__(self):
         img = np.asarray(self.image)
@@ -48,6 +51,9 @@ class SatelliteMap:
             raise ConfigError(f"SatelliteMap.labels: expected shape {img.shape[:2]}, got {self.labels.shape}")
         if self.frame is not None and not isinstance(self.frame, GeoFrame):
             raise ConfigError(f"SatelliteMap.frame: expected a GeoFrame or None, got {type(self.frame).__name__}")
+        if self.valid is not None and (np.shape(self.valid) != img.shape[:2] or np.asarray(self.valid).dtype != bool):
+            raise ConfigError(f"SatelliteMap.valid: expected an {img.shape[:2]} bool mask, got "
+                              f"{np.asarray(self.valid).dtype} {np.shape(self.valid)}")
         if self.radiometry is not None and not isinstance(self.radiometry, dict):
             raise ConfigError(f"SatelliteMap.radiometry: expected a dict or None, got {type(self.radiometry).__name__}")
         self.origin = (float(self.origin[0]), float(self.origin[1]))

@@ -134,6 +134,17 @@ def test_nodata_is_masked_and_left_out_of_the_stretch(tmp_path, ground):
     cols = np.arange(5, rgb.shape[1] - 5, 7)
     assert _at_source_px(sm, tr, cols, np.full(cols.shape, 17)).max() == 0
     assert _at_source_px(sm, tr, cols, np.full(cols.shape, 24)).min() > 0
+    # the map says which pixels hold imagery: not the nodata rows; the valid zeros do
+    import pyproj
+
+    def valid_at(rows):
+        x, y = tr.a * (cols + 0.5) + tr.c, tr.e * (np.full(cols.shape, rows) + 0.5) + tr.f
+        lon, lat = pyproj.Transformer.from_crs(UTM, "EPSG:4326", always_xy=True).transform(x, y)
+        uv = np.round(sm.lonlat_to_pixel(np.stack([lon, lat], -1))).astype(int)
+        return sm.valid[uv[:, 1], uv[:, 0]]
+
+    assert sm.valid is not None and not valid_at(17).any() and valid_at(24).all() and valid_at(rgb.shape[0] - 5).all()
+    assert 0.8 < sm.valid.mean() < 0.95
 
 
 def test_internal_mask(tmp_path, ground):
