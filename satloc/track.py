@@ -102,12 +102,23 @@ def compose_motion(first: np.ndarray, then: np.ndarray) -> np.ndarray:
     return np.array([p.x, p.y, p.yaw])
 
 
-def noisy_odometry(poses: np.ndarray, noise: tuple[float, float], seed: int = 0) -> np.ndarray:
+def noisy_odometry(poses: np.ndarray, noise: tuple[float, float], seed: int = 0, *, scale_error: float = 0.0,
+                   yaw_bias: float = 0.0) -> np.ndarray:
     """(N, 3) simulated odometry between consecutive ``poses`` (N, 3): the true relative motion plus Gaussian
     noise of std ``noise[0]`` times the distance (each axis) and ``noise[1]`` radians (heading), the
-    environment's odometry model. Row 0 (no previous pose) and rows next to a pose with NaN are NaN."""
+    environment's odometry model. Row 0 (no previous pose) and rows next to a pose with NaN are NaN.
+
+    Wheel odometry also errs systematically, so its dead reckoning drifts rather than wanders:
+    ``scale_error`` multiplies every translation by ``1 + scale_error`` (a wheel radius off by that fraction:
+    0.02 reports 102 m for 100 m driven), and ``yaw_bias`` adds that many radians per metre driven to each
+    heading change (unequal wheel radii: the path curls by ``yaw_bias`` rad a metre, e.g. 1e-3 rad/m is
+    5.7 degrees per 100 m). Both are applied to the true motion before the noise (whose std still follows the
+    true distance); at 0 the output is exactly that without them, draw for draw."""
     if len(noise) != 2 or min(noise) < 0:
         raise ConfigError(f"odometry noise: expected 2 non-negative numbers (fraction, radians), got {noise}")
+    if not (math.isfinite(scale_error) and scale_error > -1 and math.isfinite(yaw_bias)):
+        raise ConfigError(f"odometry bias: expected scale_error > -1 and a finite yaw_bias (rad/m), got "
+                          f"{scale_error}, {yaw_bias}")
     poses = np.asarray(poses, np.float64)
     out = np.full((len(poses), 3), np.nan)
     rng = np.random.default_rng(seed)
@@ -116,6 +127,8 @@ def noisy_odometry(poses: np.ndarray, noise: tuple[float, float], seed: int = 0)
         if np.all(np.isfinite(poses[i - 1])) and np.all(np.isfinite(poses[i])):
             m = relative_motion(Pose2(*poses[i - 1]), Pose2(*poses[i]))
             dist = math.hypot(m[0], m[1])
+            if scale_error or yaw_bias:
+                m = m + np.array([scale_error * m[0], scale_error * m[1], yaw_bias * dist])
             out[i] = m + z * np.array([noise[0] * dist, noise[0] * dist, noise[1]])
     return out
 

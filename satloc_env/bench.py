@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import os
 import resource
+from pathlib import Path
 from typing import Iterator
 
 import numpy as np
@@ -132,3 +133,93 @@ def bench_soak(steps: int = 20000, queries: int = 2000, scene: str = "city", emi
     from .soak import SoakConfig, soak
 
     return soak(SoakConfig(steps=steps, queries=queries, scene=scene, **kw), emit=emit)
+
+
+#: the real KITTI excerpt beside the repository (../shared/realdata, see its README): non-commercial, read in place
+KITTI_EXCERPT = (Path(__file__).resolve().parents[2] / "shared" / "realdata" / "kitti_raw_2011_09_26_drive_0023_7frames"
+                 / "2011_09_26" / "2011_09_26_drive_0023_sync")
+
+
+def _timed_vo(seq, config) -> tuple[np.ndarray, float]:
+    """Visual odometry of ``seq`` (frames already in memory) and its wall time per frame in ms."""
+    from satloc.vo import visual_odometry
+
+    t0 = time.perf_counter()
+    odo = visual_odometry(seq, config)
+    return odo, round(1000 * (time.perf_counter() - t0) / len(seq), 1)
+
+
+def bench_vo(scene: str = "residential", frames: int = 250, work=None, kitti=None, progress: bool = True,
+             config=None) -> "Iterator[dict]":
+    """Stereo visual odometry (:mod:`satloc.vo`) drift and speed, one JSON-able row per measurement.
+
+    Simulator: a drive of ``frames`` frames, one per simulator step (0.8 m at the recorder's 8 m/s), on the
+    database route of ``scene`` in the right lane, recorded into ``work`` (reused when present; default a temp
+    dir); VO from stereo against the true poses, and with the frames' true depth for comparison
+    (``depth_source: frame``). Real data: the KITTI excerpt ``kitti`` (default :data:`KITTI_EXCERPT`; a
+    ``skipped`` row when it is absent): VO at full and half resolution against the OXTS poses and against the
+    OXTS-integrated odometry (:func:`satloc.datasets.kitti.oxts_odometry`), which is itself measured against the
+    poses on both clocks. Drift figures are :func:`satloc.vo.odometry_drift`'s (translation error as % of the
+    distance, heading drift in degrees per 100 m; ``segments`` over 50 and 100 m windows where the drive is that
+    long). ``ms_per_frame``: VO wall time on frames in memory (stereo depth included: ``stereo_ms_per_frame``)."""
+    import dataclasses
+    import tempfile
+
+    from satloc.sequence import Sequence
+    from satloc.stereo import StereoDepth
+    from satloc.vo import VOConfig, integrate_odometry, odometry_drift
+
+    from .record import PassConfig, make_env, record_pass
+
+    config = config or VOConfig()
+    work = Path(work) if work else Path(tempfile.mkdtemp(prefix="satloc_bench_vo_"))
+    drive_dir = work / f"{Path(scene).stem}_{frames}"
+    t0 = time.perf_counter()
+    if not (drive_dir / "sequence.json").is_file():
+        env = make_env(scene=scene, localizer=None, depth=True)
+        try:
+            env.reset(seed=0)
+            record_pass(env, PassConfig(spacing_m=0.0, max_frames=frames), env.unwrapped.scene.spec.database_route,
+                        drive_dir, "vo", progress, {"source": "satloc_env", "scene": env.unwrapped.scene.name})
+        finally:
+            env.close()
+    loaded = Sequence.load(drive_dir)
+    seq = Sequence(loaded.camera, list(loaded), loaded.name, loaded.meta)   # in memory: timings without reading
+    record_s = round(time.perf_counter() - t0, 1)
+    stereo = StereoDepth(seq.camera, config.stereo)
+    t1 = time.perf_counter()
+    for f in seq:
+        stereo(f.left, f.right)
+    stereo_ms = round(1000 * (time.perf_counter() - t1) / len(seq), 1)
+    # the frames' true depth for comparison; its flat ground spans 0.65 px of disparity over 3x3 (VOConfig)
+    for source, edge in (("stereo", config.depth_edge_px), ("frame", max(config.depth_edge_px, 1.0))):
+        odo, ms = _timed_vo(seq, dataclasses.replace(config, depth_source=source, depth_edge_px=edge))
+        yield {"bench": "vo", "data": "sim", "scene": scene, "depth_source": source, "depth_edge_px": edge,
+               "width": seq.camera.width, "height": seq.camera.height,
+               **odometry_drift(odo, seq.poses, (50.0, 100.0)), "ms_per_frame": ms,
+               "stereo_ms_per_frame": stereo_ms, "record_or_load_s": record_s,
+               "load_avg_1m": round(os.getloadavg()[0], 2)}
+
+    kitti = Path(kitti) if kitti else KITTI_EXCERPT
+    if not kitti.is_dir():
+        yield {"bench": "vo", "data": "kitti",
+               "skipped": f"no KITTI drive at {kitti} (see ../shared/realdata/README.md)"}
+        return
+    from satloc.datasets.kitti import load_kitti, oxts_odometry
+
+    drive = load_kitti(kitti)
+    poses = drive.poses
+    oxts = {clock: oxts_odometry(drive, clock) for clock in ("image", "oxts")}
+    oxts_poses = integrate_odometry(oxts["image"], poses[0])
+    for clock, odo in oxts.items():
+        yield {"bench": "vo", "data": "kitti_oxts", "drive": drive.name, "clock": clock,
+               **odometry_drift(odo, poses, ())}
+    cam = drive.camera
+    for resolution, camera in (("full", cam), ("half", cam.resized(cam.width // 2, (cam.height + 1) // 2, 0.5))):
+        view = drive.view(camera=camera)
+        frames_kitti = Sequence(camera, list(view), view.name, view.meta)
+        odo, ms = _timed_vo(frames_kitti, config)
+        yield {"bench": "vo", "data": "kitti", "drive": drive.name, "resolution": resolution, "width": camera.width,
+               "height": camera.height, "vs_poses": odometry_drift(odo, poses, ()),
+               "vs_oxts": odometry_drift(odo, oxts_poses, ()), "ms_per_frame": ms,
+               "load_avg_1m": round(os.getloadavg()[0], 2)}

@@ -174,6 +174,12 @@ def cmd_bench(args) -> int:
         from satloc_env.bench import bench_env
 
         print(json.dumps(bench_env(args.resolution, args.steps, args.scene or "city")))
+    elif args.what == "vo":
+        from satloc_env.bench import bench_vo
+
+        for row in bench_vo(args.scene or "residential", args.frames, args.work or None, args.kitti or None,
+                            progress=not args.quiet):
+            print(json.dumps(row), flush=True)
     else:
         from satloc_env.bench import bench_localize
 
@@ -324,13 +330,15 @@ def build_parser() -> argparse.ArgumentParser:
     r.set_defaults(func=cmd_record)
 
     b = sub.add_parser("bench", help="print benchmark figures as JSON lines")
-    b.add_argument("what", choices=["env", "localize"])
+    b.add_argument("what", choices=["env", "localize", "vo"])
     b.add_argument("--resolution", choices=["half", "full"], default="half")
     b.add_argument("--steps", type=int, default=2000)
-    b.add_argument("--scene", default=None, help="env: city; localize: loop (the longest route)")
+    b.add_argument("--scene", default=None, help="env: city; localize: loop (the longest route); vo: residential")
     b.add_argument("--sizes-km", type=float, nargs="+", default=[0.25, 1.0, 4.0], help="localize: database sizes")
     b.add_argument("--queries", type=int, default=40, help="localize: queries timed per size")
-    b.add_argument("--work", help="localize: folder for recordings and builds (reused; default: a temp dir)")
+    b.add_argument("--frames", type=int, default=250, help="vo: frames of the simulated drive (one per simulator step, 0.8 m at 8 m/s)")
+    b.add_argument("--kitti", help="vo: a KITTI raw drive folder (default: the excerpt in ../shared/realdata)")
+    b.add_argument("--work", help="localize, vo: folder for recordings and builds (reused; default: a temp dir)")
     b.add_argument("--device", default="auto", help=f"localize: {DEVICE_HELP}")
     b.add_argument("--quiet", action="store_true")
     b.set_defaults(func=cmd_bench)
