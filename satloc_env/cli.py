@@ -336,7 +336,8 @@ def build_parser() -> argparse.ArgumentParser:
     b.add_argument("--scene", default=None, help="env: city; localize: loop (the longest route); vo: residential")
     b.add_argument("--sizes-km", type=float, nargs="+", default=[0.25, 1.0, 4.0], help="localize: database sizes")
     b.add_argument("--queries", type=int, default=40, help="localize: queries timed per size")
-    b.add_argument("--frames", type=int, default=250, help="vo: frames of the simulated drive (one per simulator step, 0.8 m at 8 m/s)")
+    b.add_argument("--frames", type=int, default=250,
+                   help="vo: frames of the simulated drive (one per simulator step, 0.8 m at 8 m/s)")
     b.add_argument("--kitti", help="vo: a KITTI raw drive folder (default: the excerpt in ../shared/realdata)")
     b.add_argument("--work", help="localize, vo: folder for recordings and builds (reused; default: a temp dir)")
     b.add_argument("--device", default="auto", help=f"localize: {DEVICE_HELP}")
