@@ -335,7 +335,11 @@ class Localizer:
                 motion = next(odo, _END)
                 if motion is _END:
                     raise ConfigError("localize_stream: the odometry ran out before the frames")
-                tracker.predict(motion)
+                m = np.asarray(motion, np.float64).ravel()
+                if m.shape == (3,) and np.all(np.isfinite(m)):
+                    tracker.predict(m)
+                else:
+                    tracker.reset()   # moved by an unknown amount (e.g. visual odometry lost): a new belief
             if not isinstance(obs, ConfigError):
                 try:
                     with single_threaded_blas():  # only this thread sets the (process-wide) limit

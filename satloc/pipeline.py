@@ -171,8 +171,9 @@ def localize(build_dir: str | Path, queries: str | Path, config: LocalizerConfig
     estimates, errors, inlier decisions and the top of each posterior.
 
     With ``config.track`` the frames are tracked (:mod:`satloc.track`) and ``odometry`` (N, 3) gives, for each
-    localized frame, the motion since the previous localized one (row 0 is not used); e.g.
-    :func:`satloc.track.noisy_odometry` of the frames' poses simulates it. ``on_result(i, localization)`` is
+    localized frame, the motion since the previous localized one (row 0 is not used; a non-finite row is a
+    motion not known, e.g. visual odometry lost: the belief starts anew there); e.g.
+    :func:`satloc.vo.visual_odometry` of the frames or :func:`satloc.track.noisy_odometry` of their poses. ``on_result(i, localization)`` is
     called for each frame localized (``i``: its position in ``select``), e.g. to keep posteriors to draw."""
     loc = localizer or load_localizer(build_dir, config, progress=progress)
     seq = Sequence.load(queries) if not isinstance(queries, Sequence) else queries
@@ -185,9 +186,9 @@ def localize(build_dir: str | Path, queries: str | Path, config: LocalizerConfig
             raise ConfigError("tracking (config.track) needs odometry: an (N, 3) array of the motion between the "
                               "localized frames, e.g. satloc.track.noisy_odometry(poses, noise)")
         odometry = np.asarray(odometry, np.float64)
-        if odometry.shape != (len(idx), 3) or not np.all(np.isfinite(odometry[1:])):
-            raise ConfigError(f"odometry: expected a ({len(idx)}, 3) array, one row per localized frame, finite "
-                              f"after row 0; got shape {odometry.shape}")
+        if odometry.shape != (len(idx), 3):
+            raise ConfigError(f"odometry: expected a ({len(idx)}, 3) array, one row per localized frame; got shape "
+                              f"{odometry.shape}")
         tracker = loc.tracker()
     n, k = len(idx), loc.config.posterior_k
     est, inl_score, inl = np.zeros((n, 3)), np.zeros(n), np.zeros(n, bool)

@@ -235,6 +235,15 @@ def test_localizer_tracks_a_stream_like_single_calls():
     # a None first odometry row is a value (unused: no belief yet), not the end of the odometry
     first = list(loc.localize_stream(frames, tracker=loc.tracker(), odometry=[None] + list(odo[1:])))
     assert np.array_equal(first[-1].posterior, manual[-1].posterior)
+    # an unknown motion (NaN, e.g. visual odometry lost) starts a new belief there: the next frame's answer is
+    # its own posterior, as a first frame's
+    lost = np.array(odo, np.float64)
+    lost[-1] = np.nan
+    t_lost = loc.tracker()
+    gone = list(loc.localize_stream(frames, tracker=t_lost, odometry=lost))
+    fresh = loc.tracker()
+    alone = loc.localize(frames[-1], tracker=fresh)
+    assert np.array_equal(gone[-1].posterior, alone.posterior) and np.array_equal(t_lost.belief, fresh.belief)
     with pytest.raises(ConfigError, match="needs both a tracker and the odometry"):
         list(loc.localize_stream(frames, tracker=loc.tracker()))
     with pytest.raises(ConfigError, match="odometry ran out"):
