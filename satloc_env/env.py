@@ -56,6 +56,8 @@ class EnvConfig:
     aliasing: float | None = None           # scene knobs (None: the scene file's value)
     occlusion: float | None = None
     appearance: float | None = None
+    change: float | None = None             # revisit change of the world (satloc_env.revisit): shadows of another
+                                            # sun, road wear, parked cars moved, season; 0 none
     anisotropy: int = 1                     # >1: anisotropic texture filtering (sharper far ground, ~4x slower on llvmpipe)
     zfar_m: float = 150.0
     localizer: str | None = "auto"          # None/"none": off; "auto": cached build of the scene's database
@@ -78,7 +80,7 @@ class EnvConfig:
         _check_finite(self, "dt", lo=0.0, lo_open=True)
         _check_finite(self, "zfar_m", lo=1.0)
         _check_noise(self.odometry_noise)
-        for k in ("aliasing", "occlusion", "appearance"):
+        for k in ("aliasing", "occlusion", "appearance", "change"):
             v = getattr(self, k)
             if v is not None and not 0.0 <= v <= 1.0:   # False for NaN
                 raise ConfigError(f"{k}: expected a value in [0, 1] (or None: the scene's), got {v}")
@@ -121,7 +123,7 @@ LOCALIZER_INSTANCE = "<instance>"
 #: keys that ``reset(options=...)`` may change; the others fix the spaces or the renderer.
 EPISODE_KEYS = frozenset({
     "scene", "route", "lane_offset_m", "start_s_m", "random_start", "speed_mps", "max_steps",
-    "odometry_noise", "aliasing", "occlusion", "appearance",
+    "odometry_noise", "aliasing", "occlusion", "appearance", "change",
 })
 
 
@@ -518,6 +520,10 @@ class SatLocEnv(SharedSpecMixin, gym.Env):
     ``posterior_*`` zeros, ``inlier`` False, ``inlier_score`` 0 and the error message is kept in
     ``env.unwrapped.localization_error``. Without a localizer these keys are absent.
 
+    Revisit change (``change`` > 0, :mod:`satloc_env.revisit`): the episode sees a world built from a changed
+    layout (shadows of another sun, road wear, parked cars moved, another season), seeded from the episode's
+    seed (``change_seed``); the satellite map stays the scene's. The last two such worlds are kept per process.
+
     Reward: 0 (``reward="none"``), or with ``reward="neg_error"`` minus ``error_m`` (0 while there is no
     result, i.e. after a frame without valid depth). ``neg_error`` needs a localizer.
 
@@ -558,6 +564,7 @@ class SatLocEnv(SharedSpecMixin, gym.Env):
         self._last_obs: dict | None = None
         self._last_depth: np.ndarray | None = None
         self._ready = False                    # True after a successful reset
+        self.change_seed: int | None = None   # the episode's revisit change seed (with change > 0)
         self._preloaded: tuple | None = None   # (scene key, Scene) loaded by __init__ for the localizer check
         self._loc_identity: dict = {"source": "the localizer"}   # what is known of the localizer's data
         if instance is not None:
@@ -645,8 +652,6 @@ class SatLocEnv(SharedSpecMixin, gym.Env):
         else:
             scene = load_scene(cfg.scene, cfg.aliasing)
         self._preloaded = None
-        from .render import StereoRenderer
-
         if self.config.localizer == "auto":
             from .autoloc import auto_localizer
 
@@ -656,11 +661,18 @@ class SatLocEnv(SharedSpecMixin, gym.Env):
             self._check_localizer_camera()
         elif self.localizer is not None:
             self._check_localizer_map(scene)
+        self._scene, self._scene_key = scene, key
+        self._use_world(scene.world)
+
+    def _use_world(self, world) -> None:
+        """Render ``world`` (the scene's, or a revisit's :func:`satloc_env.revisit.changed_world`) from now on."""
+        from .render import StereoRenderer
+
+        if self._renderer is not None and self._renderer.world is world:
+            return
         if self._renderer is not None:
             self._renderer.close()
-        self._scene, self._scene_key = scene, key
-        self._renderer = StereoRenderer(scene.world, self.camera, anisotropy=cfg.anisotropy,
-                                        zfar=cfg.zfar_m)
+        self._renderer = StereoRenderer(world, self.camera, anisotropy=self.config.anisotropy, zfar=self.config.zfar_m)
 
     # --- gym API ----------------------------------------------------------------------------------
     def reset(self, *, seed: int | None = None, options: dict | None = None):
@@ -680,9 +692,17 @@ class SatLocEnv(SharedSpecMixin, gym.Env):
         knobs = scene.spec.knobs
         occ = knobs.occlusion if cfg.occlusion is None else cfg.occlusion
         app = knobs.appearance if cfg.appearance is None else cfg.appearance
-        for k, val in (("occlusion", occ), ("appearance", app)):
+        change = knobs.change if cfg.change is None else cfg.change
+        for k, val in (("occlusion", occ), ("appearance", app), ("change", change)):
             if not 0.0 <= val <= 1.0:
                 raise ConfigError(f"{k}: expected a value in [0, 1], got {val}")
+        self.change_seed, world = None, scene.world
+        if change > 0:   # seeded by a child of the episode's seed sequence: the episode's own draws stay as they are
+            from .revisit import changed_world
+
+            self.change_seed = int(self.np_random.spawn(1)[0].integers(2**31 - 1))
+            world = changed_world(scene, change, self.change_seed)
+        self._use_world(world)
         self._episode, self.route = cfg, route
         rng = self.np_random
         s0 = float(rng.uniform(0, self.route.length * 0.9)) if cfg.random_start else cfg.start_s_m

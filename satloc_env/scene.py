@@ -255,14 +255,17 @@ class Knobs:
     aliasing: fraction of blocks that are exact copies of other blocks (layout and texture).
     occlusion: density of objects the ground camera sees but the tile does not (cars, people, obstacles).
     appearance: strength of the lighting / colour / exposure change of an episode (another time of day).
+    change: strength of an episode's revisit change of the world (:mod:`satloc_env.revisit`: shadows of another
+        sun, road wear and patches, parked cars moved, another season); the satellite tile never changes.
     """
 
     aliasing: float = 0.0
     occlusion: float = 0.0
     appearance: float = 0.0
+    change: float = 0.0
 
     def __post_init__(self):
-        for k in ("aliasing", "occlusion", "appearance"):
+        for k in ("aliasing", "occlusion", "appearance", "change"):
             v = getattr(self, k)
             if not 0.0 <= v <= 1.0:
                 raise ConfigError(f"{k}: expected a value in [0, 1], got {v}")
