@@ -161,7 +161,8 @@ def cmd_record(args) -> int:
         database=PassConfig(lane_offset_m=args.db_lane, spacing_m=args.db_spacing, max_frames=args.max_frames,
                             seed=args.seed),
         query=PassConfig(lane_offset_m=args.query_lane, spacing_m=args.query_spacing, max_frames=args.max_frames,
-                         occlusion=args.occlusion, appearance=args.appearance, seed=args.seed + 1),
+                         occlusion=args.occlusion, appearance=args.appearance, change=args.change,
+                         seed=args.seed + 1),
     )
     db, q = record_passes(cfg, args.out, progress=not args.quiet)
     print(json.dumps({"out": args.out, "database_frames": len(db), "database_m": round(db.path_length(), 1),
@@ -246,15 +247,20 @@ def cmd_localize(args) -> int:
                                                        "track": True if args.track else None,
                                                        "device": args.device})
     odometry, queries = None, args.queries
-    if cfg.track:  # simulated odometry: the true motion between the sequence's frames, with noise
+    if cfg.track:  # the motion between the sequence's frames: stereo visual odometry, or the poses plus noise
         from satloc.sequence import Sequence
         from satloc.track import noisy_odometry
 
         seq = queries = Sequence.load(args.queries)
-        if not np.all(np.isfinite(seq.poses)):
-            raise SatlocError(f"{args.queries}: --track simulates odometry from the frames' poses, and some "
-                              "frames have none")
-        odometry = noisy_odometry(seq.poses, tuple(args.odometry_noise), args.odometry_seed)
+        if args.odometry == "visual":
+            from satloc.vo import visual_odometry
+
+            odometry = visual_odometry(seq, progress=not args.quiet)
+        else:
+            if not np.all(np.isfinite(seq.poses)):
+                raise SatlocError(f"{args.queries}: --odometry noisy_truth simulates odometry from the frames' "
+                                  "poses, and some frames have none")
+            odometry = noisy_odometry(seq.poses, tuple(args.odometry_noise), args.odometry_seed)
     s = localize(args.build, queries, cfg, args.out or args.build, progress=not args.quiet, odometry=odometry)
     s.pop("errors")
     print(json.dumps(s))
@@ -324,6 +330,8 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--query-spacing", type=float, default=10.0)
     r.add_argument("--occlusion", type=float, default=0.3)
     r.add_argument("--appearance", type=float, default=0.5)
+    r.add_argument("--change", type=float, default=0.5,
+                   help="the query pass's revisit change of the world in [0, 1] (satloc_env.revisit)")
     r.add_argument("--max-frames", type=int, default=None)
     r.add_argument("--seed", type=int, default=0)
     r.add_argument("--quiet", action="store_true")
@@ -367,9 +375,12 @@ def build_parser() -> argparse.ArgumentParser:
     lo.add_argument("--mode", choices=["full", "np", "go"], default=None)
     lo.add_argument("--refine", action="store_true", help="refine each estimate by bird's-eye alignment (satloc.align)")
     lo.add_argument("--track", action="store_true",
-                    help="track the sequence with odometry (satloc.track), simulated from the frames' poses")
+                    help="track the sequence with odometry (satloc.track)")
+    lo.add_argument("--odometry", choices=("visual", "noisy_truth"), default="visual",
+                    help="--track: stereo visual odometry of the frames (satloc.vo; the default) or the frames' "
+                         "poses plus noise")
     lo.add_argument("--odometry-noise", type=float, nargs=2, default=[0.02, 0.01], metavar=("FRAC", "RAD"),
-                    help="--track: odometry noise std, fraction of the distance and radians per frame")
+                    help="--odometry noisy_truth: noise std, fraction of the distance and radians per frame")
     lo.add_argument("--odometry-seed", type=int, default=0)
     lo.add_argument("--out", help="where to write results (default: the build directory)")
     lo.add_argument("--device", default=None, help=f"{DEVICE_HELP}; the FCN of the query features")

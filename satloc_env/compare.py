@@ -49,8 +49,8 @@ from satloc.persist import read_json
 
 from .experiment import (BASELINE_NAMES, METHOD_NAMES, CompareConfig, ExperimentConfig,  # noqa: F401
                          _covered, _stage_done, _stages, _stamp, build_and_learn, covered_queries,
-                         check_recordings, localize_and_report, markdown_table, record_config, scene_label,
-                         scene_labels, table_stats)
+                         check_recordings, dense_pass, localize_and_report, markdown_table, query_stride,
+                         record_config, scene_label, scene_labels, table_stats, tracked_odometry)
 from .record import PassConfig, RecordConfig, check_passes, make_env, pass_routes, record_pass
 from .scene import load_scene
 
@@ -152,14 +152,15 @@ def run_baseline(name: str, cc: CompareConfig, test_scene: str, db: Sequence, q:
 
 def compare(cfg: ExperimentConfig, cc: CompareConfig, label: str, db: Sequence, q: Sequence, sel: np.ndarray,
             bdir: Path, satmap: SatelliteMap, out: Path, head: dict, times: dict, progress: bool = True,
-            log=print, fabmap_dir: Path | None = None) -> dict:
+            log=print, fabmap_dir: Path | None = None, odometry: np.ndarray | None = None) -> dict:
     """Every method on one split: the modes of ``cfg`` (:func:`localize_and_report`, which writes
     ``summary.json``) then the baselines of ``cc``. Returns ``{method: summary}`` in that order; each summary
     has ``mean_m, std_m, median_m, within_1m, within_10m, s_per_query``, and ``errors`` and ``inlier_score``
     (arrays over ``sel``). FAB-MAP's trained model is a stage of ``fabmap_dir`` (default ``out``). Also
-    writes ``compare.json`` (the summaries without the arrays)."""
+    writes ``compare.json`` (the summaries without the arrays). ``odometry``: the tracked modes' (default: of
+    ``q`` itself, :func:`satloc_env.experiment.tracked_odometry`)."""
     out = Path(out)
-    s = localize_and_report(cfg, label, db, q, sel, bdir, satmap, out, head, times, progress, log)
+    s = localize_and_report(cfg, label, db, q, sel, bdir, satmap, out, head, times, progress, log, odometry)
     res: dict[str, dict] = {}
     for mode in cfg.modes:
         a, _ = load_npz(out / f"localization_{mode}.npz", "localization")
@@ -231,16 +232,15 @@ def _record_table2(t2: Table2Config, out: Path, progress: bool, log) -> tuple[Se
     (the branch) for the test, ``calib_inside`` and ``calib_outside`` for calibration (other seeds and
     spacing); stage-stamped. Returns the database, the query passes by name and the stamp."""
     e = t2.experiment
-    rec = RecordConfig(scene=t2.scene, aliasing=e.aliasing,
-                       database=PassConfig(route=t2.inside_route, max_frames=e.database_frames),
-                       query=PassConfig(route=t2.inside_route, lane_offset_m=e.query_lane_m,
-                                        spacing_m=e.query_spacing_m, occlusion=e.occlusion, appearance=e.appearance, seed=1,
-                                        max_frames=e.query_frames))
 
     def extra(route, seed, spacing, frames):
-        return PassConfig(route=route, lane_offset_m=e.query_lane_m, spacing_m=spacing, occlusion=e.occlusion,
-                          appearance=e.appearance, seed=seed, max_frames=frames)
+        return dense_pass(e, PassConfig(route=route, lane_offset_m=e.query_lane_m, spacing_m=spacing,
+                                        occlusion=e.occlusion, appearance=e.appearance, change=e.change,
+                                        seed=seed, max_frames=frames))
 
+    rec = RecordConfig(scene=t2.scene, aliasing=e.aliasing,
+                       database=PassConfig(route=t2.inside_route, max_frames=e.database_frames),
+                       query=extra(t2.inside_route, 1, e.query_spacing_m, e.query_frames))
     cs, cb = t2.calibration_seeds
     more = {"outside": extra(t2.outside_route, 2, e.query_spacing_m, t2.outside_frames),
             "calib_inside": extra(t2.inside_route, cs, t2.calibration_spacing_m, e.query_frames),
@@ -296,10 +296,11 @@ def table2(out: str | Path, config: dict | None = None, progress: bool = True, l
     bdir, times = build_and_learn(e, t2.scene, db, out / "rec" / "map", out, {"record": rc}, progress, log)
     satmap = SatelliteMap.load(out / "rec" / "map")
     res: dict[str, tuple[np.ndarray, dict]] = {}
+    spacing = {"inside": e.query_spacing_m, "outside": e.query_spacing_m,
+               "calib_inside": t2.calibration_spacing_m, "calib_outside": t2.calibration_spacing_m}
     for part, q in passes.items():
-        sel = np.arange(len(q))
-        inside = np.zeros(len(q), bool)
-        inside[covered_queries(db, q, e.coverage_m)] = True
+        sel = np.arange(0, len(q), query_stride(q, spacing[part]))
+        inside = np.isin(sel, covered_queries(db, q, e.coverage_m))
         (out / part).mkdir(exist_ok=True)
         res[part] = (inside, compare(e, e.compare, t2.scene, db, q, sel, bdir, satmap, out / part,
                                      {"scene": t2.scene, "part": part}, times, progress, log, fabmap_dir=out))
@@ -555,20 +556,24 @@ def _protocol(cfg: ExperimentConfig, protocol: str, label: str, sdir: Path, db_f
     dbi, qi = protocol_split(protocol, len(db_full), cfg.city_database_fraction, cfg.split_seed, step)
     db = db_full.view(dbi, name=f"{protocol} protocol database")
     source = {"record": rc, "protocol": protocol, "database_frames": [int(i) for i in dbi]}
+    odo = None
     if protocol == "city":
         q, sel = db_full.view(qi, name=f"{protocol} protocol queries"), np.arange(len(qi))
+        if any("track" in m.split("+") for m in cfg.modes):   # over the database pass, between the queries
+            odo = tracked_odometry(cfg, db_full, qi, sdir / "odometry_visual_database.npz")
     else:
         # a second pass over the database's route at one frame per second (the revisit pass's lane,
-        # appearance and occluders, another seed)
-        p = PassConfig(lane_offset_m=cfg.query_lane_m, spacing_m=speed, occlusion=cfg.occlusion,
-                       appearance=cfg.appearance, seed=2,
-                       max_frames=None if cfg.database_frames is None else
-                       int(np.ceil(db_full.path_length() / speed)) + 1)
+        # appearance and occluders, another seed; recorded densely for visual odometry)
+        p = dense_pass(cfg, PassConfig(lane_offset_m=cfg.query_lane_m, spacing_m=speed, occlusion=cfg.occlusion,
+                                       appearance=cfg.appearance, change=cfg.change, seed=2,
+                                       max_frames=None if cfg.database_frames is None else
+                                       int(np.ceil(db_full.path_length() / speed)) + 1))
         prc = {"pass": to_dict(p), "record": rc}
         if not _stage_done(pdir / "record.json", prc):
             log(f"[{label}] recording the second pass (a frame every {speed:g} m)")
             env = make_env(scene=cfg.scene, resolution=rc.get("resolution", "half"), aliasing=cfg.aliasing,
-                           speed_mps=speed, depth=p.depth, labels=False, localizer=None)
+                           speed_mps=rc.get("speed_mps", RecordConfig().speed_mps), depth=p.depth, labels=False,
+                           localizer=None)
             try:
                 env.reset(seed=p.seed)
                 route = rc.get("database", {}).get("route") or env.scene.spec.database_route
@@ -578,6 +583,7 @@ def _protocol(cfg: ExperimentConfig, protocol: str, label: str, sdir: Path, db_f
             _stamp(pdir / "record.json", prc)
         q = Sequence.load(pdir / "second")
         sel = covered_queries(db_full, q, cfg.coverage_m)
+        sel = sel[sel % query_stride(q, speed) == 0]
         if len(sel) == 0:
             raise ConfigError(f"[{label}] residential protocol: no second-pass frame lies on the database path")
     # the dictionary of the protocol's database and projections learned on it alone: no learned state has seen
@@ -585,7 +591,7 @@ def _protocol(cfg: ExperimentConfig, protocol: str, label: str, sdir: Path, db_f
     bdir, times = build_and_learn(cfg, f"{label} {protocol}", db, sdir / "rec" / "map", pdir, source, progress, log)
     return compare(cfg, cfg.compare, label, db, q, sel, bdir, SatelliteMap.load(sdir / "rec" / "map"), pdir,
                    {"scene": cfg.scene, "protocol": protocol, "config": to_dict(cfg)}, times, progress, log,
-                   fabmap_dir=sdir)
+                   fabmap_dir=sdir, odometry=odo)
 
 
 #: table1.csv's columns (failure_rate: queries not answered, counted as gross failures in the mean; ci95_*: the

@@ -52,6 +52,9 @@ class EnvConfig:
     max_steps: int = 1000                   # episode time limit (truncation)
     depth: bool = False                     # add true left-camera depth (metres) to observations
     labels: bool = False                    # add left-camera semantic labels to observations
+    odometry: Literal["noisy_truth", "visual"] = "noisy_truth"   # what the odometry observation is: the true
+                                            # motion plus noise, or stereo visual odometry of the rendered pair
+                                            # (satloc.vo; NaN where it fails)
     odometry_noise: tuple[float, float] = (0.02, 0.003)  # std: fraction of distance, radians per step
     aliasing: float | None = None           # scene knobs (None: the scene file's value)
     occlusion: float | None = None
@@ -123,7 +126,7 @@ LOCALIZER_INSTANCE = "<instance>"
 #: keys that ``reset(options=...)`` may change; the others fix the spaces or the renderer.
 EPISODE_KEYS = frozenset({
     "scene", "route", "lane_offset_m", "start_s_m", "random_start", "speed_mps", "max_steps",
-    "odometry_noise", "aliasing", "occlusion", "appearance", "change",
+    "odometry", "odometry_noise", "aliasing", "occlusion", "appearance", "change",
 })
 
 
@@ -456,8 +459,10 @@ class SatLocEnv(SharedSpecMixin, gym.Env):
     """Drive a stereo-camera car over a textured scene rendered from its satellite tile.
 
     Observation (Dict): ``left``, ``right`` uint8 RGB images; ``odometry`` float32 (dx, dy, dyaw) of the
-    motion since the previous step in the previous vehicle frame, with noise; ``depth`` (float32 metres, 0 =
-    nothing) and ``labels`` (uint8 class ids) when enabled.
+    motion since the previous step in the previous vehicle frame: with ``odometry="noisy_truth"`` (the default)
+    the true motion plus noise, with ``odometry="visual"`` the stereo visual odometry of the rendered pairs
+    (:class:`satloc.vo.StereoVO`; NaN on a step where it fails: the tracked localizer then starts a new belief);
+    ``depth`` (float32 metres, 0 = nothing) and ``labels`` (uint8 class ids) when enabled.
 
     Action: Box [speed m/s, yaw rate rad/s] = ``[0, -1]`` to ``[20, 1]``, applied through a kinematic bicycle
     model. ``autopilot_action()`` returns the route follower's action for scripts.
@@ -539,6 +544,7 @@ class SatLocEnv(SharedSpecMixin, gym.Env):
         self.render_mode = render_mode
         config, instance = _split_localizer(config)
         self._loc = LocalizationState()        # the localizer in use and its latest result (see LocalizationState)
+        self._vo = None                        # satloc.vo.StereoVO of the episode (odometry="visual")
         self.config = from_dict(EnvConfig, config, "SatLocEnv config")
         self._check_localizer_config(instance is not None)
         self.camera = StereoCamera.preset(self.config.resolution)
@@ -713,6 +719,12 @@ class SatLocEnv(SharedSpecMixin, gym.Env):
         self.steps = 0
         self._loc.reset()                      # tracking (localizer_track): a new belief each episode
         obs = self._observe(np.zeros(3, np.float32))
+        self._vo = None
+        if cfg.odometry == "visual":           # its first pair: the reference of the first step's motion
+            from satloc.vo import StereoVO
+
+            self._vo = StereoVO(self.camera)
+            self._vo.step(obs["left"], obs["right"])
         self._localize()
         self._ready = True
         return obs, self._info(np.zeros(3), off_road=False)
@@ -731,6 +743,8 @@ class SatLocEnv(SharedSpecMixin, gym.Env):
         noise = self.np_random.normal(0.0, 1.0, 3) * np.array(
             [cfg.odometry_noise[0] * dist, cfg.odometry_noise[0] * dist, cfg.odometry_noise[1]])
         obs = self._observe((true_odo + noise).astype(np.float32))
+        if self._vo is not None:               # the motion as the stereo pair shows it (noise drawn all the same)
+            obs["odometry"] = np.asarray(self._vo.step(obs["left"], obs["right"]), np.float32)
         self._loc.add_odometry(obs["odometry"])
         if self.steps % self.config.localize_every == 0:
             self._localize()

@@ -24,8 +24,10 @@ Where the queries come from (exactly one):
   other way cannot be localized against it). A drive that never comes back is an error.
 
 Only queries within ``coverage_m`` of the database path are evaluated (as in the synthetic experiments);
-every ``query_stride``-th of them. The tracked modes get odometry simulated from the true poses of
-consecutive evaluated queries with ``odometry_noise``.
+every ``query_stride``-th of them. The tracked modes get the odometry between consecutive evaluated queries
+from ``odometry``: ``visual`` (the default: stereo visual odometry over every frame of the drive between them,
+:mod:`satloc.vo`), ``oxts`` (KITTI's forward speed and yaw rate, integrated) or ``noisy_truth`` (their true
+poses plus noise).
 
 ``resolution``: ``"half"`` resizes images and camera by 1/2 (KITTI 1242x375 -> 621x188, the scale the
 method and its shipped FCN are tuned for: the simulator's 620x188 at fx 361; Malaga 1024x768 -> 512x384,
@@ -75,7 +77,7 @@ from satloc.satmap import SatelliteMap
 from satloc.sequence import Sequence
 
 from .experiment import (MODES, METHOD_NAMES, _stage_done, _stamp, build_and_learn, covered_queries,
-                         localize_and_report)
+                         localize_and_report, tracked_odometry)
 
 RESOLUTIONS = ("half", "full")
 
@@ -111,7 +113,11 @@ class EvaluateConfig:
     projection: ProjectionConfig = field(default_factory=ProjectionConfig)
     localizer: dict = field(default_factory=dict)   # LocalizerConfig fields other than mode
     modes: tuple[str, ...] = MODES
-    odometry_noise: tuple[float, float] = (0.02, 0.01)  # tracked modes: std (fraction of the distance, radians)
+    odometry: str = "visual"                 # tracked modes: visual (stereo VO of the drive's frames), oxts
+                                             # (KITTI's speed and yaw rate) or noisy_truth (poses plus noise)
+    odometry_noise: tuple[float, float] = (0.02, 0.01)  # noisy_truth: std (fraction of the distance, radians)
+    odometry_scale_error: float = 0.0        # noisy_truth: drift, fraction of the distance
+    odometry_yaw_bias: float = 0.0           # noisy_truth: drift, radians per metre
     odometry_seed: int = 0
     kitti: KittiOptions = field(default_factory=KittiOptions)
     malaga: MalagaConfig = field(default_factory=MalagaConfig)
@@ -135,6 +141,8 @@ class EvaluateConfig:
         self.satellite_radiometry  # bad satellite_bands or satellite_stretch: ConfigError naming the field
         if len(self.odometry_noise) != 2 or min(self.odometry_noise) < 0:
             raise ConfigError(f"odometry_noise: expected 2 non-negative numbers, got {list(self.odometry_noise)}")
+        if self.odometry not in ("visual", "oxts", "noisy_truth"):
+            raise ConfigError(f"odometry: expected 'visual', 'oxts' or 'noisy_truth', got {self.odometry!r}")
         bad = [m for m in self.modes if m not in METHOD_NAMES]
         if bad or not self.modes:
             raise ConfigError(f"modes: unknown {bad}; expected a non-empty subset of {list(METHOD_NAMES)}")
@@ -318,6 +326,7 @@ def evaluate(database: str | Path, satellite: str | Path, out: str | Path, confi
         posed = np.flatnonzero(np.all(np.isfinite(full.poses), axis=1))
         db = full.view(posed, camera)
         q = qfull.view(None, camera)
+        parent, in_parent = q, np.arange(len(q))   # the drive the queries are frames of, and where
         split = f"queries from {Path(queries).resolve()}"
         name = f"{full.name} / {qfull.name}"
     else:
@@ -330,6 +339,7 @@ def evaluate(database: str | Path, satellite: str | Path, out: str | Path, confi
                                         where=f"split passes of {database}")
             split = f"passes: frames before {back} (first pass) database, from {back} on queries"
         db, q = full.view(di, camera), full.view(qi, camera, name=f"{full.name} queries")
+        parent, in_parent = full.view(None, camera), np.asarray(qi)
     if len(db) < 2:
         raise ConfigError(f"{database}: the database has {len(db)} posed frame(s); the method needs at least 2")
     covered = covered_queries(db, q, cfg.coverage_m)
@@ -356,7 +366,14 @@ def evaluate(database: str | Path, satellite: str | Path, out: str | Path, confi
             "map": {"meters_per_pixel": sm.meters_per_pixel, "size_px": [int(sm.shape[1]), int(sm.shape[0])],
                     "extent_m": [round(v, 2) for v in sm.extent], "radiometry": sm.radiometry},
             "camera": camera.to_dict(), "config": to_dict(cfg)}
-    summary = localize_and_report(cfg, name, db, q, sel, bdir, sm, out, head, times, progress, log)
+    odo = None
+    if any("track" in m.split("+") for m in cfg.modes):   # between the queries, over every frame of their drive
+        if cfg.odometry == "oxts" and reader != "kitti":
+            raise ConfigError("odometry: 'oxts' is KITTI's; give visual or noisy_truth for this reader")
+        t = time.perf_counter()
+        odo = tracked_odometry(cfg, parent, in_parent[sel], out / "odometry_visual.npz")
+        times["odometry_s"] = time.perf_counter() - t
+    summary = localize_and_report(cfg, name, db, q, sel, bdir, sm, out, head, times, progress, log, odo)
     write_results(out, summary, name)
     return summary
 

@@ -23,6 +23,7 @@ and satellite map: ``localization_<mode>.*``, ``summary.json`` and the pictures)
 from __future__ import annotations
 
 import csv
+import dataclasses
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -41,9 +42,9 @@ from satloc.projection import ProjectionConfig
 from satloc.satmap import SatelliteMap
 from satloc.metrics import bootstrap_ci, error_stats, worst_case_errors
 from satloc.sequence import Sequence
-from satloc.track import noisy_odometry
+from satloc.track import compose_motion, noisy_odometry
 
-from .record import PassConfig, RecordConfig, check_passes, pass_routes, record_passes
+from .record import QUERY_CHANGE, PassConfig, RecordConfig, check_passes, pass_routes, record_passes
 from .scene import load_scene
 
 # "<mode>[+track][+align]": tracked over the query sequence with odometry (satloc.track), refined by bird's-eye
@@ -95,9 +96,13 @@ class CompareConfig:
 
 
 PROTOCOLS = ("revisit", "city", "residential")
-#: odometry sources of the tracked modes: noisy_truth, the true motion between queries plus noise
-#: (satloc.track.noisy_odometry)
-ODOMETRY = ("noisy_truth",)
+#: odometry sources of the tracked modes: ``visual``, stereo visual odometry of the recorded frames
+#: (satloc.vo: the passes are recorded a frame every DENSE_SPACING_M metres and the queries are every k-th
+#: frame, the odometry between two queries composed over the frames between them); ``noisy_truth``, the true
+#: motion between queries plus noise and drift (satloc.track.noisy_odometry)
+ODOMETRY = ("visual", "noisy_truth")
+#: frame spacing (metres) of passes whose queries are tracked by visual odometry
+DENSE_SPACING_M = 1.0
 
 
 @dataclass
@@ -108,17 +113,20 @@ class ExperimentConfig:
     query_frames: int | None = None
     query_spacing_m: float = 10.0
     query_lane_m: float = -0.75             # revisit mode: another lane than the database's -1.75 m ...
-    occlusion: float = 0.3                  # ... with occluders and another appearance
+    occlusion: float = 0.3                  # ... with occluders and another appearance ...
     appearance: float = 0.5
+    change: float = QUERY_CHANGE            # ... and the world changed as on another day (satloc_env.revisit)
     coverage_m: float = 5.0                 # evaluate queries whose true pose is this close to the database path
     features: str = "default"
     context: ContextConfig = field(default_factory=ContextConfig)
     projection: ProjectionConfig = field(default_factory=ProjectionConfig)
     localizer: dict = field(default_factory=dict)   # LocalizerConfig fields other than mode
     modes: tuple[str, ...] = MODES
-    odometry: str = "noisy_truth"           # tracked modes: what moves the belief between queries (ODOMETRY)
+    odometry: str = "visual"                # tracked modes: what moves the belief between queries (ODOMETRY)
     odometry_noise: tuple[float, float] = (0.02, 0.01)  # noisy_truth: simulated odometry between queries, std
                                                         # (fraction of the distance, radians)
+    odometry_scale_error: float = 0.0       # noisy_truth: drift, fraction of the distance (wheel odometry's scale)
+    odometry_yaw_bias: float = 0.0          # noisy_truth: drift, radians per metre
     odometry_seed: int = 0
     # table1: the protocols (revisit: the query pass above; city: a seeded random ``city_database_fraction`` of
     # the database pass is the database, the rest the queries; residential: the database pass and a second
@@ -141,6 +149,8 @@ class ExperimentConfig:
         bad = [m for m in self.modes if m not in METHOD_NAMES]
         if bad:
             raise ConfigError(f"modes: unknown {bad}; expected a subset of {list(METHOD_NAMES)}")
+        if not 0.0 <= self.change <= 1.0:
+            raise ConfigError(f"change: expected a value in [0, 1], got {self.change}")
         if self.odometry not in ODOMETRY:
             raise ConfigError(f"odometry: expected one of {list(ODOMETRY)}, got {self.odometry!r}")
 
@@ -182,12 +192,82 @@ def covered_queries(db: Sequence, q: Sequence, radius_m: float) -> np.ndarray:
 
 
 def record_config(cfg: ExperimentConfig) -> RecordConfig:
-    """The recording of an experiment's scene: the database pass and the revisit (query) pass."""
+    """The recording of an experiment's scene: the database pass and the revisit (query) pass (recorded
+    densely for visual odometry: :func:`dense_pass`)."""
     return RecordConfig(scene=cfg.scene, aliasing=cfg.aliasing,
                         database=PassConfig(max_frames=cfg.database_frames),
-                        query=PassConfig(lane_offset_m=cfg.query_lane_m, spacing_m=cfg.query_spacing_m,
-                                         occlusion=cfg.occlusion, appearance=cfg.appearance, seed=1,
-                                         max_frames=cfg.query_frames))
+                        query=dense_pass(cfg, PassConfig(lane_offset_m=cfg.query_lane_m, spacing_m=cfg.query_spacing_m,
+                                                         occlusion=cfg.occlusion, appearance=cfg.appearance,
+                                                         change=cfg.change, seed=1, max_frames=cfg.query_frames)))
+
+
+def dense_pass(cfg, p: PassConfig) -> PassConfig:
+    """A query pass as recorded: where tracked modes use ``cfg.odometry == "visual"``, a frame every
+    :data:`DENSE_SPACING_M` metres (the queries are then every k-th frame, :func:`query_stride`; ``max_frames``
+    scaled to match), else ``p`` itself."""
+    tracked = any("track" in m.split("+") for m in getattr(cfg, "modes", ()))
+    if not tracked or getattr(cfg, "odometry", "noisy_truth") != "visual" or p.spacing_m <= DENSE_SPACING_M:
+        return p
+    k = max(1, int(round(p.spacing_m / DENSE_SPACING_M)))
+    return dataclasses.replace(p, spacing_m=DENSE_SPACING_M,
+                               max_frames=None if p.max_frames is None else (p.max_frames - 1) * k + 1)
+
+
+def query_stride(q: Sequence, spacing_m: float) -> int:
+    """Every how many frames of the recorded pass ``q`` a query is taken for queries ``spacing_m`` apart (1
+    for a pass recorded at that spacing; k for a dense one)."""
+    rec = float((q.meta.get("pass_config") or {}).get("spacing_m", spacing_m))
+    return max(1, int(round(spacing_m / rec))) if rec > 0 else 1
+
+
+def tracked_odometry(cfg, seq: Sequence, idx: np.ndarray, cache: Path | None = None) -> np.ndarray:
+    """(len(idx), 3) the odometry the tracked modes move their belief by, from query ``idx[i - 1]`` to
+    ``idx[i]`` of ``seq`` (row 0 NaN), by ``cfg.odometry``:
+
+    * ``visual``: every step of :func:`satloc.vo.visual_odometry` over ``seq`` (cached in ``cache``, an npz
+      reused for the same frames and VO configuration), composed between the queries;
+    * ``oxts`` (a KITTI drive): :func:`satloc.datasets.kitti.oxts_odometry` of ``seq``, composed likewise;
+    * ``noisy_truth``: :func:`satloc.track.noisy_odometry` of the queries' true poses.
+
+    Composed odometry is NaN where a step between two queries failed (the belief starts anew there)."""
+    idx = np.asarray(idx, np.int64)
+    kind = getattr(cfg, "odometry", "noisy_truth")
+    if kind == "noisy_truth":
+        return noisy_odometry(seq.poses[idx], cfg.odometry_noise, cfg.odometry_seed,
+                              scale_error=getattr(cfg, "odometry_scale_error", 0.0),
+                              yaw_bias=getattr(cfg, "odometry_yaw_bias", 0.0))
+    if kind == "oxts":
+        from satloc.datasets.kitti import oxts_odometry
+
+        steps = oxts_odometry(seq)
+    else:
+        steps = vo_steps(seq, cache)
+    out = np.full((len(idx), 3), np.nan)
+    for i in range(1, len(idx)):
+        m = np.zeros(3)
+        for j in range(int(idx[i - 1]) + 1, int(idx[i]) + 1):
+            m = compose_motion(m, steps[j])
+        out[i] = m if idx[i] > idx[i - 1] else np.nan
+    return out
+
+
+def vo_steps(seq: Sequence, cache: Path | None = None) -> np.ndarray:
+    """(N, 3) :func:`satloc.vo.visual_odometry` of every frame of ``seq``, cached in ``cache``."""
+    from satloc.persist import load_npz, save_npz
+    from satloc.vo import VOConfig, visual_odometry
+
+    key = {"frames": len(seq), "vo": to_dict(VOConfig()), "name": seq.name}
+    if cache is not None and Path(cache).is_file():
+        try:
+            a, meta = load_npz(cache, "visual_odometry")
+            if meta.get("key") == key and a["steps"].shape == (len(seq), 3):
+                return a["steps"]
+        except Exception:  # damaged or foreign: compute again
+            pass
+    steps = visual_odometry(seq)
+    if cache is not None:
+        save_npz(cache, "visual_odometry", {"steps": steps}, {"key": key})
+    return steps
 
 
 def check_recordings(recs, second_pass: bool = False) -> None:
@@ -257,7 +337,10 @@ def build_and_learn(cfg, label: str, database: Sequence, satmap: str | Path, out
 
 
 def _covered(cfg: ExperimentConfig, db: Sequence, q: Sequence) -> np.ndarray:
+    """The evaluated queries: every :func:`query_stride`-th frame of the query pass whose true position lies
+    within ``coverage_m`` of the database path."""
     sel = covered_queries(db, q, cfg.coverage_m)
+    sel = sel[sel % query_stride(q, cfg.query_spacing_m) == 0]
     if len(sel) == 0:
         raise ConfigError(f"[{cfg.scene}] no query frame lies within {cfg.coverage_m} m of the database path")
     return sel
@@ -265,19 +348,21 @@ def _covered(cfg: ExperimentConfig, db: Sequence, q: Sequence) -> np.ndarray:
 
 def localize_and_report(cfg, label: str, db: Sequence, q: Sequence, sel: np.ndarray, bdir: Path,
                         satmap: SatelliteMap, out: Path, head: dict, times: dict, progress: bool = True,
-                        log=print) -> dict:
+                        log=print, odometry: np.ndarray | None = None) -> dict:
     """Localize the query frames ``sel`` of ``q`` against the build ``bdir`` in every mode of ``cfg.modes``
     and report: per mode ``localization_<mode>.npz/.json`` (:func:`satloc.pipeline.localize`), ``summary.json``
     (``head``, then the database size, the query count, the stage ``times`` and each mode's summary),
     ``errors_along_route.png`` and the posteriors of the best, a median and the worst query of each mode drawn
     on ``satmap`` (``posterior_<mode>_q<i>.png``). Returns the summary.
 
-    ``cfg`` gives ``modes``, ``localizer`` (LocalizerConfig fields other than the mode), ``odometry_noise`` and
-    ``odometry_seed``: the tracked modes move their belief by odometry simulated from the true poses of
-    consecutive evaluated queries, with that noise. Works on any database/query pair: a simulated recording
+    ``cfg`` gives ``modes``, ``localizer`` (LocalizerConfig fields other than the mode) and ``odometry`` (with
+    its noise settings): the tracked modes move their belief by ``odometry`` (N, 3) when given, else by
+    :func:`tracked_odometry` of the query pass between the evaluated queries. Works on any database/query pair: a simulated recording
     (:func:`run_scene`) or replayed real data (:mod:`satloc_env.evaluate`)."""
-    # tracked modes: odometry between consecutive evaluated queries, simulated from their true poses
-    odo = noisy_odometry(q.poses[sel], cfg.odometry_noise, cfg.odometry_seed)
+    # tracked modes: the odometry between consecutive evaluated queries (given, or of the query pass itself)
+    odo = odometry
+    if odo is None and any("track" in m.split("+") for m in cfg.modes):
+        odo = tracked_odometry(cfg, q, sel, Path(out) / "odometry_visual.npz")
     results: dict[str, dict] = {}
     examples: dict[str, list[tuple[int, Localization]]] = {}
     for mode in cfg.modes:

@@ -37,6 +37,7 @@ from satloc.geometry import Pose2
 from satloc.persist import read_json
 from satloc.satmap import SatelliteMap
 from satloc.sequence import Sequence
+from satloc.track import compose_motion
 
 from .env import (LOCALIZER_INSTANCE, PANEL_M, ActionError, LocalizationState, SharedSpecMixin, _check_noise,
                   _split_localizer, build_identity, check_localizer_camera, check_localizer_config,
@@ -62,6 +63,9 @@ class ReplayConfig:
     stride: int = 1                         # frames advanced by an action of 1
     max_skip: int = 1                       # actions are 1..max_skip: advance action * stride frames
     depth: bool = False                     # add a left-camera depth observation (the frame's own, else stereo)
+    odometry: Literal["noisy_truth", "visual", "oxts"] = "noisy_truth"   # the odometry observation: the poses'
+                                            # motion plus noise, the stereo visual odometry of the frames
+                                            # (satloc.vo), or a KITTI drive's OXTS speed and yaw rate, integrated
     odometry_noise: tuple[float, float] = (0.02, 0.003)  # std: fraction of the distance, radians per step
     localizer: str | None = None            # None/"none": off; a build directory; a Localizer instance given
                                             # as the keyword is stored here as "<instance>"
@@ -86,7 +90,7 @@ class ReplayConfig:
 
 
 #: keys that ``reset(options=...)`` may change; the others fix the spaces, the data or the localizer.
-EPISODE_KEYS = frozenset({"start_frame", "end_frame", "random_start", "stride", "odometry_noise"})
+EPISODE_KEYS = frozenset({"start_frame", "end_frame", "random_start", "stride", "odometry", "odometry_noise"})
 
 
 class SatLocReplayEnv(SharedSpecMixin, gym.Env):
@@ -128,7 +132,11 @@ class SatLocReplayEnv(SharedSpecMixin, gym.Env):
     times the distance (x and y) and ``odometry_noise[1]`` radians (heading) per step, drawn from the
     episode's RNG: SatLoc-v0's model. Zero at reset. Where either frame has no pose the motion is unknown:
     the observation is zero, ``info["odometry_valid"]`` False and ``odometry_true`` NaN (with tracking, the
-    next localization starts a new belief). With ``depth=True``: ``depth`` float32 metres, 0 = invalid: the
+    next localization starts a new belief). ``odometry="visual"`` observes the stereo visual odometry of the
+    frames instead (:class:`satloc.vo.StereoVO`, from the previous step's pair to this one), ``odometry="oxts"``
+    a KITTI drive's forward speed and yaw rate integrated over the frames stepped
+    (:func:`satloc.datasets.kitti.oxts_odometry`); where they fail the observation is zero and
+    ``odometry_valid`` False. With ``depth=True``: ``depth`` float32 metres, 0 = invalid: the
     frame's stored depth channel when it has one (the simulator's true depth in a recorded pass), otherwise
     stereo depth from the pair (:class:`satloc.stereo.StereoDepth`); ``info["depth_from_stereo"]`` says which.
 
@@ -174,6 +182,8 @@ class SatLocReplayEnv(SharedSpecMixin, gym.Env):
         config, map_instance = _split_instance(config, "map", SatelliteMap, "None, a map directory or a "
                                                "satloc.satmap.SatelliteMap")
         self._loc = LocalizationState()
+        self._vo = None                       # satloc.vo.StereoVO of the episode (odometry="visual")
+        self._oxts = None                     # odometry="oxts": the drive's per-frame OXTS odometry
         cfg = from_dict(ReplayConfig, config, "SatLocReplayEnv config")
         cfg = check_localizer_config(cfg, loc_instance is not None, allow_auto=False)
         for key, inst in (("sequence", seq_instance), ("map", map_instance)):
@@ -370,6 +380,19 @@ class SatLocReplayEnv(SharedSpecMixin, gym.Env):
         self.frame_index, self.steps, self._done = start, 0, False
         self._loc.reset()
         obs, from_stereo = self._observe(np.zeros(3, np.float32))
+        self._vo = None
+        if cfg.odometry == "visual":          # its first pair: the reference of the first step's motion
+            from satloc.vo import StereoVO
+
+            self._vo = StereoVO(self.sequence.camera)
+            self._vo.step(obs["left"], obs["right"])
+        elif cfg.odometry == "oxts" and self._oxts is None:
+            from satloc.datasets.kitti import oxts_odometry
+
+            if (self.sequence.meta or {}).get("source") != "kitti_raw":
+                raise ConfigError("odometry: 'oxts' reads a KITTI drive's motion sensors; this sequence is not one "
+                                  "(give noisy_truth or visual)")
+            self._oxts = oxts_odometry(self.sequence)
         self._localize()
         return obs, self._info(np.zeros(3), True, from_stereo)
 
@@ -396,6 +419,16 @@ class SatLocReplayEnv(SharedSpecMixin, gym.Env):
         else:
             true_odo, odo, valid = np.full(3, np.nan), np.zeros(3), False
         obs, from_stereo = self._observe(odo.astype(np.float32))
+        sensed = None
+        if self._vo is not None:              # the motion as the stereo pairs show it
+            sensed = self._vo.step(obs["left"], obs["right"])
+        elif cfg.odometry == "oxts":          # the drive's speed and yaw rate, over the frames stepped
+            sensed = np.zeros(3)
+            for j in range(prev + 1, target + 1):
+                sensed = compose_motion(sensed, self._oxts[j])
+        if sensed is not None:
+            valid = bool(np.all(np.isfinite(sensed)))
+            obs["odometry"] = np.asarray(sensed if valid else np.zeros(3), np.float32)
         self._loc.add_odometry(obs["odometry"] if valid else np.full(3, np.nan))
         if self.steps % self.config.localize_every == 0:
             self._localize()

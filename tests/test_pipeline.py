@@ -51,6 +51,12 @@ def test_cli_stages(recording, tmp_path, capsys):
     capsys.readouterr()
     assert main(["localize", b, "--queries", str(recording / "query"), "--mode", "full", "--quiet"]) == 0
     assert json.loads(capsys.readouterr().out)["queries"] == 4
+    # tracked: by the frames' stereo visual odometry (the default) or their poses plus noise
+    for odo in ("visual", "noisy_truth"):
+        assert main(["localize", b, "--queries", str(recording / "query"), "--mode", "np", "--track", "--odometry",
+                     odo, "--out", str(tmp_path / odo), "--quiet"]) == 0
+        s = json.loads(capsys.readouterr().out)
+        assert s["mode"] == "np+track" and s["queries"] == 4 and np.isfinite(s["mean_m"])
     cfg.write_text("max_anchor: 2000\n")
     assert main(["train-projection", b, "--config", str(cfg), "--quiet"]) == 2
     assert "unknown key(s) ['max_anchor']" in capsys.readouterr().err
@@ -121,7 +127,7 @@ def test_demo_and_table1_on_a_tiny_section(tmp_path, capsys):
     lines = (tmp_path / "t1" / "table1.csv").read_text().splitlines()
     assert lines[0] == "method,scene,mean_m,std_m,protocol,ci95_low,ci95_high,median_m,within_1m,within_10m,failure_rate,queries,odometry" and len(lines) == 3 and len(rows) == 2
     assert [ln.split(",")[0] for ln in lines[1:]] == ["Ours-GO", "Ours-full + track + BEV align"]
-    assert [ln.split(",")[-1] for ln in lines[1:]] == ["", "noisy_truth"]       # the tracked row's odometry
+    assert [ln.split(",")[-1] for ln in lines[1:]] == ["", "visual"]       # the tracked row's odometry
     assert all(r["ci95_low"] <= r["mean_m"] <= r["ci95_high"] and r["failure_rate"] == 0 for r in rows)
     # running again reuses the recorded and built stages (no new recording)
     stamp = (tmp_path / "t1" / "city" / "record.json").stat().st_mtime_ns
@@ -155,6 +161,7 @@ def test_demo_and_table1_on_a_tiny_section(tmp_path, capsys):
     d = np.hypot(c[:, 0] - f.pose.x, c[:, 1] - f.pose.y)
     near = (d <= NEAR_M) & (np.abs(np.angle(np.exp(1j * (c[:, 2] - f.pose.yaw)))) <= np.radians(NEAR_YAW_DEG))
     assert al["margins"]["go"][0] == pytest.approx(np.log(post[near].max() / post[d > FAR_M].max()), abs=1e-3)
-    # the ground view's bird's-eye correlation puts the truth first on every query of this section
-    assert al["cues"]["bev"]["far_wins"] == 0
+    # the ground view's bird's-eye correlation puts the truth first on all but at most one query of this section
+    # (the revisit has another day's shadows, road wear and season: satloc_env.revisit)
+    assert al["cues"]["bev"]["far_wins"] <= 1 < al["measured"]
     assert (tmp_path / "t1" / "city" / "aliasing.png").stat().st_size > 5000

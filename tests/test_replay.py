@@ -326,6 +326,13 @@ def test_map_in_another_geo_frame_is_refused(seq):
     gym.make(ID, sequence=mem, map=sm).close()
 
 
+def test_oxts_odometry_needs_a_kitti_drive(seq):
+    env = gym.make(ID, sequence=seq)
+    with pytest.raises(ConfigError, match="odometry: 'oxts' reads a KITTI drive's motion sensors"):
+        env.reset(seed=0, options={"odometry": "oxts"})
+    env.close()
+
+
 def test_config_errors(rec, seq, loc, build_dir, tmp_path):
     other_cam = Sequence(dataclasses.replace(seq.camera, pitch=0.05), [seq[i] for i in range(2)], "pitched")
     one = Sequence(seq.camera, [seq[0]], "one")
@@ -361,7 +368,7 @@ def test_config_errors(rec, seq, loc, build_dir, tmp_path):
                       ({"stride": 4, "start_frame": 4}, r"start_frame: expected an index in \[0, 3\]")):
         with pytest.raises(ConfigError, match=msg):
             env.reset(seed=0, options=opts)
-    assert EPISODE_KEYS == {"start_frame", "end_frame", "random_start", "stride", "odometry_noise"}
+    assert EPISODE_KEYS == {"start_frame", "end_frame", "random_start", "stride", "odometry", "odometry_noise"}
     assert SatLocReplayEnv.default_config()["localizer"] is None
     env.close()
 
@@ -431,6 +438,15 @@ def test_real_kitti_drive_replayed_with_a_localizer_built_from_it(tmp_path):
     # not the method's accuracy against satellite imagery
     assert np.median(errors) < 1.0, errors
     assert env.render().shape[0] == PANEL_PX
+    # the drive's own sensors as the odometry observation: OXTS speed and yaw rate, and stereo visual odometry
+    for kind, tol in (("oxts", 0.1), ("visual", 0.1)):   # steps of 0.89-0.98 m, the poses' timing jitters
+        obs, info = env.reset(seed=0, options={"odometry": kind})
+        truncated = False
+        while not truncated:
+            obs, _, _, truncated, info = env.step(1)
+            assert info["odometry_valid"], kind
+            err = np.abs(obs["odometry"].astype(np.float64) - info["odometry_true"])
+            assert err[0] < tol and err[1] < tol and err[2] < 0.01, (kind, err)
 
 
 def test_a_recording_in_another_resolution_is_resampled_and_keeps_its_map(rec, seq, loc, tmp_path):

@@ -302,3 +302,26 @@ def test_bench_vo_prints_drift_rows(tmp_path, capsys):
             ("kitti_oxts", "image", None), ("kitti_oxts", "oxts", None), ("kitti", None, "full"),
             ("kitti", None, "half")]
         assert all(r["vs_poses"]["failed_steps"] == 0 and r["vs_oxts"]["end_error_pct"] < 6 for r in rows[4:])
+
+
+def test_the_environment_observes_visual_odometry_on_request():
+    """odometry="visual": the observation is the stereo VO of the rendered pairs, close to the true motion;
+    the default stays the noisy truth; the key is an episode option."""
+    import gymnasium as gym
+
+    import satloc_env  # noqa: F401
+
+    env = gym.make("satloc/SatLoc-v0", scene="residential", localizer=None, odometry="visual")
+    obs, info = env.reset(seed=0)
+    errs = []
+    for _ in range(12):
+        obs, _, _, _, info = env.step(env.unwrapped.autopilot_action())
+        assert obs["odometry"].dtype == np.float32
+        errs.append(np.abs(obs["odometry"].astype(np.float64) - info["odometry_true"]))
+    errs = np.array(errs)
+    assert np.isfinite(errs).all() and errs[:, 0].max() < 0.15 and errs[:, 2].max() < 0.01   # 2 m steps
+    # the default, and the option per episode
+    obs, info = env.reset(seed=0, options={"odometry": "noisy_truth"})
+    obs, _, _, _, info = env.step(env.unwrapped.autopilot_action())
+    assert env.unwrapped._vo is None and np.isfinite(obs["odometry"]).all()
+    env.close()
