@@ -77,7 +77,9 @@ wide, -width / 4 on narrower ones).
 distance, 150 m) beyond the tile on every side, in a neutral texture (:func:`satloc_env.world.pad_texture`),
 so no view shows the tile's edge and sky below the horizon. The alternative, keeping routes the view distance
 inside the tile, would leave nothing of a 377 m x 277 m image such as ``suburb_utm``. Derived routes keep
-``road_graph.edge_margin_m`` (2 m) inside the tile.
+``road_graph.edge_margin_m`` (2 m) inside the tile. Pixels of a georeferenced image that hold no imagery
+(nodata, masked, transparent, or beyond a reprojected image's footprint: :attr:`SatelliteMap.valid`) are
+filled with the imagery's median colour, on the ground and on the tile alike, rather than left black.
 
 Every field is checked; unknown keys, wrong types, missing images, images or masks of another size, empty
 masks, masks without a long enough road and routes leaving the tile raise :class:`satloc.ConfigError`
@@ -607,6 +609,11 @@ def _image_layout(g: ImageGeneratorSpec, spec: SceneSpec, base: Path, where: str
     if is_georeferenced(img_path, g.crs):
         geo = _load_georeferenced(img_path, g, mpp, where)
         rgb, frame = geo.image, geo.frame
+        if geo.valid is not None and geo.valid.any():
+            # pixels without imagery (nodata, masked, beyond a reprojected image's footprint) are neutral ground,
+            # the median colour of the imagery, as the padding beyond the tile is: not a black hole in the view
+            rgb = rgb.copy()
+            rgb[~geo.valid] = np.median(rgb[geo.valid], axis=0).astype(np.uint8)
     else:
         for k in ("crs", "region"):
             if getattr(g, k) is not None:

@@ -328,3 +328,29 @@ def test_one_osm_export_gives_roads_buildings_and_trees(tmp_path):
     sc = load_scene(p)
     assert len(sc.layout.buildings) == 1 and sc.layout.buildings[0].height == 6.0
     assert len(sc.layout.trees) > 5 and sc.routes["main"].length > 150
+
+
+def test_pixels_without_imagery_are_neutral_ground_not_black(tmp_path):
+    """A tile whose west strip is nodata: the scene's ground (and tile) there is the imagery's median colour."""
+    from affine import Affine
+
+    from test_roads import H_PX, W_PX
+
+    rr, cc = np.mgrid[0:H_PX, 0:W_PX]
+    img = np.stack([cc // 2 % 200 + 30, rr // 2 % 200 + 30, np.full_like(cc, 90)], 0).astype(np.uint16) * 8
+    img[:, :, :40] = 0                                                   # nodata: the west 20 m
+    import rasterio
+
+    with rasterio.open(tmp_path / "nd.tif", "w", driver="GTiff", width=W_PX, height=H_PX, count=3, dtype="uint16",
+                       crs=UTM, transform=Affine(RES, 0.0, E0, 0.0, -RES, N0 + H_PX * RES), nodata=0) as ds:
+        ds.write(img)
+    write_vectors(tmp_path / "roads.geojson", None)
+    p = tmp_path / "nd.yaml"
+    p.write_text(yaml.safe_dump({"name": "nd", "generator": {"type": "image", "image": "nd.tif",
+                                                             "roads": "roads.geojson"},
+                                 "meters_per_pixel": RES, "ground_mpp": RES}))
+    sc = load_scene(p)
+    g = sc.layout.ground_rgb
+    west, east = g[:, :30].reshape(-1, 3), g[:, 60:].reshape(-1, 3)
+    assert np.ptp(west, axis=0).max() == 0 and west.min() > 20          # one neutral colour, not black
+    assert np.abs(west[0].astype(int) - np.median(east, axis=0)).max() <= 12      # about the imagery's median
