@@ -24,7 +24,8 @@ neighbour). AdamW with a one-cycle (warm-up, then cosine decay) learning rate.
 
 Held out, never trained on, and reported:
 
-- the ``heldout`` scenes (default ``loop``: another seed, layout and ground-texture resolution): ground
+- the ``heldout`` scenes (default ``city``, ``residential`` and ``loop``, every scene the method is evaluated
+  on; the default training scenes are ``scenes/fcn_train/*.yaml``, generated scenes disjoint from them): ground
   frames of its episodes, and its whole satellite tile;
 - ground: episodes of the training scenes with seeds disjoint from the training seeds (same streets, other
   starts, lanes, occluders and appearance);
@@ -379,15 +380,34 @@ def _loss_summary(losses: list[float]) -> dict:
             "last": round(float(np.mean(losses[-k:])), 4)}
 
 
-def train_features(out_dir: str | Path, scenes: Sequence[str] = ("city", "residential"),
-                   heldout: Sequence[str] = ("loop",), config: TrainConfig | dict | None = None,
+#: the shipped weights' training scenes, in scenes/fcn_train/ (the order matters: it assigns the seeds)
+TRAINING_SCENES = ("town_a", "town_b", "suburb_a", "suburb_b")
+
+
+def training_scenes() -> list[str]:
+    """The shipped weights' training scenes: :data:`TRAINING_SCENES` of ``scenes/fcn_train/``, generated scenes
+    disjoint from every scene the method is evaluated on (other seeds, block sizes, pitches, road widths,
+    light)."""
+    from .scene import SCENES_DIR
+
+    return [str(SCENES_DIR / "fcn_train" / f"{name}.yaml") for name in TRAINING_SCENES]
+
+
+#: the shipped weights' held-out scenes: every evaluation scene (none of them is trained on)
+HELDOUT = ("city", "residential", "loop")
+
+
+def train_features(out_dir: str | Path, scenes: Sequence[str] | None = None,
+                   heldout: Sequence[str] = HELDOUT, config: TrainConfig | dict | None = None,
                    progress: bool = True) -> dict:
     """Render training data, train the ground and satellite networks, evaluate on held-out data.
+    ``scenes``: the training scenes (default: :func:`training_scenes`).
 
     Writes ``out_dir/fcn.pt`` and ``out_dir/fcn_report.json`` atomically and returns the report.
     ``config``: a :class:`TrainConfig` or a dict of its fields.
     """
     cfg = config if isinstance(config, TrainConfig) else from_dict(TrainConfig, dict(config or {}), "train config")
+    scenes = training_scenes() if scenes is None else scenes
     if not scenes:
         raise ConfigError("train_features: need at least one training scene")
     if set(scenes) & set(heldout):
@@ -484,8 +504,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     """The command-line options (for ``satloc train-features``: add them to a subparser, call :func:`run`)."""
     p.add_argument("--out", required=True, help="directory for fcn.pt and fcn_report.json (the shipped "
                    "weights live in satloc/weights)")
-    p.add_argument("--scenes", nargs="+", default=["city", "residential"], help="training scenes")
-    p.add_argument("--heldout", nargs="*", default=["loop"], help="held-out scenes (evaluation only)")
+    p.add_argument("--scenes", nargs="+", default=None,
+                   help="training scenes (default: scenes/fcn_train/*.yaml, disjoint from every evaluation scene)")
+    p.add_argument("--heldout", nargs="*", default=list(HELDOUT), help="held-out scenes (evaluation only)")
     p.add_argument("--seed", type=int, default=TrainConfig.seed)
     p.add_argument("--ground-iters", type=int, default=TrainConfig.ground_iters)
     p.add_argument("--sat-iters", type=int, default=TrainConfig.sat_iters)
