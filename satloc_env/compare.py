@@ -49,8 +49,8 @@ from satloc.persist import read_json
 
 from .experiment import (BASELINE_NAMES, METHOD_NAMES, CompareConfig, ExperimentConfig,  # noqa: F401
                          _covered, _stage_done, _stages, _stamp, build_and_learn, covered_queries,
-                         check_recordings, dense_pass, localize_and_report, markdown_table, query_stride,
-                         record_config, scene_label, scene_labels, table_stats, tracked_odometry)
+                         check_recordings, dense_pass, localize_and_report, markdown_table, record_config,
+                         scene_label, scene_labels, spaced_frames, table_stats, tracked_odometry)
 from .record import PassConfig, RecordConfig, check_passes, make_env, pass_routes, record_pass
 from .scene import load_scene
 
@@ -299,7 +299,7 @@ def table2(out: str | Path, config: dict | None = None, progress: bool = True, l
     spacing = {"inside": e.query_spacing_m, "outside": e.query_spacing_m,
                "calib_inside": t2.calibration_spacing_m, "calib_outside": t2.calibration_spacing_m}
     for part, q in passes.items():
-        sel = np.arange(0, len(q), query_stride(q, spacing[part]))
+        sel = spaced_frames(q, spacing[part], t2.outside_frames if "outside" in part else e.query_frames)
         inside = np.isin(sel, covered_queries(db, q, e.coverage_m))
         (out / part).mkdir(exist_ok=True)
         res[part] = (inside, compare(e, e.compare, t2.scene, db, q, sel, bdir, satmap, out / part,
@@ -582,8 +582,7 @@ def _protocol(cfg: ExperimentConfig, protocol: str, label: str, sdir: Path, db_f
                 env.close()
             _stamp(pdir / "record.json", prc)
         q = Sequence.load(pdir / "second")
-        sel = covered_queries(db_full, q, cfg.coverage_m)
-        sel = sel[sel % query_stride(q, speed) == 0]
+        sel = np.intersect1d(covered_queries(db_full, q, cfg.coverage_m), spaced_frames(q, speed))
         if len(sel) == 0:
             raise ConfigError(f"[{label}] residential protocol: no second-pass frame lies on the database path")
     # the dictionary of the protocol's database and projections learned on it alone: no learned state has seen

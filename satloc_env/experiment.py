@@ -97,8 +97,9 @@ class CompareConfig:
 
 PROTOCOLS = ("revisit", "city", "residential")
 #: odometry sources of the tracked modes: ``visual``, stereo visual odometry of the recorded frames
-#: (satloc.vo: the passes are recorded a frame every DENSE_SPACING_M metres and the queries are every k-th
-#: frame, the odometry between two queries composed over the frames between them); ``noisy_truth``, the true
+#: (satloc.vo: the passes are recorded a frame every DENSE_SPACING_M metres and the queries taken from them as
+#: far apart as the pass asks, spaced_frames; the odometry between two queries composed over the frames between
+#: them); ``noisy_truth``, the true
 #: motion between queries plus noise and drift (satloc.track.noisy_odometry)
 ODOMETRY = ("visual", "noisy_truth")
 #: frame spacing (metres) of passes whose queries are tracked by visual odometry
@@ -203,8 +204,8 @@ def record_config(cfg: ExperimentConfig) -> RecordConfig:
 
 def dense_pass(cfg, p: PassConfig) -> PassConfig:
     """A query pass as recorded: where tracked modes use ``cfg.odometry == "visual"``, a frame every
-    :data:`DENSE_SPACING_M` metres (the queries are then every k-th frame, :func:`query_stride`; ``max_frames``
-    scaled to match), else ``p`` itself."""
+    :data:`DENSE_SPACING_M` metres (the queries are then the frames ``p.spacing_m`` apart,
+    :func:`spaced_frames`; ``max_frames`` scaled to cover as much), else ``p`` itself."""
     tracked = any("track" in m.split("+") for m in getattr(cfg, "modes", ()))
     if not tracked or getattr(cfg, "odometry", "noisy_truth") != "visual" or p.spacing_m <= DENSE_SPACING_M:
         return p
@@ -213,11 +214,23 @@ def dense_pass(cfg, p: PassConfig) -> PassConfig:
                                max_frames=None if p.max_frames is None else (p.max_frames - 1) * k + 1)
 
 
-def query_stride(q: Sequence, spacing_m: float) -> int:
-    """Every how many frames of the recorded pass ``q`` a query is taken for queries ``spacing_m`` apart (1
-    for a pass recorded at that spacing; k for a dense one)."""
+def spaced_frames(q: Sequence, spacing_m: float, limit: int | None = None) -> np.ndarray:
+    """The frames of the recorded pass ``q`` that a pass recorded a frame every ``spacing_m`` metres would have
+    kept: all of them when ``q`` was recorded at that spacing or coarser; of a dense pass (:func:`dense_pass`),
+    the first frame and then each frame at least ``spacing_m`` metres further along the path than the last one
+    kept, as the recorder keeps frames; the first ``limit`` of them (the pass's ``max_frames``)."""
     rec = float((q.meta.get("pass_config") or {}).get("spacing_m", spacing_m))
-    return max(1, int(round(spacing_m / rec))) if rec > 0 else 1
+    if rec >= spacing_m - 1e-9 or len(q) == 0:
+        return np.arange(len(q))[:limit]
+    xy = np.asarray(q.poses, np.float64)[:, :2]
+    steps = np.hypot(*np.diff(xy, axis=0).T)
+    s = np.concatenate([[0.0], np.cumsum(np.nan_to_num(steps))])
+    keep, last = [0], 0.0
+    for i in range(1, len(q)):
+        if s[i] - last >= spacing_m - 1e-9:
+            keep.append(i)
+            last = s[i]
+    return np.asarray(keep, np.int64)[:limit]
 
 
 def tracked_odometry(cfg, seq: Sequence, idx: np.ndarray, cache: Path | None = None) -> np.ndarray:
@@ -337,10 +350,10 @@ def build_and_learn(cfg, label: str, database: Sequence, satmap: str | Path, out
 
 
 def _covered(cfg: ExperimentConfig, db: Sequence, q: Sequence) -> np.ndarray:
-    """The evaluated queries: every :func:`query_stride`-th frame of the query pass whose true position lies
-    within ``coverage_m`` of the database path."""
-    sel = covered_queries(db, q, cfg.coverage_m)
-    sel = sel[sel % query_stride(q, cfg.query_spacing_m) == 0]
+    """The evaluated queries: the frames of the query pass ``query_spacing_m`` apart (:func:`spaced_frames`)
+    whose true position lies within ``coverage_m`` of the database path."""
+    sel = np.intersect1d(covered_queries(db, q, cfg.coverage_m), spaced_frames(q, cfg.query_spacing_m,
+                                                                                  cfg.query_frames))
     if len(sel) == 0:
         raise ConfigError(f"[{cfg.scene}] no query frame lies within {cfg.coverage_m} m of the database path")
     return sel
