@@ -49,8 +49,8 @@ from satloc.persist import read_json
 
 from .experiment import (BASELINE_NAMES, METHOD_NAMES, CompareConfig, ExperimentConfig,  # noqa: F401
                          _covered, _stage_done, _stages, _stamp, build_and_learn, covered_queries,
-                         check_recordings, dense_pass, localize_and_report, markdown_table, record_config,
-                         scene_label, scene_labels, spaced_frames, table_stats, tracked_odometry)
+                         check_recordings, dense_pass, is_tracked, localize_and_report, markdown_table,
+                         record_config, scene_label, scene_labels, spaced_frames, table_stats, tracked_odometry)
 from .record import PassConfig, RecordConfig, check_passes, make_env, pass_routes, record_pass
 from .scene import load_scene
 
@@ -559,7 +559,7 @@ def _protocol(cfg: ExperimentConfig, protocol: str, label: str, sdir: Path, db_f
     odo = None
     if protocol == "city":
         q, sel = db_full.view(qi, name=f"{protocol} protocol queries"), np.arange(len(qi))
-        if any("track" in m.split("+") for m in cfg.modes):   # over the database pass, between the queries
+        if is_tracked(cfg):   # over the database pass, between the queries
             odo = tracked_odometry(cfg, db_full, qi, sdir / "odometry_visual_database.npz")
     else:
         # a second pass over the database's route at one frame per second (the revisit pass's lane,

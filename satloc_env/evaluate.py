@@ -77,7 +77,7 @@ from satloc.satmap import SatelliteMap
 from satloc.sequence import Sequence
 
 from .experiment import (MODES, METHOD_NAMES, _stage_done, _stamp, build_and_learn, covered_queries,
-                         localize_and_report, tracked_odometry)
+                         is_tracked, localize_and_report, tracked_odometry)
 
 RESOLUTIONS = ("half", "full")
 
@@ -367,7 +367,7 @@ def evaluate(database: str | Path, satellite: str | Path, out: str | Path, confi
                     "extent_m": [round(v, 2) for v in sm.extent], "radiometry": sm.radiometry},
             "camera": camera.to_dict(), "config": to_dict(cfg)}
     odo = None
-    if any("track" in m.split("+") for m in cfg.modes):   # between the queries, over every frame of their drive
+    if is_tracked(cfg):   # between the queries, over every frame of their drive
         if cfg.odometry == "oxts" and reader != "kitti":
             raise ConfigError("odometry: 'oxts' is KITTI's; give visual or noisy_truth for this reader")
         t = time.perf_counter()

@@ -202,12 +202,17 @@ def record_config(cfg: ExperimentConfig) -> RecordConfig:
                                                          change=cfg.change, seed=1, max_frames=cfg.query_frames)))
 
 
+def is_tracked(cfg) -> bool:
+    """Whether a mode of ``cfg.modes`` is tracked, so needs the odometry between the queries."""
+    return any("track" in m.split("+") for m in getattr(cfg, "modes", ()))
+
+
 def dense_pass(cfg, p: PassConfig) -> PassConfig:
     """A query pass as recorded: where tracked modes use ``cfg.odometry == "visual"``, a frame every
     :data:`DENSE_SPACING_M` metres (the queries are then the frames ``p.spacing_m`` apart,
     :func:`spaced_frames`; ``max_frames`` scaled to cover as much), else ``p`` itself."""
-    tracked = any("track" in m.split("+") for m in getattr(cfg, "modes", ()))
-    if not tracked or getattr(cfg, "odometry", "noisy_truth") != "visual" or p.spacing_m <= DENSE_SPACING_M:
+    if (not is_tracked(cfg) or getattr(cfg, "odometry", "noisy_truth") != "visual"
+            or p.spacing_m <= DENSE_SPACING_M):
         return p
     k = max(1, int(round(p.spacing_m / DENSE_SPACING_M)))
     return dataclasses.replace(p, spacing_m=DENSE_SPACING_M,
@@ -374,7 +379,7 @@ def localize_and_report(cfg, label: str, db: Sequence, q: Sequence, sel: np.ndar
     (:func:`run_scene`) or replayed real data (:mod:`satloc_env.evaluate`)."""
     # tracked modes: the odometry between consecutive evaluated queries (given, or of the query pass itself)
     odo = odometry
-    if odo is None and any("track" in m.split("+") for m in cfg.modes):
+    if odo is None and is_tracked(cfg):
         odo = tracked_odometry(cfg, q, sel, Path(out) / "odometry_visual.npz")
     results: dict[str, dict] = {}
     examples: dict[str, list[tuple[int, Localization]]] = {}

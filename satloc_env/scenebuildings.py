@@ -104,7 +104,7 @@ def vector_buildings(path: Path, frame, shape: tuple[int, int], mpp: float, driv
         rng = np.random.default_rng([int(seed), 21, feature[k]])
         drawn_h, facade = float(rng.uniform(lo, hi)), int(rng.integers(0, _FACADES))
         ring = np.asarray(q.exterior.coords, np.float64)[:-1]
-        if shapely.LinearRing(ring).is_ccw is False:
+        if not shapely.LinearRing(ring).is_ccw:
             ring = ring[::-1]
         out.append(Building(ring, float(height) if height is not None else drawn_h, facade, roof_from_ground=True))
         keep[k + 1] = True
@@ -116,6 +116,7 @@ def vector_trees(path: Path, frame, shape: tuple[int, int], mpp: float, drivable
                  where: str) -> tuple[list[Tree], np.ndarray]:
     """The trees of the file ``path`` on the scene's tile and the (H, W) bool mask of their crowns off the
     drivable ground (see the module docstring)."""
+    from shapely import contains_xy
     from shapely.geometry import Polygon, box
 
     from satloc.vectors import read_trees
@@ -139,8 +140,6 @@ def vector_trees(path: Path, frame, shape: tuple[int, int], mpp: float, drivable
         if len(xy) + n_est > MAX_TREES:
             raise ConfigError(f"{where}: generator.trees: {path}: its canopy areas would make about "
                               f"{len(xy) + n_est:.0f} trees, more than {MAX_TREES}")
-        from shapely import contains_xy
-
         dy = CANOPY_SPACING_M * math.sqrt(3) / 2
         for j, yy in enumerate(np.arange(y0 + dy / 2, y1, dy)):
             xs = np.arange(x0 + (CANOPY_SPACING_M / 2 if j % 2 else 0.0), x1, CANOPY_SPACING_M)

@@ -19,7 +19,7 @@ from satloc.labels import CLASS_ID
 from satloc.vectors import LEVEL_HEIGHT_M, building_height, read_footprints, read_trees
 from satloc_env.scene import Scene, load_scene
 
-from test_roads import E0, N0, RES, UTM, image, local, write_vectors
+from test_roads import E0, N0, RES, UTM, image, local, plain_image_scene, write_vectors
 
 # footprints in metres east / north of (E0, N0): beside the main road (y about 60, 8 m wide), a courtyard
 # block, one straddling the tile's east edge (x = 160), one on the road, and one tagged building=no
@@ -175,15 +175,8 @@ def test_vector_object_errors(tmp_path, scene_dir):
 
 
 def test_vector_objects_need_a_georeferenced_image(tmp_path):
-    import cv2
-
-    cv2.imwrite(str(tmp_path / "plain.png"), np.full((40, 60, 3), 120, np.uint8))
     write_footprints(tmp_path / "b.geojson", None)
-    p = tmp_path / "s.yaml"
-    p.write_text(yaml.safe_dump({"name": "p", "generator": {"type": "image", "image": "plain.png",
-                                                            "buildings": "b.geojson"},
-                                 "meters_per_pixel": 1.0, "ground_mpp": 1.0,
-                                 "routes": {"main": {"waypoints": [[5, 20], [50, 20]]}}}))
+    p = plain_image_scene(tmp_path, {"buildings": "b.geojson"}, routes={"main": {"waypoints": [[5, 20], [45, 20]]}})
     with pytest.raises(ConfigError, match="generator.buildings: .*not georeferenced"):
         load_scene(p)
 

@@ -311,15 +311,20 @@ def test_route_spec_errors(scene_dir, routes, message):
     assert str(p) in str(e.value)
 
 
-def test_vector_roads_need_a_georeferenced_image(tmp_path):
+def plain_image_scene(tmp_path, generator: dict, **extra):
+    """A scene file over a plain (not georeferenced) grey image, its generator given ``generator`` too."""
     import cv2
 
     cv2.imwrite(str(tmp_path / "plain.png"), np.full((100, 100, 3), 90, np.uint8))
-    write_vectors(tmp_path / "roads.geojson", None)
     p = tmp_path / "plain.yaml"
-    p.write_text(yaml.safe_dump({"name": "plain", "generator": {"type": "image", "image": "plain.png",
-                                                                "roads": "roads.geojson"},
-                                 "meters_per_pixel": 0.5, "ground_mpp": 0.5}))
+    p.write_text(yaml.safe_dump({"name": "plain", "generator": {"type": "image", "image": "plain.png", **generator},
+                                 "meters_per_pixel": 0.5, "ground_mpp": 0.5, **extra}))
+    return p
+
+
+def test_vector_roads_need_a_georeferenced_image(tmp_path):
+    write_vectors(tmp_path / "roads.geojson", None)
+    p = plain_image_scene(tmp_path, {"roads": "roads.geojson"})
     with pytest.raises(ConfigError, match=r"generator\.roads: .*roads\.geojson is a vector file, in map "
                                           r"coordinates; the image is not georeferenced"):
         load_scene(p)
