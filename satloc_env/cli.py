@@ -119,6 +119,14 @@ def cmd_experiment(args) -> int:
         print((Path(args.out) / "sweep.md").read_text(), end="")
         print(f"written: {Path(args.out) / 'sweep.csv'}, {Path(args.out) / 'sweep.png'}")
         return 0
+    if args.which == "tune":
+        from satloc_env.tune import tune
+
+        res = tune(args.out, config, progress=not args.quiet, log=log)
+        print((Path(args.out) / "tune.md").read_text(), end="")
+        print("chosen: " + ", ".join(f"{k}={v}" for k, v in res["chosen"].items()))
+        print(f"written: {Path(args.out) / 'tune.json'}")
+        return 0
     if args.which == "aliasing":
         aliasing(args.out, tuple(args.scenes), config, progress=not args.quiet, log=log)
         print((Path(args.out) / "aliasing.md").read_text(), end="")
@@ -285,13 +293,14 @@ def build_parser() -> argparse.ArgumentParser:
     ex = sub.add_parser("experiment", help="paper experiments on simulated scenes: table1; table2 (queries outside "
                                            "the map, every method, PR curves); sweep (every method over aliasing x "
                                            "occlusion x appearance); aliasing (how often each "
-                                           "single-image cue prefers a look-alike place)")
-    ex.add_argument("which", choices=["table1", "table2", "sweep", "aliasing"])
+                                           "single-image cue prefers a look-alike place); tune (the tuned "
+                                           "settings chosen on a calibration scene no table tests on)")
+    ex.add_argument("which", choices=["table1", "table2", "sweep", "aliasing", "tune"])
     ex.add_argument("--out", required=True)
     ex.add_argument("--scenes", nargs="+", default=["city", "residential"])
     ex.add_argument("--config", help="YAML with ExperimentConfig fields (satloc_env/experiment.py); table2: "
-                                     "Table2Config, sweep: SweepConfig fields (satloc_env/compare.py; "
-                                     "--scenes is not used by either)")
+                                     "Table2Config, sweep: SweepConfig fields (satloc_env/compare.py), tune: "
+                                     "TuneConfig fields (satloc_env/tune.py); --scenes is not used by these)")
     ex.add_argument("--quiet", action="store_true")
     ex.set_defaults(func=cmd_experiment)
 
