@@ -28,16 +28,25 @@ import dataclasses
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from satloc.baselines.fabmap import FabMapConfig
 from satloc.config import from_dict, to_dict
 from satloc.errors import ConfigError
-from satloc.baselines.fabmap import FabMapConfig
 from satloc.localizer import LocalizerConfig
-from satloc.track import TrackConfig
 from satloc.persist import write_json
 from satloc.satmap import SatelliteMap
+from satloc.track import TrackConfig
 
-from .experiment import (MODES, CompareConfig, ExperimentConfig, _covered, _stages, is_tracked, localize_and_report,
-                         scene_label, tracked_odometry)
+from .experiment import (
+    MODES,
+    CompareConfig,
+    ExperimentConfig,
+    _covered,
+    _stages,
+    is_tracked,
+    localize_and_report,
+    scene_label,
+    tracked_odometry,
+)
 
 #: the scenes Table I, Table II and the sweep test on: never calibration data
 TEST_SCENES = ("city", "residential", "loop")
@@ -198,5 +207,13 @@ def tune_markdown(res: dict) -> str:
     return "\n".join(lines) + "\n"
 
 
-__all__ = ["TuneConfig", "tune", "tune_markdown", "pick_lowest", "pick_smallest_within", "CALIBRATION_SCENE",
-           "FABMAP_CALIBRATION_TRAIN", "TEST_SCENES"]
+__all__ = [
+    "CALIBRATION_SCENE",
+    "FABMAP_CALIBRATION_TRAIN",
+    "TEST_SCENES",
+    "TuneConfig",
+    "pick_lowest",
+    "pick_smallest_within",
+    "tune",
+    "tune_markdown",
+]
