@@ -49,12 +49,34 @@ def bench_env(resolution: str = "half", steps: int = 2000, scene: str = "city", 
     }
 
 
+def _frames_of(rec) -> int:
+    return int(rec.name.rsplit("_", 1)[1])
+
+
+def bench_recording(work, scene: str, frames: int):
+    """The recording folder of ``satloc bench localize`` in ``work``: ``rec_<scene>_<database frames>``. An
+    existing complete recording of the same scene with at least ``frames`` database frames is reused (its
+    first frames serve every size); otherwise a new folder for ``frames`` frames. Returns ``(folder, reuse)``."""
+    from .experiment import scene_label
+
+    label = scene_label(scene).replace("/", "_")
+    done = []
+    for d in Path(work).glob(f"rec_{label}_*"):
+        tail = d.name[len(f"rec_{label}_"):]
+        if tail.isdigit() and int(tail) >= frames and (d / "query" / "sequence.json").is_file():
+            done.append((int(tail), d))
+    if done:
+        return min(done)[1], True
+    return Path(work) / f"rec_{label}_{frames}", False
+
+
 def bench_localize(sizes_km=(0.25, 1.0, 4.0), work=None, scene: str = "loop", queries: int = 40,
                    progress: bool = True, mode: str = "full", device: str = "auto") -> "Iterator[dict]":
     """Localization speed against databases of increasing path length (one JSON-able row per size).
 
     One database pass (frames every metre) and one query pass of ``scene`` are recorded in ``work`` (reused
-    when present); each size builds a dictionary from the first ``size`` km of the database, learns the
+    when a recording there covers the longest size, :func:`bench_recording`; a route shorter than that size is
+    an error); each size builds a dictionary from the first ``size`` km of the database, learns the
     projections, and times ``queries`` queries end to end (features, stereo depth, scoring) taken from the
     query pass where it lies on that part of the database: ``queries_per_s`` as a stream of queries is
     localized (:meth:`Localizer.localize_stream`: frames read from disk, the next frame's depth and features
@@ -66,6 +88,7 @@ def bench_localize(sizes_km=(0.25, 1.0, 4.0), work=None, scene: str = "loop", qu
     from pathlib import Path
 
     from satloc.device import resolve_device
+    from satloc.errors import ConfigError
     from satloc.geometry import arc_length
     from satloc.localizer import LocalizerConfig
     from satloc.pipeline import BuildConfig, build, load_localizer, train_projection
@@ -78,14 +101,17 @@ def bench_localize(sizes_km=(0.25, 1.0, 4.0), work=None, scene: str = "loop", qu
     dev = str(resolve_device(device))   # before any work: a device that is not there fails at once
     work = Path(work) if work else Path(tempfile.mkdtemp(prefix="satloc_bench_"))
     longest = max(sizes_km)
-    rec = work / "rec"
-    if not (rec / "query" / "sequence.json").is_file():
-        # the recorder keeps a frame about every 1.6 m at its default speed and spacing (see satloc demo --help)
-        record_passes(RecordConfig(scene=scene, database=PassConfig(max_frames=int(longest * 1000 / 1.5) + 50),
+    # the recorder keeps a frame about every 1.6 m at its default speed and spacing (see satloc demo --help)
+    rec, reuse = bench_recording(work, scene, int(longest * 1000 / 1.5) + 50)
+    if not reuse:
+        record_passes(RecordConfig(scene=scene, database=PassConfig(max_frames=_frames_of(rec)),
                                    query=PassConfig(lane_offset_m=-0.75, spacing_m=5.0, occlusion=0.3,
                                                     appearance=0.5, seed=1, max_frames=250)), rec, progress)
     db_all, q = Sequence.load(rec / "database"), Sequence.load(rec / "query")
     s = arc_length(db_all.poses)
+    if s[-1] < longest * 1000.0 - 5.0:   # a build must not measure a shorter database than its row says
+        raise ConfigError(f"bench localize: scene {scene!r}'s database route gives {s[-1] / 1000:.2f} km, less "
+                          f"than the {longest:g} km asked (--sizes-km); ask for sizes up to that length")
     for km in sizes_km:
         n = int(np.searchsorted(s, km * 1000.0)) + 1
         db = db_all.head(n)

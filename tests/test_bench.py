@@ -1,6 +1,8 @@
 """The benchmark commands run and print the documented JSON keys (small settings; no timing asserted)."""
 import json
 
+import numpy as np
+
 from satloc.device import resolve_device
 from satloc_env.cli import main
 
@@ -23,3 +25,40 @@ def test_bench_env_prints_steps_per_second(capsys):
     r = json.loads(capsys.readouterr().out)
     assert r["steps"] == 10 and r["steps_per_s"] > 0 and r["width"] == 620
     assert r["gl_renderer"] and r["gl_version"]       # which driver rendered (llvmpipe here, a GPU's elsewhere)
+
+
+def test_bench_localize_reuses_only_a_recording_that_covers_the_longest_size(tmp_path):
+    """A recording of another scene, or one shorter than the longest size asked, is not reused (it once
+    measured a 1.14 km database under build_4km and said nothing)."""
+    from satloc_env.bench import bench_recording
+
+    def done(name):
+        (tmp_path / name / "query").mkdir(parents=True)
+        (tmp_path / name / "query" / "sequence.json").write_text("{}")
+
+    assert bench_recording(tmp_path, "loop", 717) == (tmp_path / "rec_loop_717", False)
+    done("rec_loop_717")
+    assert bench_recording(tmp_path, "loop", 717) == (tmp_path / "rec_loop_717", True)
+    assert bench_recording(tmp_path, "loop", 500) == (tmp_path / "rec_loop_717", True)    # its first frames
+    assert bench_recording(tmp_path, "loop", 2717) == (tmp_path / "rec_loop_2717", False)
+    assert bench_recording(tmp_path, "city", 500) == (tmp_path / "rec_city_500", False)
+    (tmp_path / "rec_loop_3000" / "query").mkdir(parents=True)   # interrupted: no sequence.json
+    assert bench_recording(tmp_path, "loop", 2717) == (tmp_path / "rec_loop_2717", False)
+
+
+def test_bench_localize_refuses_a_size_longer_than_the_route(tmp_path, monkeypatch):
+    import pytest
+
+    import satloc.sequence
+    from satloc.errors import ConfigError
+    from satloc_env import bench
+
+    class Short:   # a recording of a 0.1 km route
+        poses = np.c_[np.linspace(0, 100, 60), np.zeros(60), np.zeros(60)]
+
+    rec = tmp_path / "rec_city_1383"
+    (rec / "query").mkdir(parents=True)
+    (rec / "query" / "sequence.json").write_text("{}")
+    monkeypatch.setattr(satloc.sequence.Sequence, "load", staticmethod(lambda p: Short()))
+    with pytest.raises(ConfigError, match="0.10 km, less than the 0.9 km"):
+        next(bench.bench_localize((0.9,), tmp_path, scene="city", progress=False))
