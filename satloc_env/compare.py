@@ -451,10 +451,14 @@ class SweepConfig:
                 raise ConfigError(f"{name}: expected a non-empty list of values in [0, 1], got {list(v)}")
 
 
+SWEEP_COLUMNS = ("scene", "aliasing", "occlusion", "appearance", "method", "mean_m", "ci95_low", "ci95_high",
+                 "recall_10m", "failure_rate", "queries", "odometry")
+
+
 def sweep(out: str | Path, config: dict | None = None, progress: bool = True, log=print) -> list[dict]:
-    """Mean error and 10 m recall (fraction of the queries localized within 10 m) of every method over
-    aliasing x occlusion x appearance. Writes ``sweep.csv``
-    (scene,aliasing,occlusion,appearance,method,mean_m,recall_10m,queries), ``sweep.md``, ``sweep.json`` (with
+    """Mean error (with its 95 % bootstrap interval, failures counted as gross errors), 10 m recall (fraction of
+    the queries localized within 10 m) and failure rate of every method over aliasing x occlusion x
+    appearance. Writes ``sweep.csv`` (:data:`SWEEP_COLUMNS`), ``sweep.md``, ``sweep.json`` (with
     the seeds) and ``sweep.png`` into ``out``; returns the rows."""
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
@@ -477,8 +481,11 @@ def sweep(out: str | Path, config: dict | None = None, progress: bool = True, lo
                 for m, r in res.items():
                     rows.append({"scene": sc.scene, "aliasing": a, "occlusion": o, "appearance": p,
                                  "method": method_name(m), "mean_m": round(float(r["mean_m"]), 3),
-                                 "recall_10m": round(float(r["within_10m"]), 3), "queries": int(r["queries"])})
-    cols = ["scene", "aliasing", "occlusion", "appearance", "method", "mean_m", "recall_10m", "queries"]
+                                 "ci95_low": round(float(r["ci95_low"]), 3), "ci95_high": round(float(r["ci95_high"]), 3),
+                                 "recall_10m": round(float(r["within_10m"]), 3),
+                                 "failure_rate": round(float(r["failure_rate"]), 3), "queries": int(r["queries"]),
+                                 "odometry": odometry_label(cfg, m)})
+    cols = list(SWEEP_COLUMNS)
     with atomic_path(out / "sweep.csv", suffix=".csv") as tmp:
         with open(tmp, "w", newline="") as f:
             w = csv.writer(f)
@@ -488,9 +495,11 @@ def sweep(out: str | Path, config: dict | None = None, progress: bool = True, lo
     seeds = {"database_pass": 0, "query_pass": 1, "odometry": sc.experiment.odometry_seed,
              "fabmap": sc.experiment.compare.fabmap.seed}
     lines = [f"Scene `{sc.scene}`; seeds: {seeds}.", "",
-             "| aliasing | occlusion | appearance | method | mean m | within 10 m | queries |", "|---|---|---|---|---|---|---|"]
-    lines += [f"| {r['aliasing']:g} | {r['occlusion']:g} | {r['appearance']:g} | {r['method']} | {r['mean_m']:.2f} | "
-              f"{100 * r['recall_10m']:.0f} % | {r['queries']} |" for r in rows]
+             "| aliasing | occlusion | appearance | method | mean m [95 % CI] | within 10 m | failed | queries | odometry |",
+             "|---|---|---|---|---|---|---|---|---|"]
+    lines += [f"| {r['aliasing']:g} | {r['occlusion']:g} | {r['appearance']:g} | {r['method']} | {r['mean_m']:.2f} "
+              f"[{r['ci95_low']:.2f}-{r['ci95_high']:.2f}] | {100 * r['recall_10m']:.0f} % | "
+              f"{100 * r['failure_rate']:.0f} % | {r['queries']} | {r['odometry']} |" for r in rows]
     with atomic_path(out / "sweep.md", suffix=".md") as tmp:
         tmp.write_text("\n".join(lines) + "\n")
     write_json(out / "sweep.json", {"format": "sweep", "config": to_dict(sc), "seeds": seeds, "rows": rows})

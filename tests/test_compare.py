@@ -135,6 +135,27 @@ def test_sweep_config_and_figure(tmp_path):
     assert (tmp_path / "sweep.png").stat().st_size > 5000
 
 
+def test_sweep_end_to_end_reports_intervals_failures_and_odometry(tmp_path):
+    """sweep() on one tiny combination: sweep.csv has SWEEP_COLUMNS, one row per method, each the figures of
+    that combination's compare.json (failures counted, bootstrap interval around the mean)."""
+    from satloc_env.compare import SWEEP_COLUMNS, sweep
+
+    exp = {"database_frames": 30, "query_frames": 4, "query_spacing_m": 6.0, "features": "rgb",
+           "modes": ["go", "go+track"], "compare": dict(TINY_BASELINES, baselines=["efm"]), "pictures": False}
+    rows = sweep(tmp_path, {"aliasing": [0.0], "occlusion": [0.3], "appearance": [0.5], "experiment": exp},
+                 progress=False, log=lambda m: None)
+    lines = (tmp_path / "sweep.csv").read_text().splitlines()
+    assert lines[0] == ",".join(SWEEP_COLUMNS) and len(lines) == 4
+    comp = json.loads((tmp_path / "a0_o0.3_p0.5" / "compare.json").read_text())["methods"]
+    assert [r["method"] for r in rows] == ["Ours-GO", "Ours-GO + track", "EFM"]
+    for r, key in zip(rows, ("go", "go+track", "efm")):
+        m = comp[key]
+        assert r["mean_m"] == round(m["mean_m"], 3) and r["failure_rate"] == round(m["failure_rate"], 3)
+        assert r["ci95_low"] <= r["mean_m"] <= r["ci95_high"] and r["queries"] == 4
+        assert r["odometry"] == ("visual" if key == "go+track" else "")
+    assert "failed" in (tmp_path / "sweep.md").read_text()
+
+
 def test_table2_calibrates_on_other_passes_and_reports_the_test(tmp_path):
     """table2() end to end on a tiny configuration of loop: the thresholds come from the calibration passes
     (other seeds and spacing), the test figures are computed at them, with intervals, beside the oracle."""
