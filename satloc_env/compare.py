@@ -401,7 +401,7 @@ def plot_pr_curves(curves: dict, rows: list[dict], path: Path) -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    fig, axes = plt.subplots(1, 2, figsize=(11, 5))
+    fig, axes = plt.subplots(1, 2, figsize=(13, 5))
     colours = list(plt.get_cmap("tab10").colors) + ["black", "0.55", "darkgoldenrod", "navy"]
     for k, ((name, c), r) in enumerate(zip(curves.items(), rows)):
         # the method's single-image rows solid, its tracked rows dashed, the baselines dotted and thicker
@@ -418,7 +418,8 @@ def plot_pr_curves(curves: dict, rows: list[dict], path: Path) -> None:
         ax.set_ylim(*lim)
         ax.grid(alpha=0.3)
         ax.set_title(title)
-    axes[0].legend(fontsize=7, loc="lower left")
+    # outside the axes: inside, it covered the curves that matter most (the single images, lower left)
+    axes[1].legend(fontsize=8, loc="upper left", bbox_to_anchor=(1.02, 1.0), borderaxespad=0.0)
     fig.suptitle("inside/outside the map: the test queries' precision-recall curves (dots: at the thresholds "
                  "calibrated on other passes)")
     fig.tight_layout()
