@@ -241,6 +241,29 @@ def test_bad_options(tmp_path):
         load_kitti(drv, camera="gray")  # written without the grey pair
 
 
+def test_a_folder_that_is_not_a_drive_says_what_a_drive_is(tmp_path):
+    """The date folder (which holds the calibration), a folder above it, an empty folder and a drive copied
+    without its calibration: each says what was expected, and lists the drive folders it can see."""
+    drv = write_kitti_drive(tmp_path / "raw", 2)
+    for folder, also in ((drv.parent, [str(drv)]), (drv.parent.parent, [str(drv)]), (tmp_path / "empty", [])):
+        folder.mkdir(exist_ok=True)
+        with pytest.raises(FormatError) as e:
+            load_kitti(folder)
+        msg = str(e.value)
+        assert msg.startswith(f"{folder.resolve()}: not a KITTI drive folder") and "_drive_<nnnn>_sync" in msg
+        assert "oxts/ and image_02/" in msg and "calib_cam_to_cam.txt" in msg and "one level up" in msg
+        for d in also:
+            assert f"drive folders here: {d}" in msg
+        if not also:
+            assert "drive folders here" not in msg and "holds nothing" in msg
+    copied = tmp_path / "copy" / drv.name
+    shutil.copytree(drv, copied)
+    with pytest.raises(FormatError, match=r"calib_cam_to_cam\.txt: calibration file not found; expected a KITTI "
+                                          r"raw drive folder .* copy calib_cam_to_cam\.txt, calib_imu_to_velo\.txt, "
+                                          r"calib_velo_to_cam\.txt beside it"):
+        load_kitti(copied)
+
+
 def test_oxts_fields_are_the_documented_thirty():
     assert len(OXTS_FIELDS) == 30 and OXTS_FIELDS[:6] == ("lat", "lon", "alt", "roll", "pitch", "yaw")
     if REAL.is_dir():

@@ -338,6 +338,32 @@ class _FrameReader:
 
 # --- the drive -------------------------------------------------------------------------------------------
 
+_DRIVE_LAYOUT = ("a KITTI raw drive folder <date>_drive_<nnnn>_sync holding oxts/ and image_{left}/ "
+                 "(camera {camera!r}), with the calibration files ({calib}) one level up, in the date folder")
+
+
+def check_drive_folder(drive: Path, camera: str = "color") -> None:
+    """:class:`FormatError` saying what a drive folder must hold when ``drive`` has none of its streams (a date
+    folder, a drive's parent, an empty folder: the drive folders inside are listed) or when its date folder
+    lacks the calibration files. A drive with some streams missing is left to :func:`load_kitti`'s own checks,
+    which name the missing file."""
+    left = CAMERAS[camera][0]
+    calib = ("calib_cam_to_cam.txt", "calib_imu_to_velo.txt", "calib_velo_to_cam.txt")
+    layout = _DRIVE_LAYOUT.format(left=left, camera=camera, calib=", ".join(calib))
+    if not any((drive / d).is_dir() for d in ("oxts", "image_00", "image_01", "image_02", "image_03")):
+        found = sorted(str(d) for d in drive.glob("*_drive_*_sync") if d.is_dir())
+        found += sorted(str(d) for d in drive.glob("*/*_drive_*_sync") if d.is_dir())
+        hint = ("; drive folders here: " + ", ".join(found[:10]) + (" ..." if len(found) > 10 else "")) if found \
+            else ""
+        have = sorted(p.name + ("/" if p.is_dir() else "") for p in drive.iterdir())[:8]
+        raise FormatError(f"{drive}: not a KITTI drive folder (it holds {', '.join(have) or 'nothing'}); expected "
+                          f"{layout}{hint}")
+    absent = [c for c in calib if not (drive.parent / c).is_file()]
+    if absent:
+        raise FormatError(f"{drive.parent / absent[0]}: calibration file not found; expected {layout} (a drive copied "
+                          f"without its date folder's calibration files: copy {', '.join(absent)} beside it)")
+
+
 def load_kitti(drive_dir: str | os.PathLike, frame: GeoFrame | None = None, *, camera: str = "color",
                missing: str = "skip", imu_height: float = IMU_HEIGHT_M, name: str | None = None) -> Sequence:
     """A KITTI raw synced drive ``<date>/<date>_drive_<nnnn>_sync`` as a lazy :class:`Sequence`.
@@ -357,6 +383,7 @@ def load_kitti(drive_dir: str | os.PathLike, frame: GeoFrame | None = None, *, c
     if not drive.is_dir():
         raise FormatError(f"{drive}: KITTI drive directory not found")
     drive = drive.resolve()
+    check_drive_folder(drive, camera)
     rig = read_rig(drive.parent, camera, imu_height)
     cam = rig.camera
     left_id, right_id = CAMERAS[camera]
