@@ -3,6 +3,7 @@
     python examples/drive.py --scene residential --steps 200 --out drive_out
 """
 import argparse
+import sys
 from pathlib import Path
 
 import cv2
@@ -10,6 +11,7 @@ import gymnasium as gym
 import numpy as np
 
 import satloc_env  # noqa: F401  (registers satloc/SatLoc-v0)
+from satloc.errors import run_script
 
 
 def main(argv=None):
@@ -60,4 +62,4 @@ def main(argv=None):
 
 
 if __name__ == "__main__":
-    main()
+    sys.exit(run_script(main))

@@ -12,6 +12,7 @@ few frames (camera, bird's-eye crop and map overview with the posterior, the est
 import argparse
 import csv
 import math
+import sys
 from pathlib import Path
 
 import cv2
@@ -19,6 +20,7 @@ import gymnasium as gym
 import numpy as np
 
 import satloc_env  # noqa: F401  (registers satloc/SatLocReplay-v0)
+from satloc.errors import run_script
 
 
 def main(argv=None):
@@ -113,4 +115,4 @@ def plot(rows, name: str, path: Path) -> None:
 
 
 if __name__ == "__main__":
-    main()
+    sys.exit(run_script(main))

@@ -11,12 +11,14 @@ strength, the median, the 10th and 90th percentiles and the share of places unde
     python examples/revisit_change.py --scene residential --picture examples/images/revisit_change.jpg
 """
 import argparse
+import sys
 import time
 
 import cv2
 import numpy as np
 
 from satloc.baselines.efm import estimate_homography
+from satloc.errors import run_script
 from satloc_env.env import SatLocEnv
 from satloc_env.record import QUERY_CHANGE, RecordConfig
 
@@ -84,4 +86,4 @@ def main(argv=None):
 
 
 if __name__ == "__main__":
-    main()
+    sys.exit(run_script(main))

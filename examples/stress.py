@@ -9,10 +9,12 @@ parked vehicles and pedestrians) is localized against it. Prints a table, writes
 """
 import argparse
 import csv
+import sys
 from pathlib import Path
 
 import numpy as np
 
+from satloc.errors import run_script
 from satloc_env.experiment import METHOD_NAMES, ExperimentConfig, run_scene
 
 
@@ -78,4 +80,4 @@ def plot(rows, path):
 
 
 if __name__ == "__main__":
-    main()
+    sys.exit(run_script(main))

@@ -19,3 +19,18 @@ class FormatError(SatlocError, ValueError):
 class SatlocWarning(UserWarning):
     """Input that satloc reads but that is probably not what was meant (e.g. a satellite image that converts
     to a nearly black or constant picture); the message names the file."""
+
+
+def run_script(main, argv=None) -> int:
+    """Run an example script's ``main(argv)``: 0 when it returns; on a :class:`SatlocError` (bad input, named
+    in its message) print ``<script>: error: <message>`` alone to stderr, without a traceback, and return 1.
+    Other exceptions are bugs and keep their traceback. Use as ``sys.exit(run_script(main))``."""
+    import os
+    import sys
+
+    try:
+        main(argv)
+    except SatlocError as e:
+        print(f"{os.path.basename(sys.argv[0]) or 'satloc'}: error: {e}", file=sys.stderr)
+        return 1
+    return 0

@@ -1,11 +1,13 @@
 """The examples run (small settings), so they never rot. ``examples/drive.py`` is run in test_record.py."""
 import csv
 import json
+import os
 import subprocess
 import sys
 from pathlib import Path
 
 import numpy as np
+import pytest
 
 ROOT = Path(__file__).resolve().parent.parent
 
@@ -59,3 +61,21 @@ def test_example_replay_evaluates_a_recorded_sequence(tmp_path):
     assert f"max {errors.max():.2f} m" in r.stdout
     assert (out / "errors.png").stat().st_size > 5000
     assert sorted(p.name for p in out.glob("view_*.png")) == ["view_000000.png", "view_000005.png"]
+
+
+@pytest.mark.parametrize("script, args, message", [
+    ("replay.py", ["--sequence", "no/such/sequence"], "no/such/sequence"),
+    ("drive.py", ["--scene", "no_such_scene", "--steps", "1"], "scene 'no_such_scene'"),
+    ("stress.py", ["--scene", "no_such_scene", "--aliasing", "0", "--occlusion", "0"], "scene 'no_such_scene'"),
+    ("revisit_change.py", ["--scene", "no_such_scene", "--places", "1"], "scene 'no_such_scene'"),
+])
+def test_examples_print_bad_input_as_one_line_and_exit_1(tmp_path, script, args, message):
+    """Bad input (a project error naming it) gives the message alone on stderr and status 1, no traceback."""
+    r = subprocess.run([sys.executable, str(ROOT / "examples" / script), *args, "--out", str(tmp_path / "o")]
+                       if script != "revisit_change.py" else [sys.executable, str(ROOT / "examples" / script), *args],
+                       capture_output=True, text=True, timeout=300, env=dict(os.environ, PYOPENGL_PLATFORM="egl"),
+                       cwd=tmp_path)
+    assert r.returncode == 1, r.stderr
+    err = r.stderr.strip().splitlines()
+    assert err[-1].startswith(f"{script}: error: ") and message in err[-1], r.stderr
+    assert "Traceback" not in r.stderr
