@@ -445,8 +445,13 @@ def check_localizer_camera(localizer, camera: StereoCamera, what: str, source: s
     the localizer); the message gives both cameras' differing fields."""
     c = localizer.camera
     if (c.width, c.height) != (camera.width, camera.height):
+        rig = c.rig_differences(camera, 1e-6, 1e-6, 1e-6)   # the sequence's values against the localizer's
+        why = ("" if not rig else
+               f"; images are resampled into a localizer's camera only when the two rigs are the same, and these "
+               f"differ ({what} against the localizer: {', '.join(rig)}): use a localizer built from a database "
+               f"taken with this rig (satloc build --database <a recording or drive of it>)")
         raise ConfigError(f"localizer: {source} was built for {c.width}x{c.height} images, but {what} has "
-                          f"{camera.width}x{camera.height} images")
+                          f"{camera.width}x{camera.height} images{why}")
     diff = [f"{f.name} {getattr(c, f.name):g} vs {getattr(camera, f.name):g}"
             for f in dataclasses.fields(StereoCamera)
             if not math.isclose(getattr(c, f.name), getattr(camera, f.name), rel_tol=1e-6, abs_tol=1e-6)]

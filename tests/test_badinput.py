@@ -355,6 +355,22 @@ def test_localizer_of_another_camera_is_refused(scenes, rec, loc):
     with pytest.raises(ConfigError, match=r"built for another camera than that of sequence 'query' .*baseline 0.6 vs "
                                           r"0.54"):
         gym.make(REPLAY_ID, sequence=rec["tiny"], localizer=pitched)
+    # another size and another rig (the city demo's build on a KITTI drive): the message says why the replay does
+    # not resample the images, and what to use instead
+    kitti_like = copy.copy(loc)
+    kitti_like.camera = dataclasses.replace(loc.camera.resized(1242, 375), baseline=0.532, mount_height=1.72)
+    with pytest.raises(ConfigError, match=r"built for 1242x375 images, but sequence 'query' has 620x188 images; "
+                                          r"images are resampled into a localizer's camera only when the two rigs "
+                                          r"are the same, and these differ \(sequence 'query' against the localizer: "
+                                          r"baseline 0.5400 m against 0.5320 m, mount_height .*\): use a localizer "
+                                          r"built from a database taken with this rig"):
+        gym.make(REPLAY_ID, sequence=rec["tiny"], localizer=kitti_like)
+    same_rig = copy.copy(loc)
+    same_rig.camera = loc.camera.resized(1242, 375)   # same rig, other size: resampled, so no size error
+    try:
+        gym.make(REPLAY_ID, sequence=rec["tiny"], localizer=same_rig).close()
+    except ConfigError as e:
+        assert "images, but" not in str(e)
 
 
 def test_replay_refuses_a_localizer_of_other_data(scenes, rec, loc, build_dir, tmp_path):
