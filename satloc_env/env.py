@@ -467,7 +467,9 @@ class SatLocEnv(SharedSpecMixin, gym.Env):
     motion since the previous step in the previous vehicle frame: with ``odometry="noisy_truth"`` (the default)
     the true motion plus noise, with ``odometry="visual"`` the stereo visual odometry of the rendered pairs
     (:class:`satloc.vo.StereoVO`; NaN on a step where it fails: the tracked localizer then starts a new belief);
-    ``depth`` (float32 metres, 0 = nothing) and ``labels`` (uint8 class ids) when enabled.
+    ``depth`` (float32 metres in [0, ``zfar_m``], 0 = nothing) and ``labels`` (uint8 class ids) when enabled.
+    The ``odometry`` Box is unbounded, so ``check_env`` warns about it: the noise of ``noisy_truth`` is
+    Gaussian, and ``visual`` reports NaN on a step it cannot measure.
 
     Action: Box [speed m/s, yaw rate rad/s] = ``[0, -1]`` to ``[20, 1]``, applied through a kinematic bicycle
     model. ``autopilot_action()`` returns the route follower's action for scripts.
@@ -561,7 +563,7 @@ class SatLocEnv(SharedSpecMixin, gym.Env):
             "odometry": spaces.Box(-np.inf, np.inf, (3,), np.float32),
         }
         if self.config.depth:
-            obs["depth"] = spaces.Box(0.0, np.inf, (h, w), np.float32)
+            obs["depth"] = spaces.Box(0.0, self.config.zfar_m, (h, w), np.float32)   # 0: nothing; nothing beyond zfar
         if self.config.labels:
             obs["labels"] = spaces.Box(0, NUM_CLASSES - 1, (h, w), np.uint8)
         self.observation_space = spaces.Dict(obs)

@@ -23,6 +23,27 @@ def test_check_env(env_id):
     env.close()
 
 
+def test_depth_is_bounded_by_the_far_plane_and_only_odometry_is_unbounded():
+    """The depth Box is [0, zfar_m] and the rendered depth stays in it; check_env warns only about the
+    odometry Box, the one observation with no finite bound (Gaussian noise; NaN from visual odometry)."""
+    import warnings
+
+    env = gym.make("satloc/SatLoc-v0", scene="city", depth=True, localizer=None, zfar_m=40.0)
+    box = env.observation_space["depth"]
+    assert float(box.low.min()) == 0.0 and float(box.high.max()) == 40.0
+    with warnings.catch_warnings(record=True) as w:
+        warnings.simplefilter("always")
+        check_env(env.unwrapped, skip_render_check=True)
+    infinite = [str(x.message) for x in w if "infinity" in str(x.message)]
+    assert len(infinite) == 2   # the odometry's -inf and +inf
+    assert np.all(np.isinf(env.observation_space["odometry"].high))
+    obs, _ = env.reset(seed=0)
+    for _ in range(20):
+        obs, *_ = env.step(env.unwrapped.autopilot_action())
+        assert box.contains(obs["depth"]) and obs["depth"].max() > 30.0   # the far road, near the far plane
+    env.close()
+
+
 def run(env, seed, n, options=None):
     obs, info = env.reset(seed=seed, options=options)
     out = [(obs, info)]
