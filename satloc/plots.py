@@ -27,44 +27,52 @@ def _save(fig, path: Path) -> None:
 
 
 def plot_posterior(satmap: SatelliteMap, result: Localization, truth: Pose2 | None, path: str | Path,
-                   window_m: float = 120.0, title: str = "") -> None:
-    """Two panels: the whole map and a ``window_m`` crop around the truth (or the estimate), each with the
-    posterior over candidate poses as a heatmap, the estimate (cross) and the truth (circle); for a refined
-    result also the co-occurrence estimate before alignment (plus)."""
+                   window_m: float = 120.0, title: str = "") -> int:
+    """The whole map and a ``window_m`` crop around the truth (or the estimate), each with the posterior over
+    candidate poses as a heatmap, the estimate (cross) and the truth (circle); for a refined result also the
+    co-occurrence estimate before alignment (plus). When the estimate lies outside the truth's crop, a third
+    panel crops around the estimate, so both are seen up close. Returns the number of panels drawn."""
     plt = _pyplot()
     post, c = result.posterior, result.candidates
     rel = post / max(post.max(), 1e-300)
     order = np.argsort(post)                         # most probable drawn last, on top
     order = order[rel[order] >= 1e-4]                # below the colour scale: not drawn, the map shows through
-    fig, axes = plt.subplots(1, 2, figsize=(12, 5.6))
-    centre = truth if truth is not None else result.estimate
+    e = result.estimate
+    crops = [("around the truth", truth)] if truth is not None else [("around the estimate", e)]
+    if truth is not None and max(abs(e.x - truth.x), abs(e.y - truth.y)) > 0.45 * window_m:
+        crops.append((f"around the estimate, {e.distance(truth):.0f} m away", e))
+    panels = [("whole map", None)] + crops
+    fig, axes = plt.subplots(1, len(panels), figsize=(6 * len(panels), 5.6))
     h, w = satmap.image.shape[:2]
     mpp = satmap.meters_per_pixel
     x0, y0 = satmap.origin
     full = (x0, x0 + w * mpp, y0 - h * mpp, y0)
-    for ax, crop in zip(axes, (False, True)):
+    for ax, (name, centre) in zip(axes, panels):
         ax.imshow(satmap.image, extent=full, interpolation="bilinear")
         sc = ax.scatter(c[order, 0], c[order, 1], c=np.log10(np.maximum(rel[order], 1e-4)), cmap="inferno",
-                        vmin=-4, vmax=0, s=6 if crop else 2, alpha=0.85, linewidths=0)
-        e = result.estimate
+                        vmin=-4, vmax=0, s=2 if centre is None else 6, alpha=0.85, linewidths=0)
         ax.plot([e.x], [e.y], "x", color="cyan", ms=12, mew=2.5, label="estimate")
         if result.coarse_estimate is not None:   # refined: also the co-occurrence estimate it started from
             ce = result.coarse_estimate
             ax.plot([ce.x], [ce.y], "+", color="white", ms=10, mew=2, label="before alignment")
         if truth is not None:
             ax.plot([truth.x], [truth.y], "o", mfc="none", mec="lime", ms=12, mew=2.5, label="truth")
-        if crop:
+        if centre is not None:
             ax.set_xlim(centre.x - window_m / 2, centre.x + window_m / 2)
             ax.set_ylim(centre.y - window_m / 2, centre.y + window_m / 2)
+        ax.set_title(name, fontsize=10)
         ax.set_xlabel("x east (m)")
         ax.set_ylabel("y north (m)")
-    axes[1].legend(loc="lower right", fontsize=8)
+    axes[-1].legend(loc="lower right", fontsize=8)
     cb = fig.colorbar(sc, ax=axes, shrink=0.8)
     cb.set_label("log10 P(L|I) / max")
-    err = f", error {result.estimate.distance(truth):.2f} m" if truth is not None else ""
-    fig.suptitle(f"{title}{err}, inlier score {result.inlier_score:.1f}")
+    parts = [title] if title else []
+    if truth is not None:
+        parts.append(f"error {result.estimate.distance(truth):.2f} m")
+    fig.suptitle(", ".join(parts + [f"inlier score {result.inlier_score:.1f}"]))
     _save(fig, Path(path))
     plt.close(fig)
+    return len(panels)
 
 
 def _along(poses: np.ndarray) -> np.ndarray:
