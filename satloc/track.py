@@ -72,7 +72,9 @@ class TrackConfig:
     inlier_threshold: float = 0.5     # a tracked frame is declared inside the map when P(on the map) reaches this
     lock_m: float = 10.0              # a belief is locked when this radius around its mode holds ...
     lock_mass: float = 0.9            # ... this much of it (times P(on the map)); until then every candidate is
-                                      # scored (Localizer: no vote pruning); 0: only a new belief's first frame
+                                      # scored (Localizer: no vote pruning); 0: only a new belief's first frame.
+                                      # `satloc experiment tune` on fcn_train/town_a: 0, 0.5, 0.9, 0.99 gave the
+                                      # same errors (full+track+align, 57 queries), so 0.9 stays
 
     def __post_init__(self):
         if self.sigma_m <= 0 or self.sigma_frac < 0:

@@ -55,7 +55,8 @@ def test_tune_refuses_an_invalid_grid_point_before_any_work(tmp_path):
 def test_tune_runs_each_grid_on_the_calibration_scene_and_applies_its_rules(tmp_path):
     """End to end on a tiny calibration run: every grid point localized with its own value, the choices by
     the documented rules, tune.json and tune.md written."""
-    from satloc.baselines.fabmap import FabMap
+    from satloc.baselines.fabmap import FabMap, FabMapConfig
+    from satloc.track import TrackConfig
 
     exp = {"database_frames": 30, "query_frames": 4, "query_spacing_m": 6.0, "features": "rgb",
            "compare": {"fabmap": {"max_features": 150, "new_place_samples": 5}, "fabmap_train_frames": 6}}
@@ -71,9 +72,12 @@ def test_tune_runs_each_grid_on_the_calibration_scene_and_applies_its_rules(tmp_
         assert r["queries"] == 4 and np.isfinite(r["mean_m"])
     assert [r["value"] for r in by["ef_search"]] == [20, 96]
     assert res["chosen"]["ef_search"] == pick_smallest_within(by["ef_search"], 0.05)["value"]
-    assert res["chosen"]["lock_mass"] == pick_lowest(by["lock_mass"], 0.9)["value"]
-    assert res["chosen"]["fabmap.vocabulary_size"] == pick_lowest(by["fabmap.vocabulary_size"], 2000)["value"]
-    assert res["chosen"]["fabmap.contrast_threshold"] == pick_lowest(by["fabmap.contrast_threshold"], 0.01)["value"]
+    fc = FabMapConfig()   # ties go to the current defaults
+    assert res["chosen"]["lock_mass"] == pick_lowest(by["lock_mass"], TrackConfig().lock_mass)["value"]
+    assert res["chosen"]["fabmap.vocabulary_size"] == pick_lowest(by["fabmap.vocabulary_size"],
+                                                                  fc.vocabulary_size)["value"]
+    assert res["chosen"]["fabmap.contrast_threshold"] == pick_lowest(by["fabmap.contrast_threshold"],
+                                                                     fc.contrast_threshold)["value"]
     # each grid point ran with its own value
     for v in (20, 96):
         s = json.loads((tmp_path / f"ef_search_{v}" / "summary.json").read_text())
