@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import shutil
 import sys
 from pathlib import Path
 
@@ -89,7 +90,31 @@ def cmd_demo(args) -> int:
               f"{100 * r['within_1m']:.0f} % within 1 m  {r['queries_per_s']:.1f} queries/s")
     pics = sorted(p.name for p in out.glob("*.png"))
     print(f"  pictures in {out}: {', '.join(pics)}")
+    stages = _demo_artefacts(out)
+    sizes = ", ".join(f"{p.name}{'/' if p.is_dir() else ''} {_mb(p):.0f} MB" for p in stages if p.is_dir())
+    if args.keep_artefacts:
+        print(f"  artefacts in {out} (a rerun reuses them; --no-keep-artefacts deletes them): {sizes}, "
+              f"localization_<mode>.npz/.json, odometry and stage files")
+    else:
+        for p in stages:
+            if p.is_dir():
+                shutil.rmtree(p)
+            else:
+                p.unlink()
+        print(f"  deleted the artefacts ({sizes}, the localizations and stage files); kept the pictures and "
+              f"summary.json")
     return 0
+
+
+def _demo_artefacts(out: Path) -> list[Path]:
+    """What ``satloc demo`` writes besides its pictures and ``summary.json``: the recording, the build, the
+    per-mode localizations, the visual odometry and the stage stamps."""
+    names = ["rec", "build", "record.json", "build_stage.json", "projection_stage.json", "odometry_visual.npz"]
+    return [out / n for n in names if (out / n).exists()] + sorted(out.glob("localization_*"))
+
+
+def _mb(path: Path) -> float:
+    return sum(f.stat().st_size for f in path.rglob("*") if f.is_file()) / 1e6
 
 
 def cmd_experiment(args) -> int:
@@ -287,6 +312,10 @@ def build_parser() -> argparse.ArgumentParser:
                    help="database frames to record (one every ~1.6 m at the default speed); 0: the whole route")
     d.add_argument("--query-frames", type=int, default=None)
     d.add_argument("--features", choices=["rgb", "semantic", "default"], default="default")
+    d.add_argument("--keep-artefacts", action=argparse.BooleanOptionalAction, default=True,
+                   help="keep the recording (rec/), the build (build/), the localizations and stage files beside "
+                        "the pictures (default; a rerun reuses them, about 0.4 GB at the default size); "
+                        "--no-keep-artefacts deletes them at the end")
     d.add_argument("--quiet", action="store_true")
     d.set_defaults(func=cmd_demo)
 

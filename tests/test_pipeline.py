@@ -118,6 +118,14 @@ def test_demo_and_table1_on_a_tiny_section(tmp_path, capsys):
     summary = json.loads((out / "summary.json").read_text())
     assert summary["queries"] >= 2 and set(summary["modes"]) == set(MODES)
     assert {"full+track", "full+track+align"} <= set(MODES)
+    assert f"artefacts in {out}" in text and " rec/ " in text and " build/ " in text
+    # again with --no-keep-artefacts: the stages are reused, then everything but the pictures and summary goes
+    assert main(["demo", "--out", str(out), "--db-frames", "20", "--query-frames", "3", "--features", "rgb",
+                 "--quiet", "--no-keep-artefacts"]) == 0
+    assert "deleted the artefacts (rec/" in capsys.readouterr().out
+    left = sorted(p.name for p in out.iterdir())
+    assert "summary.json" in left and "errors_along_route.png" in left
+    assert all(n.endswith(".png") or n == "summary.json" for n in left), left
     # table1 on one scene reuses nothing from the demo folder and writes the csv with the documented columns
     # (two of the modes, to keep the test short; the demo above ran them all)
     small = {"database_frames": 20, "query_frames": 3, "features": "rgb", "modes": ["go", "full+track+align"],
