@@ -91,7 +91,7 @@ def cmd_demo(args) -> int:
     pics = sorted(p.name for p in out.glob("*.png"))
     print(f"  pictures in {out}: {', '.join(pics)}")
     stages = _demo_artefacts(out)
-    sizes = ", ".join(f"{p.name}{'/' if p.is_dir() else ''} {_mb(p):.0f} MB" for p in stages if p.is_dir())
+    sizes = ", ".join(f"{p.name}/ {_mb(p):.0f} MB" for p in stages if p.is_dir())
     if args.keep_artefacts:
         print(f"  artefacts in {out} (a rerun reuses them; --no-keep-artefacts deletes them): {sizes}, "
               f"localization_<mode>.npz/.json, odometry and stage files")
