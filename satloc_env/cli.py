@@ -179,6 +179,10 @@ def cmd_evaluate(args) -> int:
                  progress=not args.quiet, log=log)
     print(f"satloc evaluate: {s['sequence']}, database {s['database_frames']} frames ({s['database_m']:.0f} m), "
           f"{s['queries']} queries; {s['split']}")
+    if "lidar_mosaic" in s:
+        print(f"  map: {s['map_kind']}: {s['satellite']}, made from this drive's own images and LiDAR "
+              f"({100 * s['lidar_mosaic']['covered_fraction']:.1f} % of it covered); these errors do not measure "
+              f"localization against satellite imagery")
     for mode, r in s["modes"].items():
         print(f"  {mode:16s}  mean {r['mean_m']:.2f} m (std {r['std_m']:.2f})  median {r['median_m']:.2f} m  "
               f"{100 * r['within_1m']:.0f} % within 1 m  {r['queries_per_s']:.1f} queries/s")
@@ -345,7 +349,10 @@ def build_parser() -> argparse.ArgumentParser:
                          "the rest the queries (random:0.4 = 40 %% database, 60 %% queries; the default), or "
                          "'passes' = the first pass is the database, later passes over it the queries")
     ev.add_argument("--satellite", required=True, metavar="MAP",
-                    help="georeferenced satellite image: GeoTIFF, image + world file, or XYZ tile folder")
+                    help="georeferenced satellite image: GeoTIFF, image + world file, or XYZ tile folder; or "
+                         "'lidar-mosaic' (KITTI drives with LiDAR: a stand-in made from the --database drive's own "
+                         "images, written to OUT/lidar_mosaic.tif: a self-consistency check, not a satellite "
+                         "evaluation)")
     ev.add_argument("--out", required=True, help="output folder (stages in it are reused by later runs)")
     ev.add_argument("--resolution", choices=["half", "full"], default=None,
                     help="half (default): images and camera resized by 1/2 (KITTI: 621x188); full: the data's size")
@@ -353,7 +360,8 @@ def build_parser() -> argparse.ArgumentParser:
     ev.add_argument("--modes", nargs="+", default=None, metavar="MODE",
                     help="modes to localize with: go np full full+align go+track np+track full+track "
                          "full+track+align (default: all of these, as table1)")
-    ev.add_argument("--config", help="YAML with EvaluateConfig fields (satloc_env/evaluate.py)")
+    ev.add_argument("--config", help="YAML with EvaluateConfig fields (satloc_env/evaluate.py), e.g. 'margin_m: "
+                                     "20' (the map's margin around the route)")
     ev.add_argument("--quiet", action="store_true")
     ev.set_defaults(func=cmd_evaluate)
 

@@ -33,6 +33,14 @@ poses plus noise).
 method and its shipped FCN are tuned for: the simulator's 620x188 at fx 361; Malaga 1024x768 -> 512x384,
 800x600 -> 400x300); ``"full"`` keeps the data's size.
 
+``satellite="lidar-mosaic"`` (the literal value; KITTI drives only): no satellite image, but a stand-in made
+from the database drive's own images placed with its LiDAR (:mod:`satloc.datasets.lidar_mosaic`), written to
+``out/lidar_mosaic.tif`` (with its record ``lidar_mosaic.tif.json``; reused while made from the same drive files
+and settings) and then used as the satellite image. The map is made from the same images that are localized, so
+this is a **self-consistency check** of the data, calibration and pipeline, not an evaluation against satellite
+imagery: ``summary.json``'s ``map_kind`` says so, and the sequence in ``results.csv`` / ``results.md`` carries
+``[lidar-mosaic self-check]``.
+
 ``satellite_bands`` and ``satellite_stretch`` choose the satellite image's bands and its conversion to 8 bits
 (:class:`satloc.radiometry.Radiometry`: by default the image's colour bands, 8-bit samples as stored and any
 other type stretched per band from its 0.5-99.5 % percentiles); ``summary.json`` records what was applied
@@ -56,6 +64,7 @@ import hashlib
 import math
 import re
 import time
+import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -67,7 +76,7 @@ from satloc.context import ContextConfig
 from satloc.datasets import load_kitti, load_malaga
 from satloc.datasets.kitti import CAMERAS, IMU_HEIGHT_M, MISSING
 from satloc.datasets.malaga import MalagaConfig
-from satloc.errors import ConfigError
+from satloc.errors import ConfigError, SatlocWarning
 from satloc.geoframe import GeoFrame
 from satloc.geometry import StereoCamera, arc_length, wrap_angle
 from satloc.persist import atomic_dir, atomic_path
@@ -80,6 +89,9 @@ from .experiment import (MODES, METHOD_NAMES, _stage_done, _stamp, build_and_lea
                          is_tracked, localize_and_report, tracked_odometry)
 
 RESOLUTIONS = ("half", "full")
+LIDAR_MOSAIC = "lidar-mosaic"   # the satellite= value that makes the map from the database drive itself
+MAP_KINDS = {"image": "satellite imagery",
+             LIDAR_MOSAIC: "lidar-mosaic (self-consistency check, not satellite imagery)"}
 
 
 @dataclass
@@ -293,8 +305,9 @@ def load_satellite(path: str | Path, cfg: EvaluateConfig, frame: GeoFrame, poses
                       radiometry=cfg.satellite_radiometry)
     except ConfigError as e:
         if str(e).startswith("region:"):
-            raise ConfigError(f"satellite map {path} does not cover the route and its {m:g} m margin "
-                              f"(lower margin_m or use a larger image): {e}") from e
+            raise ConfigError(f"satellite map {path} does not cover the route and its {m:g} m margin: use a larger "
+                              f"image or lower margin_m (an EvaluateConfig field; with satloc evaluate: a YAML file "
+                              f"holding e.g. 'margin_m: 20' passed as --config cfg.yaml): {e}") from e
         if str(e).startswith(("bands:", "stretch:")):
             raise ConfigError(f"satellite_{e}") from e
         raise
@@ -309,10 +322,15 @@ def evaluate(database: str | Path, satellite: str | Path, out: str | Path, confi
              queries: str | Path | None = None, reader: str = "kitti", progress: bool = True, log=print) -> dict:
     """Evaluate the method on real data (see the module docstring); returns the summary written to
     ``out/summary.json``. ``reader``: ``"kitti"`` (``database``/``queries`` are KITTI raw drive folders) or
-    ``"malaga"`` (Malaga Urban extract folders)."""
+    ``"malaga"`` (Malaga Urban extract folders). ``satellite``: the image, or ``"lidar-mosaic"`` (a map made from
+    the database drive itself: a self-consistency check, see the module docstring)."""
     cfg = config if isinstance(config, EvaluateConfig) else from_dict(EvaluateConfig, config or {}, "evaluate config")
     if reader not in ("kitti", "malaga"):
         raise ConfigError(f"reader: expected 'kitti' or 'malaga', got {reader!r}")
+    mosaic = isinstance(satellite, str) and satellite == LIDAR_MOSAIC
+    if mosaic and reader != "kitti":
+        raise ConfigError(f"satellite {LIDAR_MOSAIC}: made from a KITTI raw drive's LiDAR (--database), not from a "
+                          f"{reader} extract ({database}); give a georeferenced satellite image with --satellite")
     out = Path(out)
     times: dict[str, float] = {}
     t = time.perf_counter()
@@ -353,7 +371,21 @@ def evaluate(database: str | Path, satellite: str | Path, out: str | Path, confi
     out.mkdir(parents=True, exist_ok=True)
     # the map covers the drive (whatever the split), or the database and the query drive's frames near it
     poses = full.poses if queries is None else np.concatenate([db.poses, q.poses[covered]])
-    sm, map_stamp, times["map_s"] = load_satellite(satellite, cfg, frame, poses, out, log)
+    made = None
+    if mosaic:
+        from satloc.datasets.lidar_mosaic import ensure_lidar_mosaic
+
+        log(f"[{name}] --satellite {LIDAR_MOSAIC}: the map is made from this drive's own images and LiDAR, so "
+            f"the results are a self-consistency check, not an evaluation against satellite imagery")
+        t = time.perf_counter()
+        satellite = out / "lidar_mosaic.tif"   # over the drive's poses, and the queries within coverage_m of them
+        made = ensure_lidar_mosaic(database, satellite, cfg.mpp, cfg.margin_m + cfg.coverage_m + 1.0 + 2 * cfg.mpp,
+                                   log=log)
+        times["lidar_mosaic_s"] = time.perf_counter() - t
+    with warnings.catch_warnings():
+        if mosaic:   # black beyond the road by construction (its covered fraction is logged above)
+            warnings.filterwarnings("ignore", message=".*is mostly dark after conversion", category=SatlocWarning)
+        sm, map_stamp, times["map_s"] = load_satellite(satellite, cfg, frame, poses, out, log)
     source = {"data": {"reader": reader, "database": str(Path(database).resolve()),
                        "options": to_dict(cfg.kitti if reader == "kitti" else cfg.malaga),
                        "resolution": cfg.resolution, "sequence": _sequence_stamp(db)},
@@ -362,7 +394,8 @@ def evaluate(database: str | Path, satellite: str | Path, out: str | Path, confi
     times.update(more)
     head = {"sequence": name, "reader": reader, "database": str(Path(database).resolve()),
             "queries_from": str(Path(queries).resolve()) if queries is not None else None, "split": split,
-            "satellite": str(Path(satellite).resolve()), "geo_frame": frame.to_dict(),
+            "satellite": str(Path(satellite).resolve()), "map_kind": MAP_KINDS[LIDAR_MOSAIC if mosaic else "image"],
+            "geo_frame": frame.to_dict(),
             "map": {"meters_per_pixel": sm.meters_per_pixel, "size_px": [int(sm.shape[1]), int(sm.shape[0])],
                     "extent_m": [round(v, 2) for v in sm.extent], "radiometry": sm.radiometry},
             "camera": camera.to_dict(), "config": to_dict(cfg)}
@@ -373,8 +406,12 @@ def evaluate(database: str | Path, satellite: str | Path, out: str | Path, confi
         t = time.perf_counter()
         odo = tracked_odometry(cfg, parent, in_parent[sel], out / "odometry_visual.npz")
         times["odometry_s"] = time.perf_counter() - t
+    if made is not None:
+        head["lidar_mosaic"] = {k: made[k] for k in ("covered_fraction", "size_px", "frames_used",
+                                                     "frames_without_lidar", "frames_without_ground", "lidar",
+                                                     "reused")}
     summary = localize_and_report(cfg, name, db, q, sel, bdir, sm, out, head, times, progress, log, odo)
-    write_results(out, summary, name)
+    write_results(out, summary, f"{name} [{LIDAR_MOSAIC} self-check]" if mosaic else name)
     return summary
 
 

@@ -312,6 +312,64 @@ def test_real_kitti_excerpt_against_a_lidar_mosaic(tmp_path, capsys):
         assert np.all(np.isfinite(e)) and np.all(e < 5.0), (odo, e)
 
 
+@pytest.mark.skipif(not REAL.is_dir(), reason="shared KITTI fixture absent")
+def test_real_kitti_excerpt_with_satellite_lidar_mosaic(tmp_path, capsys):
+    """``--satellite lidar-mosaic``: the map made from the drive itself into OUT/lidar_mosaic.tif, labelled a
+    self-consistency check in the printed lines, summary.json and results.csv/md; reused by a rerun."""
+    out = tmp_path / "lm"
+    args = ["--database", REAL, "--satellite", "lidar-mosaic", "--out", out, "--config", _write(tmp_path, SMALL),
+            "--modes", "go"]
+    rc, text, err = _run(capsys, *args)
+    assert rc == 0, err
+    label = "lidar-mosaic (self-consistency check, not satellite imagery)"
+    assert f"map: {label}: {out / 'lidar_mosaic.tif'}" in text and "do not measure localization against " \
+                                                                   "satellite imagery" in text
+    s = json.loads((out / "summary.json").read_text())
+    assert s["map_kind"] == label and s["satellite"] == str((out / "lidar_mosaic.tif").resolve())
+    lm = s["lidar_mosaic"]
+    # measured: 1.7 % of the 693 x 671 px covered (the 60 m default margin plus coverage_m around 7 frames)
+    assert lm["frames_used"] == list(range(7)) and lm["lidar"] == ["proj_depth/velodyne/image_02"]
+    assert 0.005 < lm["covered_fraction"] < 0.1 and not lm["reused"]
+    assert s["database_frames"] == 3 and s["queries"] == 4 and np.all(np.isfinite(_errors(out, "go")))
+    rows = list(csv.reader((out / "results.csv").open()))
+    assert rows[1][:2] == ["Ours-GO", "2011_09_26_drive_0023_sync [lidar-mosaic self-check]"]
+    assert "[lidar-mosaic self-check]" in (out / "results.md").read_text()
+    stamps = {p: (out / p).stat().st_mtime_ns for p in ("lidar_mosaic.tif", "map/map.png")}
+    rc, text, err = _run(capsys, *args)
+    assert rc == 0, err
+    assert {p: (out / p).stat().st_mtime_ns for p in stamps} == stamps
+    assert json.loads((out / "summary.json").read_text())["lidar_mosaic"]["reused"]
+
+
+def test_lidar_mosaic_needs_a_kitti_drive_with_lidar(tmp_path, capsys):
+    out = tmp_path / "out"
+    rc, _, err = _run(capsys, "--malaga", tmp_path, "--satellite", "lidar-mosaic", "--out", out)
+    assert rc == 2 and "satellite lidar-mosaic: made from a KITTI raw drive's LiDAR (--database), not from a " \
+                      "malaga extract" in err, err
+    drive = write_kitti_drive(tmp_path / "kitti", 6)          # images and OXTS, no LiDAR
+    rc, _, err = _run(capsys, "--database", drive, "--satellite", "lidar-mosaic", "--out", out)
+    assert rc == 2 and f"{drive}: no LiDAR for any of its 6 frames; a LiDAR mosaic needs " \
+                       "velodyne_points/data/<index>.bin" in err, err
+    assert not (out / "lidar_mosaic.tif").exists() and not any(out.glob("build*"))
+
+
+def test_uncovered_route_error_says_how_to_change_margin_m(tmp_path):
+    """The hint is what satloc evaluate reads: a YAML file with ``margin_m: 20`` given as ``--config``."""
+    from geofixtures import REF, UTM, make_world_image
+
+    from satloc_env.cli import _stage_config
+    from satloc_env.evaluate import EvaluateConfig, load_satellite
+
+    path, _, _ = make_world_image(tmp_path / "w.png", UTM, gsd_m=1.0)
+    poses = np.array([[-30.0, -20.0, 0.0], [30.0, 20.0, 0.0]])
+    with pytest.raises(ConfigError, match=r"does not cover the route and its 5000 m margin: use a larger image or "
+                                          r"lower margin_m \(an EvaluateConfig field; with satloc evaluate: a YAML "
+                                          r"file holding e\.g\. 'margin_m: 20' passed as --config cfg\.yaml\)"):
+        load_satellite(path, EvaluateConfig(mpp=1.0, margin_m=5000.0), REF, poses, tmp_path / "out", lambda *a: None)
+    (tmp_path / "cfg.yaml").write_text("margin_m: 20\n")
+    assert _stage_config(EvaluateConfig, str(tmp_path / "cfg.yaml"), {"mpp": None}).margin_m == 20
+
+
 def _write(tmp_path: Path, cfg: dict) -> Path:
     p = tmp_path / "config.yaml"
     p.write_text(yaml.safe_dump(cfg))

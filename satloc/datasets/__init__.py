@@ -1,7 +1,9 @@
 """Readers of real datasets in their original layouts, each producing the shared data model
 (:class:`satloc.sequence.Sequence` with its :class:`satloc.geometry.StereoCamera`), one module per dataset.
 
-:func:`open_sequence` opens any of them, or a sequence in satloc's own layout, by looking at the folder."""
+:func:`open_sequence` opens any of them, or a sequence in satloc's own layout, by looking at the folder.
+:mod:`satloc.datasets.lidar_mosaic` makes a satellite stand-in from a KITTI drive's own images and LiDAR (for a
+self-consistency check where no satellite image is at hand)."""
 from __future__ import annotations
 
 import os

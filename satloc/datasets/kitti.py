@@ -181,6 +181,30 @@ def _projection(calib, path, cam: str) -> tuple[np.ndarray, np.ndarray]:
     return k, np.linalg.solve(k, p[:, 3])
 
 
+def _camera_from_velo(cc: dict, cam_path: Path, t_left: np.ndarray, vc_path: Path) -> np.ndarray:
+    """4x4: Velodyne frame -> camera 0 (``calib_velo_to_cam``) -> rectified camera 0 (``R_rect_00``) -> the
+    rectified left camera (its translation ``t_left`` from ``P_rect``)."""
+    rect = np.eye(4)
+    rect[:3, :3] = _rotation(cc, cam_path, "R_rect_00")
+    shift = np.eye(4)
+    shift[:3, 3] = t_left
+    return shift @ rect @ _rigid(read_calib_file(vc_path), vc_path)
+
+
+def velo_to_camera(date_dir: str | os.PathLike, camera: str = "color") -> np.ndarray:
+    """The 4x4 transform taking Velodyne points (``velodyne_points/data/*.bin``, metres) into the left rectified
+    camera of ``camera`` (x right, y down, z forward; ``"color"``: camera 2), from a date folder's
+    ``calib_velo_to_cam.txt`` and ``calib_cam_to_cam.txt`` (``R_rect_00``, ``P_rect_0x``): the devkit's chain
+    ``P_rect_0x @ R_rect_00 @ Tr_velo_to_cam`` without the intrinsics."""
+    if camera not in CAMERAS:
+        raise ConfigError(f"kitti camera: expected one of {sorted(CAMERAS)}, got {camera!r}")
+    date_dir = Path(date_dir)
+    cam_path = date_dir / "calib_cam_to_cam.txt"
+    cc = read_calib_file(cam_path)
+    _, t_left = _projection(cc, cam_path, CAMERAS[camera][0])
+    return _camera_from_velo(cc, cam_path, t_left, date_dir / "calib_velo_to_cam.txt")
+
+
 def read_rig(date_dir: str | os.PathLike, camera: str = "color", imu_height: float = IMU_HEIGHT_M) -> KittiRig:
     """The rectified stereo rig (``camera`` ``"color"``: cameras 2/3, ``"gray"``: 0/1) from a date folder's
     three calibration files, mounted ``imu_height`` metres above the IMU's ground point."""
@@ -208,11 +232,7 @@ def read_rig(date_dir: str | os.PathLike, camera: str = "color", imu_height: flo
     if not np.all((size >= 1) & (size == np.round(size))):
         raise FormatError(f"{cam_path} line {cc[f'S_rect_{left}'][0]} (S_rect_{left}): expected a positive "
                           f"integer width and height, got {size.tolist()}")
-    rect = np.eye(4)
-    rect[:3, :3] = _rotation(cc, cam_path, "R_rect_00")
-    shift = np.eye(4)
-    shift[:3, 3] = t_l
-    cam_from_imu = shift @ rect @ _rigid(read_calib_file(vc_path), vc_path) @ _rigid(read_calib_file(iv_path), iv_path)
+    cam_from_imu = _camera_from_velo(cc, cam_path, t_l, vc_path) @ _rigid(read_calib_file(iv_path), iv_path)
     try:
         with np.errstate(all="ignore"):
             imu_from_cam = np.linalg.inv(cam_from_imu)
