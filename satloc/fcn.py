@@ -15,7 +15,7 @@ Extractors (the :mod:`satloc.extractor` interface, ``extractor(image, view) -> (
 
 One network pass serves both: the extractors share an :class:`FCNPredictor` (by default the process-wide
 :func:`default_predictor` of their ``device``), which remembers the outputs for the last image and view it
-ran on. A ``FeatureStack([SemanticFeatures(), EdgeFeatures()])`` therefore runs the network once per image.
+ran on (for the last n images after a :meth:`FCNPredictor.prefetch` of n images). A ``FeatureStack([SemanticFeatures(), EdgeFeatures()])`` therefore runs the network once per image.
 
 The networks run on the predictor's ``device`` (:mod:`satloc.device`: ``"auto"``, the default, is CUDA
 when it is available, else the CPU); outputs come back as numpy arrays.
@@ -35,6 +35,7 @@ import contextlib
 import functools
 import hashlib
 import os
+from collections import OrderedDict
 from pathlib import Path
 from typing import Any, Iterator, Mapping, NamedTuple, Sequence
 
@@ -290,27 +291,72 @@ class FCNPredictor:
         for vn in self.views.values():
             vn.net.to(self.device)
         self.tile, self.margin, self.threads = tile, margin, threads
-        self._last: tuple[tuple, FCNOutput] | None = None
+        self._cache: OrderedDict[tuple, FCNOutput] = OrderedDict()   # the latest outputs, by image and view
+        self._cache_size = 1
 
-    def __call__(self, image: np.ndarray, view: View) -> FCNOutput:
-        """Class logits and boundary logits of ``image`` (RGB uint8) seen from ``view``."""
+    def _key(self, image: np.ndarray, view: View) -> tuple:
         check_image(image, "FCN input")
         if view not in self.views:
             raise ConfigError(f"FCN: view {view!r} has no network in {self.weights} (has {sorted(self.views)})")
-        key = (view, image.shape, hashlib.blake2b(np.ascontiguousarray(image), digest_size=16).digest())
-        if self._last is not None and self._last[0] == key:
-            return self._last[1]
-        out = self._run(self.views[view], image)
-        self._last = (key, out)
+        return view, image.shape, hashlib.blake2b(np.ascontiguousarray(image), digest_size=16).digest()
+
+    def _remember(self, key: tuple, out: FCNOutput) -> None:
+        self._cache[key] = out
+        self._cache.move_to_end(key)
+        while len(self._cache) > self._cache_size:
+            self._cache.popitem(last=False)
+
+    def __call__(self, image: np.ndarray, view: View) -> FCNOutput:
+        """Class logits and boundary logits of ``image`` (RGB uint8) seen from ``view``."""
+        key = self._key(image, view)
+        out = self._cache.get(key)
+        if out is None:
+            out = self._run(self.views[view], image)
+            self._remember(key, out)
         return out
 
-    def _run(self, vn: ViewNet, image: np.ndarray) -> FCNOutput:
+    def prefetch(self, images: Sequence[np.ndarray], view: View) -> None:
+        """Run the network on ``images`` (seen from ``view``) in one batch and remember the outputs, so that
+        the next calls with these images (e.g. the localizations of a vector environment's cars) cost no
+        network pass. Images the predictor already remembers are skipped; images of different sizes, or too
+        large for one tile, run one by one. The outputs equal those of single calls up to float rounding of the
+        batched convolutions (the network has no batch-dependent layer in inference)."""
+        keys = [self._key(im, view) for im in images]
+        self._cache_size = max(self._cache_size, len(keys))
+        todo = {}
+        for key, im in zip(keys, images):
+            if key not in self._cache:
+                todo.setdefault(key, im)
+        vn = self.views[view]
+        sizes = {im.shape for im in todo.values()}
+        if len(todo) < 2 or len(sizes) > 1:
+            for key, im in todo.items():
+                self._remember(key, self._run(vn, im))
+            return
+        h, w = next(iter(sizes))[:2]
+        x = torch.cat([self._input(vn, im) for im in todo.values()])
+        if max(x.shape[-2:]) > self.tile:
+            for key, im in todo.items():
+                self._remember(key, self._run(vn, im))
+            return
+        with torch.inference_mode(), torch_threads(self.threads):
+            scores, edge = (y.cpu() for y in vn.net.forward_with_edges(x.to(self.device), out_size=(h, w)))
+        for i, key in enumerate(todo):
+            self._remember(key, FCNOutput(scores[i].contiguous().numpy(), edge[i, 0].contiguous().numpy()))
+
+    @staticmethod
+    def _input(vn: ViewNet, image: np.ndarray) -> torch.Tensor:
+        """The network's (1, 3, h, w) input tensor for ``image`` (resized by the view's input scale)."""
         h, w = image.shape[:2]
         if vn.input_scale != 1.0:
             sw, sh = max(1, int(round(w * vn.input_scale))), max(1, int(round(h * vn.input_scale)))
             image = cv2.resize(image, (sw, sh), interpolation=cv2.INTER_AREA if vn.input_scale < 1
                                else cv2.INTER_LINEAR)
-        x = _to_tensor(image)
+        return _to_tensor(image)
+
+    def _run(self, vn: ViewNet, image: np.ndarray) -> FCNOutput:
+        h, w = image.shape[:2]
+        x = self._input(vn, image)
         with torch.inference_mode(), torch_threads(self.threads):
             if max(x.shape[-2:]) <= self.tile:
                 scores, edge = (y.cpu() for y in vn.net.forward_with_edges(x.to(self.device), out_size=(h, w)))
@@ -440,6 +486,12 @@ class SemanticFeatures:
                 y = F.interpolate(y.float(), size=(h, w), mode="bilinear", align_corners=False)
             return y[0].float().cpu()
 
+    def prefetch(self, images: Sequence[np.ndarray], view: View) -> None:
+        """Run the shipped network on ``images`` in one batch (see :meth:`FCNPredictor.prefetch`); a plugged-in
+        model runs per image at the calls."""
+        if self._modules is None:
+            self.predictor.prefetch(images, view)
+
     def __call__(self, image: np.ndarray, view: View) -> np.ndarray:
         check_image(image, f"{self.name} features")
         if self._modules is None:
@@ -489,6 +541,11 @@ class EdgeFeatures:
         if self._predictor is None:
             self._predictor = default_predictor(self._device)
         return self._predictor
+
+    def prefetch(self, images: Sequence[np.ndarray], view: View) -> None:
+        """Run the shipped network on ``images`` in one batch (see :meth:`FCNPredictor.prefetch`)."""
+        if self._forest is None:
+            self.predictor.prefetch(images, view)
 
     def __call__(self, image: np.ndarray, view: View) -> np.ndarray:
         check_image(image, f"{self.name} features")

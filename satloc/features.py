@@ -52,6 +52,14 @@ class FeatureStack:
         self.name = "+".join(e.name for e in self.extractors)
         self.dim = sum(e.dim for e in self.extractors)
 
+    def prefetch(self, images: Sequence[np.ndarray], view: View) -> None:
+        """Let each extractor that can batch its work over several images (the FCN's) do it now for
+        ``images``; the calls that follow for these images then reuse the results."""
+        for e in self.extractors:
+            pre = getattr(e, "prefetch", None)
+            if pre is not None:
+                pre(images, view)
+
     def __call__(self, image: np.ndarray, view: View) -> np.ndarray:
         check_image(image, "features")
         parts = []

@@ -29,7 +29,7 @@ import hashlib
 import math
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Iterable, Iterator, Literal, NamedTuple
+from typing import Iterable, Iterator, Literal, NamedTuple, Sequence
 
 import cv2
 import numpy as np
@@ -300,6 +300,16 @@ class Localizer:
         probability of being on the mapped path (:attr:`satloc.track.Tracker.p_on`)."""
         with single_threaded_blas():  # see satloc._threads: spinning BLAS workers slow the network and stereo
             return self._score(self._observe(frame), candidates, refine, tracker)
+
+    def prefetch(self, frames: Sequence[Frame]) -> None:
+        """Compute the network part of the features of several query frames' left images in one batch (one
+        network call, see :meth:`satloc.fcn.FCNPredictor.prefetch`), so that the :meth:`localize` calls that
+        follow for these frames reuse it. Extractors without a network (``rgb``) ignore it. The features equal
+        those of :meth:`localize` alone up to float rounding of the batched convolutions (about 1e-6)."""
+        pre = getattr(self.extractor, "prefetch", None)
+        lefts = [f.left for f in frames if f.left is not None]
+        if pre is not None and len(lefts) > 1:
+            pre(lefts, "ground")
 
     def tracker(self, config: TrackConfig | None = None) -> Tracker:
         """A :class:`satloc.track.Tracker` over this localizer's candidate poses (``config``: default

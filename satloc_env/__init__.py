@@ -6,6 +6,7 @@ recorded sequence, :mod:`satloc_env.replay`)::
     import gymnasium as gym, satloc_env
     env = gym.make("satloc/SatLoc-v0", scene="city", render_mode="rgb_array")
     replay = gym.make("satloc/SatLocReplay-v0", sequence="rec/query", map="rec/map", localizer="rec/build")
+    cars = gym.make_vec("satloc/SatLoc-v0", num_envs=8)   # batched: one GL context (satloc_env.vector)
 """
 from gymnasium.envs.registration import register, registry
 
@@ -13,7 +14,8 @@ ENV_ID = "satloc/SatLoc-v0"
 REPLAY_ID = "satloc/SatLocReplay-v0"
 
 if ENV_ID not in registry:
-    register(id=ENV_ID, entry_point="satloc_env.env:SatLocEnv", max_episode_steps=None)
+    register(id=ENV_ID, entry_point="satloc_env.env:SatLocEnv", max_episode_steps=None,
+             vector_entry_point="satloc_env.vector:SatLocVectorEnv")
 if REPLAY_ID not in registry:
     register(id=REPLAY_ID, entry_point="satloc_env.replay:SatLocReplayEnv", max_episode_steps=None)
 

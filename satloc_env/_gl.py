@@ -57,6 +57,7 @@ import os
 import sys
 from collections.abc import Iterable, Sequence
 from types import ModuleType
+from typing import NamedTuple
 
 os.environ.setdefault("PYOPENGL_PLATFORM", "egl")
 
@@ -119,7 +120,7 @@ if tuple(int(p) for p in pyrender.__version__.split(".")[:2]) < (0, 2):
 from OpenGL import GL  # noqa: E402
 from pyrender.constants import ProgramFlags  # noqa: E402
 
-__all__ = ["pyrender", "MultiViewOffscreenRenderer", "GLForkError", "ViewerUnavailableError", "check_process",
+__all__ = ["pyrender", "MultiViewOffscreenRenderer", "ViewGroup", "GLForkError", "ViewerUnavailableError", "check_process",
            "configure_filtering", "gl_info", "max_anisotropy"]
 
 #: GL_TEXTURE_MAX_ANISOTROPY and GL_MAX_TEXTURE_MAX_ANISOTROPY (EXT/ARB_texture_filter_anisotropic, core in 4.6).
@@ -205,9 +206,9 @@ class _MultiViewRenderer(pyrender.Renderer):
     """pyrender's renderer with a lean flat-shaded pass that draws several views into one framebuffer.
 
     pyrender 0.1.45 always draws offscreen into a 4x multisampled framebuffer and resolves it; the resolved
-    depth is one sample's, not the depth at the pixel centre. :meth:`render_views` instead draws into a
-    single-sample framebuffer (RGBA8 colour, 32-bit float depth) ``n`` views tall, view ``k`` in the ``k``-th
-    band from the top, and reads each buffer back once. It draws the visible mesh primitives of the scene with
+    depth is one sample's, not the depth at the pixel centre. :meth:`render_views` and :meth:`render_groups`
+    instead draw into a single-sample layered framebuffer (RGBA8 colour, 32-bit float depth; view ``k`` in
+    layer ``k``) and read each of the two back once. They draw the visible mesh primitives of the scene with
     pyrender's flat (unlit) shader: base colour factor x base colour texture x vertex colour; it supports what
     the simulator uses, i.e. opaque, indexed, textured primitives (no blending, back faces culled). Per
     primitive it issues only the GL calls the flat shader needs, which matters on a software rasterizer where
@@ -222,8 +223,9 @@ class _MultiViewRenderer(pyrender.Renderer):
         self.mipmaps = bool(mipmaps)
         self._filtered: set = set()
         self._programs: dict = {}
-        self._views_fb: tuple[int, int, int] | None = None   # (framebuffer, colour rb, depth rb)
-        self._views_dims: tuple[int, int] = (0, 0)
+        self._views_fb: tuple[int, int, int] | None = None   # (framebuffer, colour, depth array textures)
+        self._views_dims: tuple[int, int, int] = (0, 0, 0)   # width, height, layers
+        self._uniform_locs: dict = {}
 
     def _update_context(self, scene, flags):
         super()._update_context(scene, flags)
@@ -232,6 +234,8 @@ class _MultiViewRenderer(pyrender.Renderer):
             configure_filtering(new, self.anisotropy, self.lod_bias, self.mipmaps)
         self._filtered = set(self._mesh_textures)
         self._programs = {p: prog for p, prog in self._programs.items() if p._in_context()}
+        live = set(self._programs.values())
+        self._uniform_locs = {p: v for p, v in self._uniform_locs.items() if p in live}
 
     def delete(self):
         if _forked():   # a copy inherited through fork: forget the GL objects, call no GL
@@ -242,49 +246,64 @@ class _MultiViewRenderer(pyrender.Renderer):
         super().delete()
         self._filtered = set()
         self._programs = {}
+        self._uniform_locs = {}
         self._delete_views_framebuffer()
 
     def _delete_views_framebuffer(self) -> None:
         if self._views_fb is not None:
-            fb, cb, db = self._views_fb
+            fb, color, depth = self._views_fb
             GL.glDeleteFramebuffers(1, [fb])
-            GL.glDeleteRenderbuffers(2, [cb, db])
+            GL.glDeleteTextures(2, [color, depth])
             self._views_fb = None
 
-    def _bind_views_framebuffer(self, width: int, height: int) -> None:
-        """Bind the single-sample framebuffer, (re)allocating it at ``width`` x ``height``."""
-        if self._views_dims != (width, height):
+    def _views_framebuffer(self, layers: int) -> tuple[int, int, int]:
+        """The single-sample framebuffer and its two layered textures, (re)allocated to hold ``layers`` views:
+        a 2-D array texture of RGBA8 colour and one of 32-bit float depth, one layer per view."""
+        w, h = self.viewport_width, self.viewport_height
+        if self._views_fb is not None and self._views_dims[2] < layers:
             self._delete_views_framebuffer()
         if self._views_fb is None:
-            cb, db = GL.glGenRenderbuffers(2)
-            GL.glBindRenderbuffer(GL.GL_RENDERBUFFER, cb)
-            GL.glRenderbufferStorage(GL.GL_RENDERBUFFER, GL.GL_RGBA8, width, height)
-            GL.glBindRenderbuffer(GL.GL_RENDERBUFFER, db)
-            GL.glRenderbufferStorage(GL.GL_RENDERBUFFER, GL.GL_DEPTH_COMPONENT32F, width, height)
-            fb = GL.glGenFramebuffers(1)
-            GL.glBindFramebuffer(GL.GL_FRAMEBUFFER, fb)
-            GL.glFramebufferRenderbuffer(GL.GL_FRAMEBUFFER, GL.GL_COLOR_ATTACHMENT0, GL.GL_RENDERBUFFER, cb)
-            GL.glFramebufferRenderbuffer(GL.GL_FRAMEBUFFER, GL.GL_DEPTH_ATTACHMENT, GL.GL_RENDERBUFFER, db)
-            self._views_fb, self._views_dims = (fb, cb, db), (width, height)
-        GL.glBindFramebuffer(GL.GL_FRAMEBUFFER, self._views_fb[0])
+            color, depth = GL.glGenTextures(2)
+            for tex, fmt in ((color, GL.GL_RGBA8), (depth, GL.GL_DEPTH_COMPONENT32F)):
+                GL.glBindTexture(GL.GL_TEXTURE_2D_ARRAY, tex)
+                GL.glTexStorage3D(GL.GL_TEXTURE_2D_ARRAY, 1, fmt, w, h, layers)
+            GL.glBindTexture(GL.GL_TEXTURE_2D_ARRAY, 0)
+            self._views_fb, self._views_dims = (int(GL.glGenFramebuffers(1)), int(color), int(depth)), (w, h, layers)
+        return self._views_fb
 
     def render_views(self, scene: "pyrender.Scene", cameras: Sequence["pyrender.Node"], color: str | None,
                      depth: bool | int) -> list[dict[str, np.ndarray]]:
-        """Draw ``scene`` from each camera node (cameras with a finite ``zfar``); per view return ``"color"``
-        (``"rgb"``: H x W x 3 uint8, ``"red"``: H x W uint8 red channel; ``None``: not read) and, if ``depth``,
-        ``"depth"`` (H x W float32 metric z-depth, 0 where nothing was drawn). ``depth`` may also be an int k:
-        depth is then read for the first k views only. Arrays are C-contiguous.
+        """Draw ``scene``'s visible meshes from each camera node (cameras with a finite ``zfar``); per view
+        return ``"color"`` (``"rgb"``: H x W x 3 uint8, ``"red"``: H x W uint8 red channel; ``None``: not read)
+        and, if ``depth``, ``"depth"`` (H x W float32 metric z-depth, 0 where nothing was drawn). ``depth`` may
+        also be an int k: depth is then read for the first k views only. Arrays are C-contiguous.
 
         The result depends only on the scene, not on the process, when the mesh nodes that the first camera is
         equally far from (e.g. inside several bounding boxes) have distinct names: they are drawn in name
         order (unnamed nodes: in the order of pyrender's node set, which varies between processes)."""
+        visible = [node for node in scene.mesh_nodes if node.mesh.is_visible]
+        return self.render_groups(scene, [ViewGroup(tuple(cameras), visible)], color, depth)
+
+    def render_groups(self, scene: "pyrender.Scene", groups: Sequence["ViewGroup"], color: str | None,
+                      depth: bool | int, bg_color: Sequence[float] | None = None) -> list[dict[str, np.ndarray]]:
+        """Draw several groups of views in one framebuffer and read it back once: group ``g`` draws the mesh
+        nodes ``g.meshes`` (their ``is_visible`` flags are ignored) from each of its cameras. Returns the views of
+        all groups in order, as :meth:`render_views` does (``depth`` = k: depth of the first k views of that
+        order). ``bg_color``: the clear colour (default: the scene's).
+
+        View k is drawn into layer k of the framebuffer's layered (2-D array) colour and depth textures, at the
+        same window position as every other view, so that each group is drawn exactly as it would be alone (same
+        draw order, same GL state, same window coordinates: the rasterizer's rounding cannot differ; views side
+        by side in one tall framebuffer gave depths 1 ulp apart). After each group the commands are flushed: a
+        software rasterizer (llvmpipe) then draws that group on its threads while this thread issues the next
+        group's commands."""
         flags = pyrender.RenderFlags.FLAT
         self._update_context(scene, flags)
-        w, h, n = self.viewport_width, self.viewport_height, len(cameras)
-        self._bind_views_framebuffer(w, n * h)
-        GL.glViewport(0, 0, w, n * h)
-        GL.glClearColor(*scene.bg_color)
-        GL.glClear(GL.GL_COLOR_BUFFER_BIT | GL.GL_DEPTH_BUFFER_BIT)
+        w, h = self.viewport_width, self.viewport_height
+        n = sum(len(g.cameras) for g in groups)
+        fb, color_tex, depth_tex = self._views_framebuffer(n)
+        GL.glBindFramebuffer(GL.GL_FRAMEBUFFER, fb)
+        GL.glViewport(0, 0, w, h)
         GL.glEnable(GL.GL_DEPTH_TEST)
         GL.glDepthMask(GL.GL_TRUE)
         GL.glDepthFunc(GL.GL_LESS)
@@ -293,51 +312,87 @@ class _MultiViewRenderer(pyrender.Renderer):
         GL.glCullFace(GL.GL_BACK)
         GL.glPolygonMode(GL.GL_FRONT_AND_BACK, GL.GL_FILL)
         GL.glActiveTexture(GL.GL_TEXTURE0)
-
-        # Front to back (nearest bounding box first, from the first camera) so that the depth test rejects
-        # hidden fragments before they are shaded. Ties (several boxes around the camera: gap 0) are drawn in the
-        # order of the nodes' names, then of the primitives in their mesh. The order decides which of two
-        # fragments at exactly the same depth is kept (GL_LESS keeps the first drawn), and faces of different
-        # meshes at the same depth occur (seen: the episode's occluders and the world chunk around the camera,
-        # both at gap 0, giving a car's outline one way or the other). pyrender's ``scene.mesh_nodes`` is a set
-        # of nodes hashed by address, whose order differs from process to process: ordering ties by it made
-        # a few frames in a thousand differ between processes.
-        eye = scene.get_pose(cameras[0])[:3, 3]
-        draws = []
-        for node in scene.mesh_nodes:
-            if node.mesh.is_visible:
-                pose = scene.get_pose(node)
-                lo, hi = node.mesh.bounds
-                centre = pose[:3, :3] @ ((lo + hi) / 2) + pose[:3, 3]
-                half = np.abs(pose[:3, :3]) @ ((hi - lo) / 2)
-                gap = float(np.linalg.norm(np.clip(eye, centre - half, centre + half) - eye))
-                for i, prim in enumerate(node.mesh.primitives):
-                    draws.append((gap, node.name or "", i, self._program(prim), prim, pose))
-        draws.sort(key=lambda d: d[:3])
-        for k, cam in enumerate(cameras):
-            GL.glViewport(0, (n - 1 - k) * h, w, h)
-            view = np.linalg.inv(scene.get_pose(cam))
-            proj = cam.camera.get_projection_matrix(width=w, height=h)
-            bound, model, factor = None, None, None
-            for _, _, _, program, prim, pose in draws:
-                if program is not bound:
-                    program._bind()
-                    program.set_uniform("V", view)
-                    program.set_uniform("P", proj)
-                    program.set_uniform("material.base_color_texture", 0)
-                    bound, model, factor = program, None, None
-                if model is None or not np.array_equal(model, pose):
-                    program.set_uniform("M", pose)
-                    model = pose
-                if factor is None or not np.array_equal(factor, prim.material.baseColorFactor):
-                    factor = prim.material.baseColorFactor
-                    program.set_uniform("material.base_color_factor", factor)
-                prim.material.baseColorTexture._bind()
-                prim._bind()
-                GL.glDrawElementsInstanced(prim.mode, prim.indices.size, GL.GL_UNSIGNED_INT, None, 1)
+        default_bg = scene.bg_color if bg_color is None else bg_color
+        k = 0
+        cameras: list = []
+        for group in groups:
+            draws = self._draw_list(scene, group)
+            for j, cam in enumerate(group.cameras):
+                skip = group.hidden[j] if group.hidden else None
+                mine = [d for d in draws if id(d[-1]) not in skip] if skip else draws
+                GL.glFramebufferTextureLayer(GL.GL_FRAMEBUFFER, GL.GL_COLOR_ATTACHMENT0, color_tex, 0, k)
+                GL.glFramebufferTextureLayer(GL.GL_FRAMEBUFFER, GL.GL_DEPTH_ATTACHMENT, depth_tex, 0, k)
+                GL.glClearColor(*(default_bg if group.bg_color is None else group.bg_color))
+                GL.glClear(GL.GL_COLOR_BUFFER_BIT | GL.GL_DEPTH_BUFFER_BIT)
+                self._draw(mine, np.linalg.inv(scene.get_pose(cam)), cam.camera.get_projection_matrix(width=w, height=h))
+                k += 1
+            cameras.extend(group.cameras)
+            GL.glFlush()
         GL.glBindVertexArray(0)
         GL.glUseProgram(0)
         return self._read_views(cameras, color, depth)
+
+    def _draw_list(self, scene: "pyrender.Scene", group: "ViewGroup") -> list[tuple]:
+        """The primitives of ``group.meshes`` in drawing order, each as (sort key..., program, primitive, pose,
+        node).
+
+        Front to back (nearest bounding box first, from the group's first camera) so that the depth test
+        rejects hidden fragments before they are shaded. Ties (several boxes around the camera: gap 0) are drawn
+        in the order of the nodes' names (up to a ``#``: a suffix that tells apart copies of one mesh in a
+        batch, see :class:`satloc_env.render.BatchStereoRenderer`), then of the primitives in their mesh. The
+        order decides which of two fragments at exactly the same depth is kept (GL_LESS keeps the first drawn),
+        and faces of different meshes at the same depth occur (seen: the episode's occluders and the world chunk
+        around the camera, both at gap 0, giving a car's outline one way or the other). pyrender's
+        ``scene.mesh_nodes`` is a set of nodes hashed by address, whose order differs from process to process:
+        ordering ties by it made a few frames in a thousand differ between processes."""
+        eye = scene.get_pose(group.cameras[0])[:3, 3]
+        draws = []
+        for node in group.meshes:
+            pose = scene.get_pose(node)
+            lo, hi = node.mesh.bounds
+            centre = pose[:3, :3] @ ((lo + hi) / 2) + pose[:3, 3]
+            half = np.abs(pose[:3, :3]) @ ((hi - lo) / 2)
+            gap = float(np.linalg.norm(np.clip(eye, centre - half, centre + half) - eye))
+            name = (node.name or "").split("#", 1)[0]
+            for i, prim in enumerate(node.mesh.primitives):
+                draws.append((gap, name, i, self._program(prim), prim, pose, node))
+        draws.sort(key=lambda d: d[:3])
+        return draws
+
+    def _draw(self, draws: list[tuple], view: np.ndarray, proj: np.ndarray) -> None:
+        """Issue the draw calls of ``draws`` (see :meth:`_draw_list`) with view matrix ``view`` and projection
+        ``proj``, setting only the uniforms and bindings that change. Uniform locations are looked up once per
+        program (pyrender's ``set_uniform`` queries GL for the location at every call)."""
+        bound, model, factor = None, None, None
+        for _, _, _, program, prim, pose, _ in draws:
+            if program is not bound:
+                program._bind()
+                loc = self._uniforms(program)
+                GL.glUniformMatrix4fv(loc["V"], 1, GL.GL_TRUE, np.asarray(view, np.float32))
+                GL.glUniformMatrix4fv(loc["P"], 1, GL.GL_TRUE, np.asarray(proj, np.float32))
+                GL.glUniform1i(loc["material.base_color_texture"], 0)
+                bound, model, factor = program, None, None
+            if model is None or not np.array_equal(model, pose):
+                GL.glUniformMatrix4fv(loc["M"], 1, GL.GL_TRUE, np.asarray(pose, np.float32))
+                model = pose
+            if factor is None or not np.array_equal(factor, prim.material.baseColorFactor):
+                factor = prim.material.baseColorFactor
+                GL.glUniform4fv(loc["material.base_color_factor"], 1, np.asarray(factor, np.float32))
+            prim.material.baseColorTexture._bind()
+            prim._bind()
+            GL.glDrawElementsInstanced(prim.mode, prim.indices.size, GL.GL_UNSIGNED_INT, None, 1)
+
+    def _uniforms(self, program) -> dict[str, int]:
+        locs = self._uniform_locs.get(program)
+        if locs is None:
+            locs = {}
+            for name in ("V", "P", "M", "material.base_color_texture", "material.base_color_factor"):
+                loc = int(GL.glGetUniformLocation(program._program_id, name))
+                if loc == -1:
+                    raise ValueError(f"Invalid shader variable: {name}")
+                locs[name] = loc
+            self._uniform_locs[program] = locs
+        return locs
 
     def _program(self, prim: "pyrender.Primitive") -> "pyrender.shader_program.ShaderProgram":
         """pyrender's flat shader program for ``prim`` (memoised: pyrender rebuilds its cache key per call)."""
@@ -349,24 +404,29 @@ class _MultiViewRenderer(pyrender.Renderer):
 
     def _read_views(self, cameras: Sequence["pyrender.Node"], color: str | None,
                     depth: bool | int) -> list[dict[str, np.ndarray]]:
+        """Read the layered textures back: one call for the colour of all views and one for the depth of the
+        first ``depth`` views (``glGetTextureSubImage``, GL 4.5)."""
         w, h, n = self.viewport_width, self.viewport_height, len(cameras)
+        _, color_tex, depth_tex = self._views_fb
         views: list[dict[str, np.ndarray]] = [{} for _ in cameras]
         if color is not None:
-            # RGBA is the framebuffer's own layout (the fastest read); GL's rows run bottom-up.
-            buf = GL.glReadPixels(0, 0, w, n * h, GL.GL_RGBA, GL.GL_UNSIGNED_BYTE)
-            rgba = cv2.flip(np.frombuffer(buf, dtype=np.uint8).reshape(n * h, w, 4), 0)
+            # RGBA is the texture's own layout (the fastest read); GL's rows run bottom-up.
+            # Flipping the stack of layers upside down as one image puts layer k, upright, at band n - 1 - k.
+            rgba = np.empty((n * h, w, 4), np.uint8)
+            GL.glGetTextureSubImage(color_tex, 0, 0, 0, 0, w, h, n, GL.GL_RGBA, GL.GL_UNSIGNED_BYTE, rgba.nbytes, rgba)
+            rgba = cv2.flip(rgba, 0)
             img = cv2.cvtColor(rgba, cv2.COLOR_RGBA2RGB) if color == "rgb" else cv2.extractChannel(rgba, 0)
             for k, v in enumerate(views):
-                v["color"] = img[k * h:(k + 1) * h]
-        nd = n if depth is True else int(depth)
+                v["color"] = img[(n - 1 - k) * h:(n - k) * h]
+        nd = n if depth is True else min(int(depth), n)
         if nd > 0:
-            # the first nd views are the top nd bands of the framebuffer (GL rows run bottom-up)
-            buf = GL.glReadPixels(0, (n - nd) * h, w, nd * h, GL.GL_DEPTH_COMPONENT, GL.GL_FLOAT)
-            d = np.frombuffer(buf, dtype=np.float32).reshape(nd * h, w)[::-1]
-            z = np.empty((nd * h, w), dtype=np.float32)
+            d = np.empty((nd * h, w), np.float32)
+            GL.glGetTextureSubImage(depth_tex, 0, 0, 0, 0, w, h, nd, GL.GL_DEPTH_COMPONENT, GL.GL_FLOAT, d.nbytes, d)
+            d = d[::-1]                                     # layer k upright at band nd - 1 - k
             for k, (v, cam) in enumerate(zip(views[:nd], cameras[:nd])):
                 near, far = np.float32(cam.camera.znear), np.float32(cam.camera.zfar)
-                dk, zk = d[k * h:(k + 1) * h], z[k * h:(k + 1) * h]
+                dk = d[(nd - 1 - k) * h:(nd - k) * h]
+                zk = np.empty((h, w), dtype=np.float32)
                 # Window depth dk in [0, 1] to eye z: near * far / ((1 - dk) (far - near) + near). 1 - dk is
                 # exact in float32 for dk >= 0.5, which keeps full precision towards the far plane.
                 np.subtract(np.float32(1.0), dk, out=zk)
@@ -376,6 +436,18 @@ class _MultiViewRenderer(pyrender.Renderer):
                 zk[dk >= np.float32(1.0)] = 0.0             # the cleared background
                 v["depth"] = zk
         return views
+
+
+class ViewGroup(NamedTuple):
+    """Views drawn with the same meshes (see :meth:`_MultiViewRenderer.render_groups`): ``cameras``, camera
+    nodes of the scene, ``meshes``, the mesh nodes to draw in them (in the order sorted from the first camera),
+    ``bg_color``, their background (RGBA in [0, 1]; None: the one of the call), and ``hidden``, per camera the
+    ids of nodes it leaves out (wholly outside its view: the image is the same without them)."""
+
+    cameras: tuple
+    meshes: Sequence
+    bg_color: Sequence[float] | None = None
+    hidden: tuple | None = None     # per camera: ids of nodes of ``meshes`` it skips (they cannot be in its view)
 
 
 class MultiViewOffscreenRenderer(pyrender.OffscreenRenderer):
@@ -434,5 +506,15 @@ class MultiViewOffscreenRenderer(pyrender.OffscreenRenderer):
         self._platform.make_current()
         try:
             return self._renderer.render_views(scene, cameras, color, depth)
+        finally:
+            self._platform.make_uncurrent()
+
+    def render_groups(self, scene: "pyrender.Scene", groups: Sequence[ViewGroup], color: str | None = "rgb",
+                      depth: bool | int = True, bg_color: Sequence[float] | None = None) -> list[dict[str, np.ndarray]]:
+        """See :meth:`_MultiViewRenderer.render_groups`."""
+        check_process()
+        self._platform.make_current()
+        try:
+            return self._renderer.render_groups(scene, groups, color, depth, bg_color)
         finally:
             self._platform.make_uncurrent()

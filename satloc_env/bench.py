@@ -9,6 +9,9 @@ from typing import Iterator
 import numpy as np
 import time
 
+from satloc.errors import ConfigError
+from satloc.geometry import StereoCamera
+
 from .env import SatLocEnv
 
 
@@ -17,34 +20,61 @@ def _rss_mb() -> float:
         return int(f.read().split()[1]) * resource.getpagesize() / 2**20
 
 
-def bench_env(resolution: str = "half", steps: int = 2000, scene: str = "city", warmup: int = 20) -> dict:
+def bench_env(resolution: str = "half", steps: int = 2000, scene: str = "city", warmup: int = 20,
+              num_envs: int = 1) -> dict:
     """Stereo colour + depth steps per second driven by the autopilot, memory over the run, and which GL driver
     rendered (``gl_renderer``: e.g. llvmpipe for Mesa's software rasterizer, the GPU's name on a vendor's
-    driver)."""
-    env = SatLocEnv(scene=scene, resolution=resolution, depth=True, localizer=None)  # rendering only
+    driver). ``num_envs`` > 1: the batched vector environment (:class:`satloc_env.vector.SatLocVectorEnv`) with
+    that many cars; ``steps`` and ``steps_per_s`` then count the steps of all cars together (``steps`` is
+    rounded up to a multiple of ``num_envs``)."""
+    if num_envs < 1:
+        raise ConfigError(f"num_envs: expected an integer >= 1, got {num_envs}")
+    kw = dict(scene=scene, resolution=resolution, depth=True, localizer=None)   # rendering only
+    if num_envs == 1:
+        env = SatLocEnv(**kw)
+        reset = env.reset
+
+        def step():
+            return env.step(env.autopilot_action())[2:4]
+
+        def renderer():
+            return env._renderer
+    else:
+        from .vector import SatLocVectorEnv
+
+        env = SatLocVectorEnv(num_envs, **kw)
+        reset = env.reset
+
+        def step():
+            return env.step(env.autopilot_actions())[2:4]
+
+        def renderer():
+            return env._batch
+    calls = -(-steps // num_envs)
     try:
-        env.reset(seed=0)
+        reset(seed=0)
         for _ in range(warmup):
-            env.step(env.autopilot_action())
+            step()
         rss_start = _rss_mb()
-        episodes = 1
+        episodes = num_envs
         t0 = time.perf_counter()
-        for _ in range(steps):
-            _, _, term, trunc, _ = env.step(env.autopilot_action())
-            if term or trunc:
+        for _ in range(calls):
+            term, trunc = step()
+            if num_envs == 1 and (term or trunc):
                 env.reset(seed=episodes)
-                episodes += 1
+            episodes += int(np.count_nonzero(np.logical_or(term, trunc)))
         dt = time.perf_counter() - t0
         rss_end = _rss_mb()
-        gl = env._renderer.gl_info
+        gl = renderer().gl_info
     finally:
         env.close()
-    cam = env.camera
+    cam = StereoCamera.preset(resolution)
+    total = calls * num_envs
     return {
         "bench": "env", "resolution": resolution, "width": cam.width, "height": cam.height, "scene": scene,
-        "gl_renderer": gl["renderer"], "gl_version": gl["version"],
-        "steps": steps, "episodes": episodes, "steps_per_s": round(steps / dt, 1),
-        "ms_per_step": round(1000 * dt / steps, 2), "rss_start_mb": round(rss_start, 1),
+        "num_envs": num_envs, "gl_renderer": gl["renderer"], "gl_version": gl["version"],
+        "steps": total, "episodes": episodes, "steps_per_s": round(total / dt, 1),
+        "ms_per_step": round(1000 * dt / total, 2), "rss_start_mb": round(rss_start, 1),
         "rss_end_mb": round(rss_end, 1), "peak_rss_mb": round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024, 1),
     }
 

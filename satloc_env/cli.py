@@ -211,7 +211,8 @@ def cmd_bench(args) -> int:
     if args.what == "env":
         from satloc_env.bench import bench_env
 
-        print(json.dumps(bench_env(args.resolution, args.steps, args.scene or "city")))
+        for n in args.num_envs:
+            print(json.dumps(bench_env(args.resolution, args.steps, args.scene or "city", num_envs=n)), flush=True)
     elif args.what == "vo":
         from satloc_env.bench import bench_vo
 
@@ -386,7 +387,10 @@ def build_parser() -> argparse.ArgumentParser:
     b = sub.add_parser("bench", help="print benchmark figures as JSON lines")
     b.add_argument("what", choices=["env", "localize", "vo"])
     b.add_argument("--resolution", choices=["half", "full"], default="half")
-    b.add_argument("--steps", type=int, default=2000)
+    b.add_argument("--steps", type=int, default=2000, help="env: steps timed (of all cars together)")
+    b.add_argument("--num-envs", type=int, nargs="+", default=[1],
+                   help="env: cars stepped together, one run each (e.g. 1 8): 1 is the single environment, more the "
+                        "batched vector environment (satloc_env.vector)")
     b.add_argument("--scene", default=None, help="env: city; localize: loop (the longest route); vo: residential")
     b.add_argument("--sizes-km", type=float, nargs="+", default=[0.25, 1.0, 4.0], help="localize: database sizes")
     b.add_argument("--queries", type=int, default=40, help="localize: queries timed per size")

@@ -573,6 +573,7 @@ class SatLocEnv(SharedSpecMixin, gym.Env):
         self._scene: Scene | None = None
         self._scene_key: tuple | None = None
         self._renderer = None
+        self._batch = None                     # a BatchStereoRenderer shared with other environments (vector env)
         self.pose = Pose2()
         self._last_obs: dict | None = None
         self._last_depth: np.ndarray | None = None
@@ -685,7 +686,11 @@ class SatLocEnv(SharedSpecMixin, gym.Env):
             return
         if self._renderer is not None:
             self._renderer.close()
-        self._renderer = StereoRenderer(world, self.camera, anisotropy=self.config.anisotropy, zfar=self.config.zfar_m)
+        if self._batch is not None:          # a sub-environment of satloc_env.vector.SatLocVectorEnv
+            self._renderer = self._batch.slot(world)
+        else:
+            self._renderer = StereoRenderer(world, self.camera, anisotropy=self.config.anisotropy,
+                                            zfar=self.config.zfar_m)
 
     # --- gym API ----------------------------------------------------------------------------------
     def reset(self, *, seed: int | None = None, options: dict | None = None):
@@ -737,6 +742,13 @@ class SatLocEnv(SharedSpecMixin, gym.Env):
         return obs, self._info(np.zeros(3), off_road=False)
 
     def step(self, action):
+        odometry, true_odo = self._advance(action)
+        return self._complete_step(self._renderer.render(self.pose, *self._render_args()), odometry, true_odo)
+
+    def _advance(self, action) -> tuple[np.ndarray, np.ndarray]:
+        """The first part of :meth:`step`, up to the rendering: move the car by ``action``; returns the odometry
+        observation (noisy) and the true motion. (:class:`satloc_env.vector.SatLocVectorEnv` renders all its
+        environments' cars between the two parts.)"""
         if not self._ready:
             raise RuntimeError("call reset() first" + (" (the last reset raised an error)" if self._scene else ""))
         a = self._check_action(action)
@@ -749,10 +761,27 @@ class SatLocEnv(SharedSpecMixin, gym.Env):
         dist = math.hypot(true_odo[0], true_odo[1])
         noise = self.np_random.normal(0.0, 1.0, 3) * np.array(
             [cfg.odometry_noise[0] * dist, cfg.odometry_noise[0] * dist, cfg.odometry_noise[1]])
-        obs = self._observe((true_odo + noise).astype(np.float32))
+        return (true_odo + noise).astype(np.float32), true_odo
+
+    def _complete_step(self, rendered: dict, odometry: np.ndarray, true_odo: np.ndarray):
+        """The rest of :meth:`step` once the car's views are ``rendered`` (:meth:`_render_args`)."""
+        return self._finish_step(self._observe_step(rendered, odometry), true_odo)
+
+    def _observe_step(self, rendered: dict, odometry: np.ndarray) -> dict:
+        """The step's observation from the rendered views (appearance, visual odometry)."""
+        obs = self._observe_rendered(rendered, odometry)
         if self._vo is not None:               # the motion as the stereo pair shows it (noise drawn all the same)
             obs["odometry"] = np.asarray(self._vo.step(obs["left"], obs["right"]), np.float32)
         self._loc.add_odometry(obs["odometry"])
+        return obs
+
+    def _localizes_now(self) -> bool:
+        """Whether this step localizes the observed pair (a localizer is on and the step is due)."""
+        return self.localizer is not None and self.steps % self.config.localize_every == 0
+
+    def _finish_step(self, obs: dict, true_odo: np.ndarray):
+        """Localize (when due), then the step's reward, flags and info."""
+        cfg = self._episode
         if self.steps % self.config.localize_every == 0:
             self._localize()
         off_road = not self.scene.is_drivable(self.pose.x, self.pose.y)
@@ -791,10 +820,17 @@ class SatLocEnv(SharedSpecMixin, gym.Env):
         """A localizer configured with ``depth_source="frame"`` reads the (true) depth from the frame."""
         return self._loc.needs_frame_depth
 
+    def _render_args(self) -> tuple:
+        """``depth`` and ``labels`` of the renderer's ``render`` for this environment's observations."""
+        want_depth = self.config.depth or self._frame_depth_needed()
+        return ("left" if want_depth else False), self.config.labels
+
     def _observe(self, odometry: np.ndarray) -> dict:
+        return self._observe_rendered(self._renderer.render(self.pose, *self._render_args()), odometry)
+
+    def _observe_rendered(self, out: dict, odometry: np.ndarray) -> dict:
         cfg = self.config
         want_depth = cfg.depth or self._frame_depth_needed()
-        out = self._renderer.render(self.pose, depth="left" if want_depth else False, labels=cfg.labels)
         obs = {"left": self.appearance(out["left"]), "right": self.appearance(out["right"]), "odometry": odometry}
         if cfg.depth:
             obs["depth"] = out["depth_left"]
@@ -808,9 +844,12 @@ class SatLocEnv(SharedSpecMixin, gym.Env):
         """Localize the last observed stereo pair; keeps the result for ``info`` and ``render``."""
         if self.localizer is None:
             return
-        frame = Frame(self._last_obs["left"], self._last_obs["right"], None, self.steps * self._episode.dt,
-                      self._last_depth if self._frame_depth_needed() else None)
-        self._loc.localize(frame, self.steps)
+        self._loc.localize(self._frame(), self.steps)
+
+    def _frame(self) -> Frame:
+        """The last observed stereo pair as the localizer's query frame."""
+        return Frame(self._last_obs["left"], self._last_obs["right"], None, self.steps * self._episode.dt,
+                     self._last_depth if self._frame_depth_needed() else None)
 
     def _info(self, true_odo: np.ndarray, off_road: bool) -> dict:
         info = {

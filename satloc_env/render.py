@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
 
@@ -22,11 +22,284 @@ from satloc.geometry import Pose2, StereoCamera
 from .layout import Car, Obstacle, Person
 from .world import TexturedMesh, World, build_occluders
 
-__all__ = ["StereoRenderer"]
+__all__ = ["BatchStereoRenderer", "StereoRenderer", "StereoSlot"]
 
 #: Converts an OpenCV camera frame (x right, y down, z forward) to OpenGL's (x right, y up, z backward).
 _CV_TO_GL = np.diag([1.0, -1.0, -1.0, 1.0])
 _SIDES = ("left", "right")
+
+
+class BatchStereoRenderer:
+    """Renders the rectified stereo pairs of ``camera`` for several vehicles, each in a world of its own or a
+    shared one, in one GL context, one pyrender scene and one framebuffer, read back once per call.
+
+    Each vehicle is a *slot* (:meth:`slot`: a :class:`StereoRenderer`-like view with its world, its episode's
+    occluders and its two camera nodes). :meth:`render_many` draws the slots' pairs as groups of
+    :meth:`satloc_env._gl._MultiViewRenderer.render_groups`: every pair is drawn exactly as the slot alone
+    would draw it (its world's chunks within reach, its occluders, the same draw order), only in another band of
+    the framebuffer. A world's meshes are uploaded once for all the slots that use it, and dropped when the
+    last of them leaves it. Filtering and depth range as in :class:`StereoRenderer`."""
+
+    def __init__(self, camera: StereoCamera, *, anisotropy: int = 1, lod_bias: float = -0.5, mipmaps: bool = True,
+                 znear: float = 0.1, zfar: float = 150.0):
+        if not 0 < znear < zfar:
+            raise ConfigError(f"renderer: need 0 < znear < zfar, got znear={znear}, zfar={zfar}")
+        if anisotropy < 1:
+            raise ConfigError(f"renderer: anisotropy must be >= 1, got {anisotropy}")
+        self.camera = camera
+        self.anisotropy = int(anisotropy)
+        self.lod_bias = float(lod_bias)
+        self.mipmaps = bool(mipmaps)
+        self.znear = float(znear)
+        self.zfar = float(zfar)
+        # Farthest a point with z-depth <= zfar can be from the camera: along the ray through an image corner.
+        tan_x = max(camera.cx + 0.5, camera.width - camera.cx - 0.5) / camera.fx
+        tan_y = max(camera.cy + 0.5, camera.height - camera.cy - 0.5) / camera.fy
+        self.reach = self.zfar * math.sqrt(1.0 + tan_x ** 2 + tan_y ** 2) + camera.baseline
+        self._scene: Any = None           # pyrender.Scene, built on first use
+        self._worlds: dict[int, _WorldNodes] = {}   # by id(world): its nodes (while a slot uses it)
+        self._slots: list[StereoSlot] = []
+        self._next_world = 0
+        self._next_slot = 0
+        self._gl: Any = None              # MultiViewOffscreenRenderer while a context is held
+
+    # --- slots --------------------------------------------------------------------------------------------
+    def slot(self, world: World) -> "StereoSlot":
+        """A new vehicle rendering ``world`` (see :class:`StereoSlot`)."""
+        slot = StereoSlot(self, world, self._next_slot)
+        self._next_slot += 1
+        self._slots.append(slot)
+        return slot
+
+    def render_many(self, requests: Sequence[tuple["StereoSlot", Pose2]], depth: bool | str = True,
+                    labels: bool = False) -> list[dict[str, np.ndarray]]:
+        """Render the stereo pair of each (slot, pose) of ``requests`` (each slot at most once), as
+        :meth:`StereoRenderer.render` does for one, in one framebuffer: one ``glReadPixels`` for all colour
+        images, one for the depth (and, with ``labels``, one more pass of the label meshes)."""
+        if depth not in (True, False, "left"):
+            raise ValueError(f"depth: expected True, False or 'left', got {depth!r}")
+        if len({id(slot) for slot, _ in requests}) != len(requests):
+            raise ValueError("render_many: a slot appears twice in one call")
+        if not requests:
+            return []
+        gl = self._context()
+        for slot, pose in requests:
+            if slot.batch is not self or slot.closed:
+                raise ValueError("render_many: a slot of another renderer, or a closed one")
+            slot._place(pose)
+        n = len(requests)
+        groups = [slot._draw_group(False, (*(v / 255.0 for v in slot.world.sky_rgb), 1.0)) for slot, _ in requests]
+        views = gl.render_groups(self._scene, groups, color="rgb",
+                                 depth={True: True, False: False, "left": 2 * n}[depth])
+        outs: list[dict[str, np.ndarray]] = []
+        for i in range(n):
+            left, right = views[2 * i], views[2 * i + 1]
+            out = {"left": left["color"], "right": right["color"]}
+            if depth:
+                out["depth_left"] = left["depth"]
+                if depth is True:
+                    out["depth_right"] = right["depth"]
+            outs.append(out)
+        if labels:
+            groups = [slot._draw_group(True) for slot, _ in requests]
+            views = gl.render_groups(self._scene, groups, color="red", depth=False, bg_color=np.zeros(4))  # 0: void
+            for i, out in enumerate(outs):
+                out["labels_left"], out["labels_right"] = views[2 * i]["color"], views[2 * i + 1]["color"]
+        return outs
+
+    @property
+    def gl_info(self) -> dict[str, str]:
+        """The GL context's ``vendor``, ``renderer`` and ``version`` strings (creates the context if needed):
+        which driver draws, e.g. Mesa's llvmpipe or a GPU vendor's."""
+        return dict(self._context().gl_info)
+
+    def close(self) -> None:
+        """Release the GL context and everything uploaded to it (safe to call again; rendering recreates it)."""
+        if self._gl is not None:
+            gl, self._gl = self._gl, None
+            gl.delete()
+
+    def __enter__(self) -> "BatchStereoRenderer":
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    # --- scene management ---------------------------------------------------------------------------------
+    def _context(self) -> Any:
+        """The offscreen renderer, creating the scene and the GL context on first use."""
+        from satloc_env._gl import MultiViewOffscreenRenderer, check_process, pyrender
+
+        check_process()   # a fork of a process that has rendered: fail now, rendering would hang
+        if self._scene is None:
+            self._scene = pyrender.Scene()   # each slot's views are cleared to its world's sky (render_many)
+            for slot in self._slots:
+                if not slot.closed:
+                    slot._attach()
+        if self._gl is None:
+            self._gl = MultiViewOffscreenRenderer(self.camera.width, self.camera.height, self.anisotropy,
+                                                  self.lod_bias, self.mipmaps)
+        return self._gl
+
+    def _world_nodes(self, world: World) -> "_WorldNodes":
+        """The scene nodes of ``world``'s chunks, adding them on first use. Named nodes: the multi-view
+        renderer draws equally near nodes in name order (the part before ``#``), which makes the image the same
+        in every process and the same in a batch as alone (see ``_MultiViewRenderer._draw_list``)."""
+        entry = self._worlds.get(id(world))
+        if entry is None:
+            tag = f"#w{self._next_world}"
+            self._next_world += 1
+            nodes = []
+            for i, chunk in enumerate(world.chunks):
+                pair = _meshes(chunk)
+                nodes.append(tuple(self._scene.add(mesh, name=f"chunk{i:05d}/{kind}{tag}")
+                                   for mesh, kind in zip(pair, ("color", "labels"))))
+            rects = np.array([np.r_[c.bounds[0, :2], c.bounds[1, :2]] for c in world.chunks])
+            corners = np.array([[[b[i, 0], b[j, 1], b[k, 2], 1.0] for i in (0, 1) for j in (0, 1) for k in (0, 1)]
+                                for b in (c.bounds for c in world.chunks)])
+            entry = self._worlds[id(world)] = _WorldNodes(world, nodes, rects, corners, set())
+        return entry
+
+    def _release_world(self, world: World, slot: "StereoSlot") -> None:
+        entry = self._worlds.get(id(world))
+        if entry is None:
+            return
+        entry.users.discard(slot.index)
+        if not entry.users:
+            for pair in entry.nodes:
+                for node in pair:
+                    self._scene.remove_node(node)
+            del self._worlds[id(world)]
+
+
+class _WorldNodes(NamedTuple):
+    world: World
+    nodes: list            # (colour node, label node) per chunk
+    rects: np.ndarray      # (chunks, 4) x0, y0, x1, y1
+    corners: np.ndarray    # (chunks, 8, 4) homogeneous corners of the chunks' bounding boxes
+    users: set             # indices of the slots that render this world
+
+
+def _box_in_view(corners: np.ndarray, map_from_cam: np.ndarray, camera: StereoCamera, znear: float,
+                 margin_px: float = 4.0) -> np.ndarray:
+    """(chunks,) False for the boxes (``corners``, (chunks, 8, 4) map frame) wholly on the outer side of one
+    plane of the camera's view volume (in front of the near plane, or beyond an image edge widened by
+    ``margin_px``): such a chunk puts no fragment in the image, so skipping it changes no pixel. A conservative
+    test: a box that misses the volume across a corner may still be kept."""
+    cam = corners @ np.linalg.inv(map_from_cam).T          # (chunks, 8, 4), OpenCV camera frame
+    x, y, z = cam[..., 0], cam[..., 1], cam[..., 2]
+    # pixel u = fx x / z + cx + 0.5 in [0, width] (GL window coordinates, see the camera nodes), likewise v
+    u0, u1 = camera.cx + 0.5 + margin_px, camera.cx + 0.5 - camera.width - margin_px
+    v0, v1 = camera.cy + 0.5 + margin_px, camera.cy + 0.5 - camera.height - margin_px
+    outside = ((z < znear).all(1) | (camera.fx * x + u0 * z < 0).all(1) | (camera.fx * x + u1 * z > 0).all(1)
+               | (camera.fy * y + v0 * z < 0).all(1) | (camera.fy * y + v1 * z > 0).all(1))
+    return ~outside
+
+
+class StereoSlot:
+    """One vehicle of a :class:`BatchStereoRenderer`: renders ``world`` (its chunks within reach of the camera)
+    and its own occluders. Has the interface of :class:`StereoRenderer` (:meth:`render` draws this slot alone;
+    :meth:`BatchStereoRenderer.render_many` draws several slots at once)."""
+
+    def __init__(self, batch: BatchStereoRenderer, world: World, index: int):
+        self.batch = batch
+        self.world = world
+        self.camera = batch.camera
+        self.index = index
+        self.closed = False
+        self._occluders: TexturedMesh | None = None
+        self._occluder_nodes: list[Any] = []
+        self._cameras: tuple = ()
+        self._visible = np.zeros(len(world.chunks), dtype=bool)   # the chunks within reach of the cameras
+        self._in_view: tuple = (self._visible, self._visible)     # per camera: within reach and in its view
+        if batch._scene is not None:
+            self._attach()
+
+    def _attach(self) -> None:
+        """Add this slot's world (if new), camera nodes and occluders to the batch's scene."""
+        from satloc_env._gl import pyrender
+
+        b, cam = self.batch, self.camera
+        b._world_nodes(self.world).users.add(self.index)
+        tag = f"#s{self.index}"
+        self._cameras = tuple(b._scene.add(pyrender.IntrinsicsCamera(
+            cam.fx, cam.fy, cam.cx + 0.5, cam.cy + 0.5, znear=b.znear, zfar=b.zfar), name=f"{side}{tag}")
+            for side in _SIDES)
+        self._attach_occluders()
+
+    def _attach_occluders(self) -> None:
+        scene = self.batch._scene
+        for node in self._occluder_nodes:
+            scene.remove_node(node)
+        self._occluder_nodes = []
+        if self._occluders is not None:
+            tag = f"#s{self.index}"
+            color, label = _meshes(self._occluders)
+            self._occluder_nodes = [scene.add(color, name=f"occluders/color{tag}"),
+                                    scene.add(label, name=f"occluders/labels{tag}")]
+
+    def set_occluders(self, cars: Sequence[Car], persons: Sequence[Person], obstacles: Sequence[Obstacle]) -> None:
+        """Replace the episode's extra objects (drawn as one mesh; all lists may be empty)."""
+        self._occluders = build_occluders(cars, persons, obstacles, self.world.sun_direction)
+        if self.batch._scene is not None and not self.closed:
+            self._attach_occluders()
+
+    def render(self, pose: Pose2, depth: bool | str = True, labels: bool = False) -> dict[str, np.ndarray]:
+        """See :meth:`StereoRenderer.render`."""
+        if self.closed:
+            raise RuntimeError("render: this slot was closed")
+        return self.batch.render_many([(self, pose)], depth, labels)[0]
+
+    def _place(self, pose: Pose2) -> None:
+        """Put the cameras at ``pose`` and find the chunks whose footprint comes within reach of them."""
+        scene = self.batch._scene
+        for side, node in zip(_SIDES, self._cameras):
+            scene.set_pose(node, self.camera.map_from_camera(pose, side) @ _CV_TO_GL)
+        entry = self.batch._world_nodes(self.world)
+        r = entry.rects
+        dx = np.maximum(np.maximum(r[:, 0] - pose.x, pose.x - r[:, 2]), 0.0)
+        dy = np.maximum(np.maximum(r[:, 1] - pose.y, pose.y - r[:, 3]), 0.0)
+        self._visible = np.hypot(dx, dy) <= self.batch.reach
+        self._in_view = tuple(self._visible & _box_in_view(entry.corners, self.camera.map_from_camera(pose, side),
+                                                           self.camera, self.batch.znear) for side in _SIDES)
+
+    def _draw_group(self, label_pass: bool, bg_color=None):
+        """The slot's two views as a ``ViewGroup``: its chunks within reach, colour (or label) meshes, and its
+        occluders', each view skipping the chunks wholly outside its own view volume."""
+        from satloc_env._gl import ViewGroup
+
+        k = 1 if label_pass else 0
+        pairs = self.batch._world_nodes(self.world).nodes
+        seen = self._in_view[0] | self._in_view[1]
+        nodes = [pair[k] for pair, vis in zip(pairs, seen) if vis]
+        if self._occluder_nodes:
+            nodes.append(self._occluder_nodes[k])
+        hidden = tuple(frozenset(id(pair[k]) for pair, vis, mine in zip(pairs, seen, in_view) if vis and not mine)
+                       for in_view in self._in_view)
+        return ViewGroup(self._cameras, nodes, bg_color, hidden)
+
+    @property
+    def gl_info(self) -> dict[str, str]:
+        return self.batch.gl_info
+
+    @property
+    def visible_chunks(self) -> list[int]:
+        """Indices of the world chunks drawn by the latest render."""
+        return [int(i) for i in np.flatnonzero(self._visible)]
+
+    def close(self) -> None:
+        """Leave the batch: its nodes are removed (and its world's, if no other slot uses it)."""
+        if self.closed:
+            return
+        self.closed = True
+        b = self.batch
+        if b._scene is not None:
+            for node in (*self._occluder_nodes, *self._cameras):
+                b._scene.remove_node(node)
+            b._release_world(self.world, self)
+        self._occluder_nodes, self._cameras = [], ()
+        if self in b._slots:
+            b._slots.remove(self)
 
 
 class StereoRenderer:
@@ -40,42 +313,20 @@ class StereoRenderer:
     selection): far ground aliases, but the image no longer depends on how a driver picks mipmap levels, which
     the GL specification leaves open (used to compare renders across drivers). ``znear`` / ``zfar`` (metres)
     bound the rendered depth range. The renderer owns a GL context from the first :meth:`render` until
-    :meth:`close`; it may render again after ``close``.
+    :meth:`close`; it may render again after ``close``. It is a :class:`BatchStereoRenderer` of one slot.
     """
 
     def __init__(self, world: World, camera: StereoCamera, *, anisotropy: int = 1, lod_bias: float = -0.5,
                  mipmaps: bool = True, znear: float = 0.1, zfar: float = 150.0):
-        if not 0 < znear < zfar:
-            raise ConfigError(f"renderer: need 0 < znear < zfar, got znear={znear}, zfar={zfar}")
-        if anisotropy < 1:
-            raise ConfigError(f"renderer: anisotropy must be >= 1, got {anisotropy}")
+        self._batch = BatchStereoRenderer(camera, anisotropy=anisotropy, lod_bias=lod_bias, mipmaps=mipmaps,
+                                          znear=znear, zfar=zfar)
+        self._slot = self._batch.slot(world)
         self.world = world
         self.camera = camera
-        self.anisotropy = int(anisotropy)
-        self.lod_bias = float(lod_bias)
-        self.mipmaps = bool(mipmaps)
-        self.znear = float(znear)
-        self.zfar = float(zfar)
-        # Farthest a point with z-depth <= zfar can be from the camera: along the ray through an image corner.
-        tan_x = max(camera.cx + 0.5, camera.width - camera.cx - 0.5) / camera.fx
-        tan_y = max(camera.cy + 0.5, camera.height - camera.cy - 0.5) / camera.fy
-        self._reach = self.zfar * math.sqrt(1.0 + tan_x ** 2 + tan_y ** 2) + camera.baseline
-        self._chunk_rects = np.array([np.r_[c.bounds[0, :2], c.bounds[1, :2]] for c in world.chunks])
-        self._occluders: TexturedMesh | None = None
-        self._visible = np.zeros(len(world.chunks), dtype=bool)
-        self._scene: Any = None           # pyrender.Scene, built on first use
-        self._chunk_meshes: list[tuple[Any, Any]] = []   # (colour mesh, label mesh) per chunk
-        self._occluder_nodes: list[Any] = []
-        self._camera_nodes: dict[str, Any] = {}
-        self._gl: Any = None              # MultiViewOffscreenRenderer while a context is held
-        self._sky = np.array([*(v / 255.0 for v in world.sky_rgb), 1.0])
 
-    # --- public API ---------------------------------------------------------------------------------------
     def set_occluders(self, cars: Sequence[Car], persons: Sequence[Person], obstacles: Sequence[Obstacle]) -> None:
         """Replace the episode's extra objects (drawn as one mesh; all lists may be empty)."""
-        self._occluders = build_occluders(cars, persons, obstacles, self.world.sun_direction)
-        if self._scene is not None:
-            self._attach_occluders()
+        self._slot.set_occluders(cars, persons, obstacles)
 
     def render(self, pose: Pose2, depth: bool | str = True, labels: bool = False) -> dict[str, np.ndarray]:
         """Render the stereo pair for the vehicle at ``pose``.
@@ -85,105 +336,28 @@ class StereoRenderer:
         left one only), with ``labels`` also
         ``labels_left`` and ``labels_right`` (H x W uint8 class ids, 0 = void / sky). All C-contiguous.
         """
-        gl = self._context()
-        self._cull(pose)
-        cameras = [self._camera_nodes[side] for side in _SIDES]
-        for side, node in zip(_SIDES, cameras):
-            self._scene.set_pose(node, self.camera.map_from_camera(pose, side) @ _CV_TO_GL)
-        out: dict[str, np.ndarray] = {}
-        if depth not in (True, False, "left"):
-            raise ValueError(f"depth: expected True, False or 'left', got {depth!r}")
-        for side, view in zip(_SIDES, gl.render_views(self._scene, cameras, color="rgb",
-                                                      depth=1 if depth == "left" else depth)):
-            out[side] = view["color"]
-            if "depth" in view:
-                out[f"depth_{side}"] = view["depth"]
-        if labels:
-            self._show(label_pass=True)
-            self._scene.bg_color = np.zeros(4)            # void
-            try:
-                views = gl.render_views(self._scene, cameras, color="red", depth=False)
-            finally:
-                self._show(label_pass=False)
-                self._scene.bg_color = self._sky
-            for side, view in zip(_SIDES, views):
-                out[f"labels_{side}"] = view["color"]
-        return out
+        return self._slot.render(pose, depth, labels)
 
     @property
     def gl_info(self) -> dict[str, str]:
         """The GL context's ``vendor``, ``renderer`` and ``version`` strings (creates the context if needed):
         which driver draws, e.g. Mesa's llvmpipe or a GPU vendor's."""
-        return dict(self._context().gl_info)
+        return self._batch.gl_info
 
     @property
     def visible_chunks(self) -> list[int]:
         """Indices of the world chunks drawn by the latest :meth:`render`."""
-        return [int(i) for i in np.flatnonzero(self._visible)]
+        return self._slot.visible_chunks
 
     def close(self) -> None:
         """Release the GL context and everything uploaded to it (safe to call again; rendering recreates it)."""
-        if self._gl is not None:
-            gl, self._gl = self._gl, None
-            gl.delete()
+        self._batch.close()
 
     def __enter__(self) -> "StereoRenderer":
         return self
 
     def __exit__(self, *exc: object) -> None:
         self.close()
-
-    # --- scene management ---------------------------------------------------------------------------------
-    def _context(self) -> Any:
-        """The offscreen renderer, creating the scene and the GL context on first use."""
-        from satloc_env._gl import MultiViewOffscreenRenderer, check_process, pyrender
-
-        check_process()   # a fork of a process that has rendered: fail now, rendering would hang
-        if self._scene is None:
-            self._scene = pyrender.Scene(bg_color=self._sky)
-            # Named nodes: the multi-view renderer draws equally near nodes in name order, which makes the
-            # image the same in every process (see _MultiViewRenderer.render_views).
-            for i, chunk in enumerate(self.world.chunks):
-                pair = _meshes(chunk)
-                for mesh, kind in zip(pair, ("color", "labels")):
-                    self._scene.add(mesh, name=f"chunk{i:05d}/{kind}")
-                self._chunk_meshes.append(pair)
-            cam = self.camera
-            for side in _SIDES:
-                self._camera_nodes[side] = self._scene.add(pyrender.IntrinsicsCamera(
-                    cam.fx, cam.fy, cam.cx + 0.5, cam.cy + 0.5, znear=self.znear, zfar=self.zfar), name=side)
-            self._attach_occluders()
-        if self._gl is None:
-            self._gl = MultiViewOffscreenRenderer(self.camera.width, self.camera.height, self.anisotropy,
-                                                  self.lod_bias, self.mipmaps)
-        return self._gl
-
-    def _attach_occluders(self) -> None:
-        for node in self._occluder_nodes:
-            self._scene.remove_node(node)
-        self._occluder_nodes = []
-        if self._occluders is not None:
-            color, label = _meshes(self._occluders)
-            label.is_visible = False
-            self._occluder_nodes = [self._scene.add(color, name="occluders/color"),
-                                    self._scene.add(label, name="occluders/labels")]
-
-    def _cull(self, pose: Pose2) -> None:
-        """Show the colour meshes of the chunks whose footprint comes within reach of the camera."""
-        r = self._chunk_rects
-        dx = np.maximum(np.maximum(r[:, 0] - pose.x, pose.x - r[:, 2]), 0.0)
-        dy = np.maximum(np.maximum(r[:, 1] - pose.y, pose.y - r[:, 3]), 0.0)
-        self._visible = np.hypot(dx, dy) <= self._reach
-        self._show(label_pass=False)
-
-    def _show(self, label_pass: bool) -> None:
-        """Make either the colour or the label meshes of the visible chunks (and of the occluders) visible."""
-        for (color, label), vis in zip(self._chunk_meshes, self._visible):
-            color.is_visible = bool(vis) and not label_pass
-            label.is_visible = bool(vis) and label_pass
-        if self._occluder_nodes:
-            self._occluder_nodes[0].mesh.is_visible = not label_pass
-            self._occluder_nodes[1].mesh.is_visible = label_pass
 
 
 def _meshes(tm: TexturedMesh) -> tuple[Any, Any]:

@@ -303,3 +303,26 @@ def test_overview_shows_a_far_off_estimate():
     g = green(with_est[:, ov])
     ys, xs = np.nonzero(g)
     assert len(xs) > 10 and abs(xs.mean() - u) < 4 and abs(ys.mean() - v) < 4
+
+
+def test_vector_env_with_a_localizer_equals_single_envs(loc):
+    """The batched vector environment (satloc_env.vector) localizes each car as a single environment does:
+    tracked posteriors, estimates and rewards equal those of SyncVectorEnv over the same seeds (this small
+    localizer has RGB features: no network, so the batched network call changes nothing)."""
+    from test_vector import assert_same
+
+    kw = dict(scene="city", localizer=loc, localizer_track=True, reward="neg_error")
+    ref = gym.make_vec(ID, 2, vectorization_mode="sync", **kw)
+    vec = gym.make_vec(ID, 2, vectorization_mode="vector_entry_point", **kw)
+    try:
+        assert_same(ref.reset(seed=4), vec.reset(seed=4), "reset")
+        for t in range(3):
+            act = vec.unwrapped.autopilot_actions()
+            a, b = ref.step(act), vec.step(act)
+            for x, y, name in zip(a, b, ("obs", "reward", "terminated", "truncated", "info")):
+                assert_same(x, y, f"{name} at step {t}")
+        assert b[4]["_error_m"].all() and (b[4]["localized_step"] == 3).all()
+        assert (b[1] < 0).all()
+    finally:
+        ref.close()
+        vec.close()

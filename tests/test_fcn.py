@@ -87,6 +87,42 @@ def test_one_network_pass_for_semantic_and_edge(predictor, monkeypatch):
     assert len(calls) == 3
 
 
+def test_prefetch_runs_one_batch_that_the_calls_reuse(monkeypatch):
+    """FCNPredictor.prefetch (the vector environment's batched localization) runs the network once for several
+    images; the feature calls for those images then run nothing, and their features equal the unbatched ones
+    up to float rounding of the batched convolutions."""
+    predictor, single = FCNPredictor(), FCNPredictor()
+    forwards = []
+    for vn in predictor.views.values():
+        fwd = vn.net.forward_with_edges
+        monkeypatch.setattr(vn.net, "forward_with_edges", lambda x, *a, f=fwd, **k: forwards.append(len(x)) or f(x, *a, **k))
+    stack = FeatureStack([SemanticFeatures(predictor=predictor), EdgeFeatures(predictor=predictor)])
+    imgs = [_image(60, 90, seed=s) for s in range(4)]
+    stack.prefetch(imgs + [imgs[0]], "ground")     # a repeated image is run once
+    assert forwards == [4]
+    ref = FeatureStack([SemanticFeatures(predictor=single), EdgeFeatures(predictor=single)])
+    for img in reversed(imgs):
+        np.testing.assert_allclose(stack(img, "ground"), ref(img, "ground"), atol=1e-5)
+    assert forwards == [4]                          # all four remembered
+    stack.prefetch(imgs[:2] + [_image(30, 40, seed=9)], "ground")   # sizes differ: the new one alone
+    assert forwards == [4, 1]
+
+
+def test_localizer_prefetch_passes_the_left_images_once():
+    from types import SimpleNamespace
+
+    from satloc.localizer import Localizer
+    from satloc.sequence import Frame
+
+    seen = []
+    ext = SimpleNamespace(prefetch=lambda images, view: seen.append((len(images), view)))
+    frames = [Frame(_image(8, 8, s), _image(8, 8, s + 1)) for s in range(3)]
+    Localizer.prefetch(SimpleNamespace(extractor=ext), frames)
+    Localizer.prefetch(SimpleNamespace(extractor=ext), frames[:1])       # one frame: nothing to batch
+    Localizer.prefetch(SimpleNamespace(extractor=object()), frames)      # an extractor that cannot batch
+    assert seen == [(3, "ground")]
+
+
 def test_tiling_matches_whole_image(predictor, residential_tile):
     img = np.ascontiguousarray(residential_tile[0][:300, :260])
     tiled = FCNPredictor(tile=128, margin=24)(img, "satellite")
