@@ -285,14 +285,16 @@ class _MultiViewRenderer(pyrender.Renderer):
         return self.render_groups(scene, [ViewGroup(tuple(cameras), visible)], color, depth)
 
     def render_groups(self, scene: "pyrender.Scene", groups: Sequence["ViewGroup"], color: str | None,
-                      depth: bool | int, bg_color: Sequence[float] | None = None) -> list[dict[str, np.ndarray]]:
+                      depth: bool | int | str, bg_color: Sequence[float] | None = None) -> list[dict[str, np.ndarray]]:
         """Draw several groups of views in one framebuffer and read it back once: group ``g`` draws the mesh
         nodes ``g.meshes`` (their ``is_visible`` flags are ignored) from each of its cameras. Returns the views of
         all groups in order, as :meth:`render_views` does (``depth`` = k: depth of the first k views of that
-        order). ``bg_color``: the clear colour (default: the scene's).
+        order; ``"first"``: the depth of each group's first view). ``bg_color``: the clear colour (default: the
+        scene's).
 
-        View k is drawn into layer k of the framebuffer's layered (2-D array) colour and depth textures, at the
-        same window position as every other view, so that each group is drawn exactly as it would be alone (same
+        Each view is drawn into a layer of its own of the framebuffer's layered (2-D array) colour and depth
+        textures (view k into layer k; with ``"first"`` the groups' first views into the first layers, so that
+        their depth is one read), at the same window position as every other view, so that each group is drawn exactly as it would be alone (same
         draw order, same GL state, same window coordinates: the rasterizer's rounding cannot differ; views side
         by side in one tall framebuffer gave depths 1 ulp apart). After each group the commands are flushed: a
         software rasterizer (llvmpipe) then draws that group on its threads while this thread issues the next
@@ -313,24 +315,41 @@ class _MultiViewRenderer(pyrender.Renderer):
         GL.glPolygonMode(GL.GL_FRONT_AND_BACK, GL.GL_FILL)
         GL.glActiveTexture(GL.GL_TEXTURE0)
         default_bg = scene.bg_color if bg_color is None else bg_color
-        k = 0
+        layers = self._layers(groups, depth)
         cameras: list = []
         for group in groups:
             draws = self._draw_list(scene, group)
             for j, cam in enumerate(group.cameras):
                 skip = group.hidden[j] if group.hidden else None
                 mine = [d for d in draws if id(d[-1]) not in skip] if skip else draws
+                k = layers[len(cameras)]
                 GL.glFramebufferTextureLayer(GL.GL_FRAMEBUFFER, GL.GL_COLOR_ATTACHMENT0, color_tex, 0, k)
                 GL.glFramebufferTextureLayer(GL.GL_FRAMEBUFFER, GL.GL_DEPTH_ATTACHMENT, depth_tex, 0, k)
                 GL.glClearColor(*(default_bg if group.bg_color is None else group.bg_color))
                 GL.glClear(GL.GL_COLOR_BUFFER_BIT | GL.GL_DEPTH_BUFFER_BIT)
                 self._draw(mine, np.linalg.inv(scene.get_pose(cam)), cam.camera.get_projection_matrix(width=w, height=h))
-                k += 1
-            cameras.extend(group.cameras)
+                cameras.append(cam)
             GL.glFlush()
         GL.glBindVertexArray(0)
         GL.glUseProgram(0)
-        return self._read_views(cameras, color, depth)
+        if depth == "first":
+            starts = np.cumsum([0] + [len(g.cameras) for g in groups[:-1]])
+            want = [int(i) for i in starts]
+        else:
+            nd = len(cameras) if depth is True else min(int(depth), len(cameras))
+            want = list(range(nd))
+        return self._read_views(cameras, layers, color, want)
+
+    @staticmethod
+    def _layers(groups: Sequence["ViewGroup"], depth: bool | int | str) -> list[int]:
+        """The layer of each view, in view order. Views go to layers in order, except for ``depth="first"``
+        (the depth of each group's first view only), which puts the groups' first views in the first layers,
+        so that one read of those layers gives all the depth asked for."""
+        if depth != "first":
+            return list(range(sum(len(g.cameras) for g in groups)))
+        base = len(groups)
+        rest = iter(range(base, base + sum(len(g.cameras) - 1 for g in groups)))
+        return [gi if j == 0 else next(rest) for gi, g in enumerate(groups) for j in range(len(g.cameras))]
 
     def _draw_list(self, scene: "pyrender.Scene", group: "ViewGroup") -> list[tuple]:
         """The primitives of ``group.meshes`` in drawing order, each as (sort key..., program, primitive, pose,
@@ -402,28 +421,29 @@ class _MultiViewRenderer(pyrender.Renderer):
             self._programs[prim] = program
         return program
 
-    def _read_views(self, cameras: Sequence["pyrender.Node"], color: str | None,
-                    depth: bool | int) -> list[dict[str, np.ndarray]]:
+    def _read_views(self, cameras: Sequence["pyrender.Node"], layers: Sequence[int], color: str | None,
+                    want: Sequence[int]) -> list[dict[str, np.ndarray]]:
         """Read the layered textures back: one call for the colour of all views and one for the depth of the
-        first ``depth`` views (``glGetTextureSubImage``, GL 4.5)."""
+        views ``want`` (indices; ``glGetTextureSubImage``, GL 4.5); view k lies in layer ``layers[k]``."""
         w, h, n = self.viewport_width, self.viewport_height, len(cameras)
         _, color_tex, depth_tex = self._views_fb
         views: list[dict[str, np.ndarray]] = [{} for _ in cameras]
         if color is not None:
-            # RGBA is the texture's own layout (the fastest read); GL's rows run bottom-up.
-            # Flipping the stack of layers upside down as one image puts layer k, upright, at band n - 1 - k.
+            # RGBA is the texture's own layout (the fastest read); GL's rows run bottom-up. Flipping the stack of
+            # layers upside down as one image puts layer k, upright, at band n - 1 - k.
             rgba = np.empty((n * h, w, 4), np.uint8)
             GL.glGetTextureSubImage(color_tex, 0, 0, 0, 0, w, h, n, GL.GL_RGBA, GL.GL_UNSIGNED_BYTE, rgba.nbytes, rgba)
             rgba = cv2.flip(rgba, 0)
             img = cv2.cvtColor(rgba, cv2.COLOR_RGBA2RGB) if color == "rgb" else cv2.extractChannel(rgba, 0)
-            for k, v in enumerate(views):
+            for v, k in zip(views, layers):
                 v["color"] = img[(n - 1 - k) * h:(n - k) * h]
-        nd = n if depth is True else min(int(depth), n)
-        if nd > 0:
+        if want:
+            nd = max(layers[i] for i in want) + 1
             d = np.empty((nd * h, w), np.float32)
             GL.glGetTextureSubImage(depth_tex, 0, 0, 0, 0, w, h, nd, GL.GL_DEPTH_COMPONENT, GL.GL_FLOAT, d.nbytes, d)
             d = d[::-1]                                     # layer k upright at band nd - 1 - k
-            for k, (v, cam) in enumerate(zip(views[:nd], cameras[:nd])):
+            for i in want:
+                v, cam, k = views[i], cameras[i], layers[i]
                 near, far = np.float32(cam.camera.znear), np.float32(cam.camera.zfar)
                 dk = d[(nd - 1 - k) * h:(nd - k) * h]
                 zk = np.empty((h, w), dtype=np.float32)
@@ -510,7 +530,7 @@ class MultiViewOffscreenRenderer(pyrender.OffscreenRenderer):
             self._platform.make_uncurrent()
 
     def render_groups(self, scene: "pyrender.Scene", groups: Sequence[ViewGroup], color: str | None = "rgb",
-                      depth: bool | int = True, bg_color: Sequence[float] | None = None) -> list[dict[str, np.ndarray]]:
+                      depth: bool | int | str = True, bg_color: Sequence[float] | None = None) -> list[dict[str, np.ndarray]]:
         """See :meth:`_MultiViewRenderer.render_groups`."""
         check_process()
         self._platform.make_current()

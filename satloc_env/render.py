@@ -90,7 +90,7 @@ class BatchStereoRenderer:
         n = len(requests)
         groups = [slot._draw_group(False, (*(v / 255.0 for v in slot.world.sky_rgb), 1.0)) for slot, _ in requests]
         views = gl.render_groups(self._scene, groups, color="rgb",
-                                 depth={True: True, False: False, "left": 2 * n}[depth])
+                                 depth={True: True, False: False, "left": "first"}[depth])
         outs: list[dict[str, np.ndarray]] = []
         for i in range(n):
             left, right = views[2 * i], views[2 * i + 1]
