@@ -44,6 +44,30 @@ def test_depth_is_bounded_by_the_far_plane_and_only_odometry_is_unbounded():
     env.close()
 
 
+def test_normalised_actions_for_rl_libraries():
+    """RL libraries expect a symmetric, normalised action Box; gymnasium's RescaleAction maps [-1, 1]^2 onto
+    SatLoc-v0's [0, 20] m/s x [-1, 1] rad/s (the README's recipe). check_env's warning about the action space
+    is gone on the wrapped env, and -1 is standstill, 0 half speed."""
+    import warnings
+
+    from gymnasium.wrappers import RescaleAction
+
+    env = RescaleAction(gym.make("satloc/SatLoc-v0", scene="city", localizer=None), -1.0, 1.0)
+    try:
+        assert env.action_space.low.tolist() == [-1, -1] and env.action_space.high.tolist() == [1, 1]
+        with warnings.catch_warnings(record=True) as w:
+            warnings.simplefilter("always")
+            check_env(env, skip_render_check=True)
+        assert not [x for x in w if "action space" in str(x.message).lower() and "normal" in str(x.message).lower()]
+        env.reset(seed=0)
+        _, _, _, _, info = env.step(np.array([-1.0, 0.0], np.float32))
+        assert np.hypot(*info["odometry_true"][:2]) < 1e-9
+        _, _, _, _, info = env.step(np.array([0.0, 0.0], np.float32))
+        assert np.hypot(*info["odometry_true"][:2]) == pytest.approx(10.0 * env.unwrapped.config.dt, rel=1e-6)
+    finally:
+        env.close()
+
+
 def run(env, seed, n, options=None):
     obs, info = env.reset(seed=seed, options=options)
     out = [(obs, info)]
