@@ -256,19 +256,21 @@ class _MultiViewRenderer(pyrender.Renderer):
             GL.glDeleteTextures(2, [color, depth])
             self._views_fb = None
 
-    def _views_framebuffer(self, layers: int) -> tuple[int, int, int]:
-        """The single-sample framebuffer and its two layered textures, (re)allocated to hold ``layers`` views:
-        a 2-D array texture of RGBA8 colour and one of 32-bit float depth, one layer per view."""
+    def _views_framebuffer(self, layers: int, bands: int) -> tuple[int, int, int]:
+        """The single-sample framebuffer and its two layered textures, (re)allocated to hold ``layers`` layers
+        of ``bands`` views each (``bands`` views tall): a 2-D array texture of RGBA8 colour and one of 32-bit
+        float depth."""
         w, h = self.viewport_width, self.viewport_height
-        if self._views_fb is not None and self._views_dims[2] < layers:
+        if self._views_fb is not None and (self._views_dims[1] != bands * h or self._views_dims[2] < layers):
             self._delete_views_framebuffer()
         if self._views_fb is None:
             color, depth = GL.glGenTextures(2)
             for tex, fmt in ((color, GL.GL_RGBA8), (depth, GL.GL_DEPTH_COMPONENT32F)):
                 GL.glBindTexture(GL.GL_TEXTURE_2D_ARRAY, tex)
-                GL.glTexStorage3D(GL.GL_TEXTURE_2D_ARRAY, 1, fmt, w, h, layers)
+                GL.glTexStorage3D(GL.GL_TEXTURE_2D_ARRAY, 1, fmt, w, bands * h, layers)
             GL.glBindTexture(GL.GL_TEXTURE_2D_ARRAY, 0)
-            self._views_fb, self._views_dims = (int(GL.glGenFramebuffers(1)), int(color), int(depth)), (w, h, layers)
+            self._views_fb = (int(GL.glGenFramebuffers(1)), int(color), int(depth))
+            self._views_dims = (w, bands * h, layers)
         return self._views_fb
 
     def render_views(self, scene: "pyrender.Scene", cameras: Sequence["pyrender.Node"], color: str | None,
@@ -292,20 +294,20 @@ class _MultiViewRenderer(pyrender.Renderer):
         order; ``"first"``: the depth of each group's first view). ``bg_color``: the clear colour (default: the
         scene's).
 
-        Each view is drawn into a layer of its own of the framebuffer's layered (2-D array) colour and depth
-        textures (view k into layer k; with ``"first"`` the groups' first views into the first layers, so that
-        their depth is one read), at the same window position as every other view, so that each group is drawn exactly as it would be alone (same
-        draw order, same GL state, same window coordinates: the rasterizer's rounding cannot differ; views side
-        by side in one tall framebuffer gave depths 1 ulp apart). After each group the commands are flushed: a
+        Group g is drawn into layer g of the framebuffer's layered (2-D array) colour and depth textures, its
+        views in bands from the top of the layer exactly as :meth:`render_views` lays out one group alone
+        (view j of n in the j-th band from the top, at window y (n - 1 - j) * height), so that each group is
+        drawn exactly as it would be alone: same draw order, same GL state, same window coordinates, so the
+        rasterizer's rounding cannot differ (views placed elsewhere, e.g. one car's views further up one tall
+        framebuffer, gave colours 2 levels and depths 1 ulp apart). After each group the commands are flushed: a
         software rasterizer (llvmpipe) then draws that group on its threads while this thread issues the next
         group's commands."""
         flags = pyrender.RenderFlags.FLAT
         self._update_context(scene, flags)
         w, h = self.viewport_width, self.viewport_height
-        n = sum(len(g.cameras) for g in groups)
-        fb, color_tex, depth_tex = self._views_framebuffer(n)
+        bands = max(len(g.cameras) for g in groups)
+        fb, color_tex, depth_tex = self._views_framebuffer(len(groups), bands)
         GL.glBindFramebuffer(GL.GL_FRAMEBUFFER, fb)
-        GL.glViewport(0, 0, w, h)
         GL.glEnable(GL.GL_DEPTH_TEST)
         GL.glDepthMask(GL.GL_TRUE)
         GL.glDepthFunc(GL.GL_LESS)
@@ -315,20 +317,23 @@ class _MultiViewRenderer(pyrender.Renderer):
         GL.glPolygonMode(GL.GL_FRONT_AND_BACK, GL.GL_FILL)
         GL.glActiveTexture(GL.GL_TEXTURE0)
         default_bg = scene.bg_color if bg_color is None else bg_color
-        layers = self._layers(groups, depth)
         cameras: list = []
-        for group in groups:
+        rows: list[tuple[int, int]] = []     # per view: (layer, top row of its band in the upright layer)
+        for gi, group in enumerate(groups):
+            GL.glFramebufferTextureLayer(GL.GL_FRAMEBUFFER, GL.GL_COLOR_ATTACHMENT0, color_tex, 0, gi)
+            GL.glFramebufferTextureLayer(GL.GL_FRAMEBUFFER, GL.GL_DEPTH_ATTACHMENT, depth_tex, 0, gi)
+            GL.glViewport(0, 0, w, bands * h)
+            GL.glClearColor(*(default_bg if group.bg_color is None else group.bg_color))
+            GL.glClear(GL.GL_COLOR_BUFFER_BIT | GL.GL_DEPTH_BUFFER_BIT)
             draws = self._draw_list(scene, group)
+            n = len(group.cameras)
             for j, cam in enumerate(group.cameras):
                 skip = group.hidden[j] if group.hidden else None
                 mine = [d for d in draws if id(d[-1]) not in skip] if skip else draws
-                k = layers[len(cameras)]
-                GL.glFramebufferTextureLayer(GL.GL_FRAMEBUFFER, GL.GL_COLOR_ATTACHMENT0, color_tex, 0, k)
-                GL.glFramebufferTextureLayer(GL.GL_FRAMEBUFFER, GL.GL_DEPTH_ATTACHMENT, depth_tex, 0, k)
-                GL.glClearColor(*(default_bg if group.bg_color is None else group.bg_color))
-                GL.glClear(GL.GL_COLOR_BUFFER_BIT | GL.GL_DEPTH_BUFFER_BIT)
+                GL.glViewport(0, (n - 1 - j) * h, w, h)     # view j in the j-th band from the top
                 self._draw(mine, np.linalg.inv(scene.get_pose(cam)), cam.camera.get_projection_matrix(width=w, height=h))
                 cameras.append(cam)
+                rows.append((gi, (bands - n + j) * h))
             GL.glFlush()
         GL.glBindVertexArray(0)
         GL.glUseProgram(0)
@@ -336,20 +341,8 @@ class _MultiViewRenderer(pyrender.Renderer):
             starts = np.cumsum([0] + [len(g.cameras) for g in groups[:-1]])
             want = [int(i) for i in starts]
         else:
-            nd = len(cameras) if depth is True else min(int(depth), len(cameras))
-            want = list(range(nd))
-        return self._read_views(cameras, layers, color, want)
-
-    @staticmethod
-    def _layers(groups: Sequence["ViewGroup"], depth: bool | int | str) -> list[int]:
-        """The layer of each view, in view order. Views go to layers in order, except for ``depth="first"``
-        (the depth of each group's first view only), which puts the groups' first views in the first layers,
-        so that one read of those layers gives all the depth asked for."""
-        if depth != "first":
-            return list(range(sum(len(g.cameras) for g in groups)))
-        base = len(groups)
-        rest = iter(range(base, base + sum(len(g.cameras) - 1 for g in groups)))
-        return [gi if j == 0 else next(rest) for gi, g in enumerate(groups) for j in range(len(g.cameras))]
+            want = list(range(len(cameras) if depth is True else min(int(depth), len(cameras))))
+        return self._read_views(cameras, rows, len(groups), bands, color, want)
 
     def _draw_list(self, scene: "pyrender.Scene", group: "ViewGroup") -> list[tuple]:
         """The primitives of ``group.meshes`` in drawing order, each as (sort key..., program, primitive, pose,
@@ -421,31 +414,41 @@ class _MultiViewRenderer(pyrender.Renderer):
             self._programs[prim] = program
         return program
 
-    def _read_views(self, cameras: Sequence["pyrender.Node"], layers: Sequence[int], color: str | None,
-                    want: Sequence[int]) -> list[dict[str, np.ndarray]]:
+    def _read_views(self, cameras: Sequence["pyrender.Node"], rows: Sequence[tuple[int, int]], layers: int,
+                    bands: int, color: str | None, want: Sequence[int]) -> list[dict[str, np.ndarray]]:
         """Read the layered textures back: one call for the colour of all views and one for the depth of the
-        views ``want`` (indices; ``glGetTextureSubImage``, GL 4.5); view k lies in layer ``layers[k]``."""
-        w, h, n = self.viewport_width, self.viewport_height, len(cameras)
+        views ``want`` (indices; ``glGetTextureSubImage``, GL 4.5). View k lies in layer ``rows[k][0]``, its
+        band starting ``rows[k][1]`` rows from the top of the upright layer (``bands`` views tall)."""
+        w, h = self.viewport_width, self.viewport_height
+        height = bands * h
         _, color_tex, depth_tex = self._views_fb
         views: list[dict[str, np.ndarray]] = [{} for _ in cameras]
         if color is not None:
             # RGBA is the texture's own layout (the fastest read); GL's rows run bottom-up. Flipping the stack of
-            # layers upside down as one image puts layer k, upright, at band n - 1 - k.
-            rgba = np.empty((n * h, w, 4), np.uint8)
-            GL.glGetTextureSubImage(color_tex, 0, 0, 0, 0, w, h, n, GL.GL_RGBA, GL.GL_UNSIGNED_BYTE, rgba.nbytes, rgba)
+            # layers upside down as one image puts layer g, upright, at rows (layers - 1 - g) * height.
+            rgba = np.empty((layers * height, w, 4), np.uint8)
+            GL.glGetTextureSubImage(color_tex, 0, 0, 0, 0, w, height, layers, GL.GL_RGBA, GL.GL_UNSIGNED_BYTE,
+                                    rgba.nbytes, rgba)
             rgba = cv2.flip(rgba, 0)
             img = cv2.cvtColor(rgba, cv2.COLOR_RGBA2RGB) if color == "rgb" else cv2.extractChannel(rgba, 0)
-            for v, k in zip(views, layers):
-                v["color"] = img[(n - 1 - k) * h:(n - k) * h]
+            for v, (g, top) in zip(views, rows):
+                r0 = (layers - 1 - g) * height + top
+                v["color"] = img[r0:r0 + h]
         if want:
-            nd = max(layers[i] for i in want) + 1
-            d = np.empty((nd * h, w), np.float32)
-            GL.glGetTextureSubImage(depth_tex, 0, 0, 0, 0, w, h, nd, GL.GL_DEPTH_COMPONENT, GL.GL_FLOAT, d.nbytes, d)
-            d = d[::-1]                                     # layer k upright at band nd - 1 - k
+            # one read: the rows (from the top) spanned by the wanted bands, in the layers up to the last wanted
+            top0 = min(rows[i][1] for i in want)
+            top1 = max(rows[i][1] for i in want) + h
+            nl = max(rows[i][0] for i in want) + 1
+            span = top1 - top0
+            d = np.empty((nl * span, w), np.float32)
+            GL.glGetTextureSubImage(depth_tex, 0, 0, height - top1, 0, w, span, nl, GL.GL_DEPTH_COMPONENT,
+                                    GL.GL_FLOAT, d.nbytes, d)
+            d = d[::-1]                                     # layer g upright at rows (nl - 1 - g) * span
             for i in want:
-                v, cam, k = views[i], cameras[i], layers[i]
+                v, cam, (g, top) = views[i], cameras[i], rows[i]
                 near, far = np.float32(cam.camera.znear), np.float32(cam.camera.zfar)
-                dk = d[(nd - 1 - k) * h:(nd - k) * h]
+                r0 = (nl - 1 - g) * span + top - top0
+                dk = d[r0:r0 + h]
                 zk = np.empty((h, w), dtype=np.float32)
                 # Window depth dk in [0, 1] to eye z: near * far / ((1 - dk) (far - near) + near). 1 - dk is
                 # exact in float32 for dk >= 0.5, which keeps full precision towards the far plane.
