@@ -4,9 +4,9 @@
 vectorization mode of this id) returns a :class:`SatLocVectorEnv`. It holds N :class:`~satloc_env.env.SatLocEnv`
 sub-environments, each with its own random generator, car, occluders, appearance and localizer state, and one
 :class:`~satloc_env.render.BatchStereoRenderer` that renders the N stereo pairs of a step in one framebuffer:
-every sub-environment's world is uploaded once (all N share the scene's), every pair is drawn exactly as the
-single environment draws it, only in another band of the framebuffer, and the framebuffer is read back with
-one ``glReadPixels`` for the colour and one for the depth.
+every world is uploaded once (all N cars share the scene's), every car's pair is drawn into a layer of its own
+of one layered framebuffer, exactly as the single environment draws it (same draw order, same window
+positions), and the layers are read back with one call for the colour and one for the depth.
 
 It returns what N single environments return, bit for bit (with a localizer see ``batch_network`` below):
 ``gym.make_vec(..., vectorization_mode="sync")``
