@@ -319,7 +319,7 @@ def build_parser() -> argparse.ArgumentParser:
     d.add_argument("--features", choices=["rgb", "semantic", "default"], default="default")
     d.add_argument("--keep-artefacts", action=argparse.BooleanOptionalAction, default=True,
                    help="keep the recording (rec/), the build (build/), the localizations and stage files beside "
-                        "the pictures (default; a rerun reuses them, about 0.4 GB at the default size); "
+                        "the pictures (default; a rerun reuses them, about 0.6 GB at the default size); "
                         "--no-keep-artefacts deletes them at the end")
     d.add_argument("--quiet", action="store_true")
     d.set_defaults(func=cmd_demo)
