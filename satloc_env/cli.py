@@ -130,20 +130,30 @@ def cmd_experiment(args) -> int:
             raise SatlocError(f"{p}: config file not found")
         config = yaml.safe_load(p.read_text()) or {}
     log = (lambda *a, **k: None) if args.quiet else (lambda m: print(m, file=sys.stderr, flush=True))
-    if args.which == "table2":
-        from satloc_env.compare import table2
+    if args.ray is not None and args.which not in ("table1", "table2", "sweep"):
+        raise SatlocError(f"--ray: only table1, table2 and sweep run on Ray, not {args.which}")
+    from satloc_env.scale import Runner
 
-        table2(args.out, config, progress=not args.quiet, log=log)
-        print((Path(args.out) / "table2.md").read_text(), end="")
-        print(f"written: {Path(args.out) / 'table2.csv'}, {Path(args.out) / 'pr_curves.png'}")
-        return 0
-    if args.which == "sweep":
-        from satloc_env.compare import sweep
+    with Runner(ray=args.ray is not None, address=args.ray, exact=args.ray_threads == "serial") as runner:
+        if args.which == "table2":
+            from satloc_env.compare import table2
 
-        sweep(args.out, config, progress=not args.quiet, log=log)
-        print((Path(args.out) / "sweep.md").read_text(), end="")
-        print(f"written: {Path(args.out) / 'sweep.csv'}, {Path(args.out) / 'sweep.png'}")
-        return 0
+            table2(args.out, config, progress=not args.quiet, log=log, runner=runner)
+            print((Path(args.out) / "table2.md").read_text(), end="")
+            print(f"written: {Path(args.out) / 'table2.csv'}, {Path(args.out) / 'pr_curves.png'}")
+            return 0
+        if args.which == "sweep":
+            from satloc_env.compare import sweep
+
+            sweep(args.out, config, progress=not args.quiet, log=log, runner=runner)
+            print((Path(args.out) / "sweep.md").read_text(), end="")
+            print(f"written: {Path(args.out) / 'sweep.csv'}, {Path(args.out) / 'sweep.png'}")
+            return 0
+        if args.which == "table1":
+            rows = table1(args.out, tuple(args.scenes), config, progress=not args.quiet, log=log, runner=runner)
+            print(markdown_table(rows), end="")
+            print(f"written: {Path(args.out) / 'table1.csv'}")
+            return 0
     if args.which == "tune":
         from satloc_env.tune import tune
 
@@ -156,10 +166,6 @@ def cmd_experiment(args) -> int:
         aliasing(args.out, tuple(args.scenes), config, progress=not args.quiet, log=log)
         print((Path(args.out) / "aliasing.md").read_text(), end="")
         print(f"written: {Path(args.out) / 'aliasing.csv'}")
-        return 0
-    rows = table1(args.out, tuple(args.scenes), config, progress=not args.quiet, log=log)
-    print(markdown_table(rows), end="")
-    print(f"written: {Path(args.out) / 'table1.csv'}")
     return 0
 
 
@@ -336,6 +342,16 @@ def build_parser() -> argparse.ArgumentParser:
                                      "Table2Config, sweep: SweepConfig fields (satloc_env/compare.py), tune: "
                                      "TuneConfig fields (satloc_env/tune.py); --scenes is not used by these)")
     ex.add_argument("--quiet", action="store_true")
+    ex.add_argument("--ray", nargs="?", const="", default=None, metavar="ADDRESS",
+                    help="table1, table2, sweep: run the independent units (scenes, protocols, passes, knob "
+                         "combinations) as Ray tasks: a local Ray cluster of this machine's cores, or the cluster at "
+                         "ADDRESS (e.g. auto, or host:6379 after `ray start --head`); the same CSV as without it. "
+                         "Needs pip install -e '.[ray]' (satloc_env/scale.py)")
+    ex.add_argument("--ray-threads", choices=["serial", "cpus"], default="serial",
+                    help="with --ray: torch and BLAS threads of each task: serial (default) as many as a serial run "
+                         "here, so that the CSV is byte-identical to a serial run's (more threads than cores while "
+                         "several tasks compute); cpus: the task's CPUs (no oversubscription; their sums depend on "
+                         "the thread count, so numbers may differ in the last digits)")
     ex.set_defaults(func=cmd_experiment)
 
     ev = sub.add_parser("evaluate", help="the method on real data: a KITTI raw drive or Malaga extract against a "

@@ -50,8 +50,10 @@ from satloc.persist import read_json
 from .experiment import (BASELINE_NAMES, METHOD_NAMES, CompareConfig, ExperimentConfig,  # noqa: F401
                          _covered, _stage_done, _stages, _stamp, build_and_learn, covered_queries,
                          check_recordings, dense_pass, is_tracked, localize_and_report, markdown_table,
-                         record_config, scene_label, scene_labels, spaced_frames, table_stats, tracked_odometry)
+                         mode_config, record_config, scene_label, scene_labels, spaced_frames, table_stats,
+                         tracked_odometry)
 from .record import PassConfig, RecordConfig, check_passes, make_env, pass_routes, record_pass
+from .scale import Runner, Unit
 from .scene import load_scene
 
 def method_name(method: str) -> str:
@@ -87,6 +89,24 @@ def trained_fabmap(cc: CompareConfig, test_scene: str, out: Path, progress: bool
     fm.save(model)
     _stamp(Path(out) / "fabmap_stage.json", stamp, training_images=len(train))
     return model
+
+
+def uses_fabmap(cc: CompareConfig) -> bool:
+    """Whether a baseline of ``cc`` is FAB-MAP (so needs its trained model)."""
+    return any(b.startswith("fabmap") for b in cc.baselines)
+
+
+def _fabmap_unit(cc: CompareConfig, test_scene: str, out: Path, progress: bool = True, log=print) -> None:
+    """FAB-MAP's training stage of ``out`` (:func:`trained_fabmap`) as a unit of its own: the units after it
+    that share it only read it."""
+    if uses_fabmap(cc):
+        trained_fabmap(cc, test_scene, out, progress, log)
+
+
+def _stages_unit(cfg: ExperimentConfig, out: Path, progress: bool = True, log=print) -> dict:
+    """An experiment folder's recording, build and projections (:func:`satloc_env.experiment._stages`, each
+    skipped when done) as a unit; returns the stage times."""
+    return _stages(cfg, out, progress, log)[3]
 
 
 def fabmap_motion_window(db_poses: np.ndarray, query_poses: np.ndarray) -> int:
@@ -227,10 +247,11 @@ def operating_point(errors, scores, inside, rule: str = "max_f1", min_precision:
             "declared": pr["declared"], "positives": pr["positives"], "rule": rule, "curve": curve}
 
 
-def _record_table2(t2: Table2Config, out: Path, progress: bool, log) -> tuple[Sequence, dict[str, Sequence], dict]:
-    """The database pass of the ring, then the query passes: ``inside`` (a revisit of the ring) and ``outside``
-    (the branch) for the test, ``calib_inside`` and ``calib_outside`` for calibration (other seeds and
-    spacing); stage-stamped. Returns the database, the query passes by name and the stamp."""
+def _table2_recording(t2: Table2Config) -> tuple[RecordConfig, dict[str, PassConfig], dict]:
+    """Table II's recordings: the database pass of the ring and the query passes, ``inside`` (a revisit of the
+    ring, the recording's query pass) and ``outside`` (the branch) for the test, ``calib_inside`` and
+    ``calib_outside`` for calibration (other seeds and spacing). Checks that every pass is drivable; returns
+    the recording of the first two, the other passes by name and the stage's stamp."""
     e = t2.experiment
 
     def extra(route, seed, spacing, frames):
@@ -249,30 +270,71 @@ def _record_table2(t2: Table2Config, out: Path, progress: bool, log) -> tuple[Se
     check_passes(scene, pass_routes(scene, rec) + [(p.route, p) for p in more.values()], rec.speed_mps,
                  f"scene {t2.scene!r}")
     from .autoloc import cache_key
-    from .record import record_passes
 
     rc = dict(to_dict(rec), scene_sha256=cache_key(t2.scene, e.aliasing)["scene_sha256"],
               **{name: to_dict(p) for name, p in more.items()})
-    if not _stage_done(out / "record.json", rc):
-        log(f"[{t2.scene}] recording the database pass, and the test and calibration passes on "
-            f"{t2.inside_route} and {t2.outside_route}")
+    return rec, more, rc
+
+
+def _record_table2_pass(rec: RecordConfig, name: str, p: PassConfig | None, out: Path, progress: bool = True,
+                        log=print) -> None:
+    """One recording of Table II into ``out/rec``: with ``p`` None the database and query passes of ``rec``
+    (:func:`satloc_env.record.record_passes`), else the pass ``p`` into ``out/rec/<name>`` with an environment
+    of its own (the same frames as one environment reset with each pass's seed)."""
+    if p is None:
+        from .record import record_passes
+
         record_passes(rec, out / "rec", progress)
-        env = make_env(scene=t2.scene, resolution=rec.resolution, aliasing=e.aliasing, speed_mps=rec.speed_mps,
-                       depth=True, labels=False, localizer=None)
-        try:
-            for name, p in more.items():
-                env.reset(seed=p.seed)
-                record_pass(env, p, p.route, out / "rec" / name, name, progress,
-                            {"source": "satloc_env", "scene": env.scene.name})
-        finally:
-            env.close()
-        _stamp(out / "record.json", rc)
-    passes = {"inside": Sequence.load(out / "rec" / "query")}
-    passes.update({name: Sequence.load(out / "rec" / name) for name in more})
-    return Sequence.load(out / "rec" / "database"), passes, rc
+        return
+    env = make_env(scene=rec.scene, resolution=rec.resolution, aliasing=rec.aliasing, speed_mps=rec.speed_mps,
+                   depth=True, labels=False, localizer=None)
+    try:
+        env.reset(seed=p.seed)
+        record_pass(env, p, p.route, out / "rec" / name, name, progress,
+                    {"source": "satloc_env", "scene": env.scene.name})
+    finally:
+        env.close()
 
 
-def table2(out: str | Path, config: dict | None = None, progress: bool = True, log=print) -> list[dict]:
+#: Table II's query passes: the test revisit of the ring and the branch pass, their calibration counterparts
+TABLE2_PARTS = ("inside", "outside", "calib_inside", "calib_outside")
+
+
+def _table2_build(t2: Table2Config, e: ExperimentConfig, out: Path, rc: dict, warm: bool, progress: bool = True,
+                  log=print) -> dict:
+    """Table II's build on the recorded database pass (``rc``: the recording's stamp) and (``warm``: for parts
+    running at the same time) the localizers' satellite tables cached in it, so that the parts only read
+    them. Returns the stage times."""
+    db = Sequence.load(out / "rec" / "database")
+    bdir, times = build_and_learn(e, t2.scene, db, out / "rec" / "map", out, {"record": rc}, progress, log)
+    if warm:
+        from satloc.pipeline import load_localizer
+
+        first = {}
+        for m in e.modes:
+            first.setdefault(m.split("+")[0], m)
+        for base, m in first.items():
+            if base != "go":   # go needs no satellite table
+                load_localizer(bdir, mode_config(e, m), progress=progress)
+    return times
+
+
+def _table2_part(t2: Table2Config, e: ExperimentConfig, out: Path, part: str, times: dict, progress: bool = True,
+                 log=print) -> tuple[np.ndarray, dict]:
+    """One query pass of Table II (:data:`TABLE2_PARTS`) against the shared build, in ``out/<part>``: which of
+    its queries are inside the map, and :func:`compare`'s results."""
+    db = Sequence.load(out / "rec" / "database")
+    q = Sequence.load(out / "rec" / ("query" if part == "inside" else part))
+    spacing = e.query_spacing_m if part in ("inside", "outside") else t2.calibration_spacing_m
+    sel = spaced_frames(q, spacing, t2.outside_frames if "outside" in part else e.query_frames)
+    inside = np.isin(sel, covered_queries(db, q, e.coverage_m))
+    (out / part).mkdir(exist_ok=True)
+    return inside, compare(e, e.compare, t2.scene, db, q, sel, out / "build", SatelliteMap.load(out / "rec" / "map"),
+                           out / part, {"scene": t2.scene, "part": part}, times, progress, log, fabmap_dir=out)
+
+
+def table2(out: str | Path, config: dict | None = None, progress: bool = True, log=print,
+           runner: Runner | None = None) -> list[dict]:
     """Outside-the-map detection (the paper's Table II), calibrated on data disjoint from the test.
 
     Records (stage-stamped) the database pass of ``inside_route`` and four query passes: for the test a
@@ -285,25 +347,34 @@ def table2(out: str | Path, config: dict | None = None, progress: bool = True, l
     those of the **test** queries at it, with 95 % bootstrap intervals. The oracle (the rule applied to the
     test queries' own curve) is reported beside it, labelled. Writes ``table2.csv`` (:data:`TABLE2_COLUMNS`),
     ``table2.md``, ``table2.json`` and ``pr_curves.png`` (the test curves, the frozen operating points) into
-    ``out``; returns the rows."""
+    ``out``; returns the rows.
+
+    Units (``runner``, :mod:`satloc_env.scale`): the recordings (:func:`_record_table2_pass`: the database and
+    revisit passes, and each other pass) beside FAB-MAP's training, then the build (:func:`_table2_build`),
+    then the four passes (:data:`TABLE2_PARTS`), each compared in its own folder."""
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     t2 = from_dict(Table2Config, dict(config or {}), "table2 config")
     e = t2.experiment
     if scene_label(e.scene) != scene_label(t2.scene):
         e = from_dict(ExperimentConfig, dict(to_dict(e), scene=t2.scene), "table2 config: experiment")
-    db, passes, rc = _record_table2(t2, out, progress, log)
-    bdir, times = build_and_learn(e, t2.scene, db, out / "rec" / "map", out, {"record": rc}, progress, log)
-    satmap = SatelliteMap.load(out / "rec" / "map")
-    res: dict[str, tuple[np.ndarray, dict]] = {}
-    spacing = {"inside": e.query_spacing_m, "outside": e.query_spacing_m,
-               "calib_inside": t2.calibration_spacing_m, "calib_outside": t2.calibration_spacing_m}
-    for part, q in passes.items():
-        sel = spaced_frames(q, spacing[part], t2.outside_frames if "outside" in part else e.query_frames)
-        inside = np.isin(sel, covered_queries(db, q, e.coverage_m))
-        (out / part).mkdir(exist_ok=True)
-        res[part] = (inside, compare(e, e.compare, t2.scene, db, q, sel, bdir, satmap, out / part,
-                                     {"scene": t2.scene, "part": part}, times, progress, log, fabmap_dir=out))
+    rec, more, rc = _table2_recording(t2)
+    runner = runner or Runner()
+    recorded = _stage_done(out / "record.json", rc)
+    units = []
+    if not recorded:
+        log(f"[{t2.scene}] recording the database pass, and the test and calibration passes on "
+            f"{t2.inside_route} and {t2.outside_route}")
+        units = [Unit("table2 record database, inside", _record_table2_pass, (rec, "query", None, out))]
+        units += [Unit(f"table2 record {name}", _record_table2_pass, (rec, name, p, out)) for name, p in more.items()]
+    if uses_fabmap(e.compare):   # trained on another scene: beside the recordings
+        units.append(Unit("FAB-MAP training", _fabmap_unit, (e.compare, e.scene, out)))
+    runner.run(units, progress, log)
+    if not recorded:
+        _stamp(out / "record.json", rc)
+    (times,) = runner.run([Unit("table2 build", _table2_build, (t2, e, out, rc, runner.parallel))], progress, log)
+    res: dict[str, tuple[np.ndarray, dict]] = dict(zip(TABLE2_PARTS, runner.run(
+        [Unit(f"table2 {part}", _table2_part, (t2, e, out, part, times)) for part in TABLE2_PARTS], progress, log)))
 
     def joined(parts, method, key):
         return np.concatenate([res[p][1][method][key] for p in parts])
@@ -456,36 +527,53 @@ SWEEP_COLUMNS = ("scene", "aliasing", "occlusion", "appearance", "method", "mean
                  "recall_10m", "failure_rate", "queries", "odometry")
 
 
-def sweep(out: str | Path, config: dict | None = None, progress: bool = True, log=print) -> list[dict]:
+def _sweep_config(sc: SweepConfig, a: float, o: float, p: float) -> ExperimentConfig:
+    return from_dict(ExperimentConfig, dict(to_dict(sc.experiment), scene=sc.scene, aliasing=a, occlusion=o,
+                                            appearance=p), "sweep config: experiment")
+
+
+def _sweep_unit(sc: SweepConfig, a: float, o: float, p: float, out: Path, times: dict, progress: bool = True,
+                log=print) -> list[dict]:
+    """Every method on one knob combination whose stages are done (:func:`_stages_unit`, ``times``) in its
+    folder ``out/a<a>_o<o>_p<p>``; its rows of ``sweep.csv``. FAB-MAP's trained model (it does not depend on the
+    knobs) is read from ``out``."""
+    cfg = _sweep_config(sc, a, o, p)
+    d = out / f"a{a:g}_o{o:g}_p{p:g}"
+    db, q = Sequence.load(d / "rec" / "database"), Sequence.load(d / "rec" / "query")
+    res = compare(cfg, cfg.compare, f"{sc.scene} a={a:g} o={o:g} p={p:g}", db, q, _covered(cfg, db, q), d / "build",
+                  SatelliteMap.load(d / "rec" / "map"), d, {"scene": sc.scene, "config": to_dict(cfg)}, times,
+                  progress, log, fabmap_dir=out)
+    return [{"scene": sc.scene, "aliasing": a, "occlusion": o, "appearance": p, "method": method_name(m),
+             "mean_m": round(float(r["mean_m"]), 3), "ci95_low": round(float(r["ci95_low"]), 3),
+             "ci95_high": round(float(r["ci95_high"]), 3), "recall_10m": round(float(r["within_10m"]), 3),
+             "failure_rate": round(float(r["failure_rate"]), 3), "queries": int(r["queries"]),
+             "odometry": odometry_label(cfg, m)} for m, r in res.items()]
+
+
+def sweep(out: str | Path, config: dict | None = None, progress: bool = True, log=print,
+          runner: Runner | None = None) -> list[dict]:
     """Mean error (with its 95 % bootstrap interval, failures counted as gross errors), 10 m recall (fraction of
     the queries localized within 10 m) and failure rate of every method over aliasing x occlusion x
     appearance. Writes ``sweep.csv`` (:data:`SWEEP_COLUMNS`), ``sweep.md``, ``sweep.json`` (with
-    the seeds) and ``sweep.png`` into ``out``; returns the rows."""
+    the seeds) and ``sweep.png`` into ``out``; returns the rows.
+
+    Units (``runner``, :mod:`satloc_env.scale`): FAB-MAP's training (shared by every combination) beside each
+    combination's recording and build (:func:`_stages_unit`), then each combination's methods
+    (:func:`_sweep_unit`)."""
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     sc = from_dict(SweepConfig, dict(config or {}), "sweep config")
-    rows = []
     check_recordings(record_config(from_dict(ExperimentConfig, dict(to_dict(sc.experiment), scene=sc.scene,
                                                                     aliasing=a), "sweep config: experiment"))
                      for a in sc.aliasing)   # before any work: the passes drivable (the roads do not alias)
-    for a in sc.aliasing:
-        for o in sc.occlusion:
-            for p in sc.appearance:
-                cfg = from_dict(ExperimentConfig, dict(to_dict(sc.experiment), scene=sc.scene, aliasing=a,
-                                                       occlusion=o, appearance=p), "sweep config: experiment")
-                d = out / f"a{a:g}_o{o:g}_p{p:g}"
-                db, q, bdir, times = _stages(cfg, d, progress, log)
-                sel = _covered(cfg, db, q)
-                res = compare(cfg, cfg.compare, f"{sc.scene} a={a:g} o={o:g} p={p:g}", db, q, sel, bdir,
-                              SatelliteMap.load(d / "rec" / "map"), d, {"scene": sc.scene, "config": to_dict(cfg)},
-                              times, progress, log, fabmap_dir=out)   # FAB-MAP's training does not depend on the knobs
-                for m, r in res.items():
-                    rows.append({"scene": sc.scene, "aliasing": a, "occlusion": o, "appearance": p,
-                                 "method": method_name(m), "mean_m": round(float(r["mean_m"]), 3),
-                                 "ci95_low": round(float(r["ci95_low"]), 3), "ci95_high": round(float(r["ci95_high"]), 3),
-                                 "recall_10m": round(float(r["within_10m"]), 3),
-                                 "failure_rate": round(float(r["failure_rate"]), 3), "queries": int(r["queries"]),
-                                 "odometry": odometry_label(cfg, m)})
+    runner = runner or Runner()
+    combos = [(a, o, p) for a in sc.aliasing for o in sc.occlusion for p in sc.appearance]
+    names = [f"a{a:g}_o{o:g}_p{p:g}" for a, o, p in combos]
+    stages = [Unit(f"sweep {n} stages", _stages_unit, (_sweep_config(sc, *c), out / n)) for n, c in zip(names, combos)]
+    fabmap = [Unit("FAB-MAP training", _fabmap_unit, (sc.experiment.compare, sc.scene, out))]
+    times = runner.run(stages + (fabmap if uses_fabmap(sc.experiment.compare) else []), progress, log)
+    units = [Unit(f"sweep {n}", _sweep_unit, (sc, *c, out, t)) for n, c, t in zip(names, combos, times)]
+    rows = [r for part in runner.run(units, progress, log) for r in part]
     cols = list(SWEEP_COLUMNS)
     with atomic_path(out / "sweep.csv", suffix=".csv") as tmp:
         with open(tmp, "w", newline="") as f:
@@ -614,36 +702,52 @@ def odometry_label(cfg: ExperimentConfig, method: str) -> str:
     return cfg.odometry if "track" in method.split("+") else ""
 
 
+def _table1_unit(cfg: ExperimentConfig, label: str, sdir: Path, protocol: str, times: dict, progress: bool = True,
+                 log=print) -> dict:
+    """One protocol of Table I on a scene whose shared stages are done (:func:`_stages_unit`, FAB-MAP's
+    training): ``revisit`` in ``sdir``, the others in ``sdir/protocol_<name>`` (:func:`_protocol`);
+    :func:`compare`'s results."""
+    db = Sequence.load(sdir / "rec" / "database")
+    if protocol != "revisit":
+        return _protocol(cfg, protocol, label, sdir, db, read_json(sdir / "record.json")["config"], progress, log)
+    q = Sequence.load(sdir / "rec" / "query")
+    return compare(cfg, cfg.compare, label, db, q, _covered(cfg, db, q), sdir / "build",
+                   SatelliteMap.load(sdir / "rec" / "map"), sdir, {"scene": cfg.scene, "config": to_dict(cfg)}, times,
+                   progress, log)
+
+
 def table1(out: str | Path, scenes: tuple[str, ...] = ("city", "residential"), config: dict | None = None,
-           progress: bool = True, log=print) -> list[dict]:
+           progress: bool = True, log=print, runner: Runner | None = None) -> list[dict]:
     """Every method (the modes and the baselines of ``compare``) under each protocol of ``protocols`` on each
     scene: ``revisit`` in ``out/<scene>`` (as :func:`run_scene`, same stages), ``city`` and ``residential`` in
     ``out/<scene>/protocol_<name>`` (see :func:`protocol_split`). Writes ``table1.csv``
-    (method,scene,mean_m,std_m,protocol), ``table1.md`` and ``table1.json`` into ``out``; returns the rows."""
+    (method,scene,mean_m,std_m,protocol), ``table1.md`` and ``table1.json`` into ``out``; returns the rows.
+
+    Units (``runner``, :mod:`satloc_env.scale`): each scene's shared stages (recording, build:
+    :func:`_stages_unit`) and FAB-MAP's training, then each scene x protocol (:func:`_table1_unit`)."""
     out = Path(out)
     rows = []
     cfgs = [from_dict(ExperimentConfig, dict(config or {}, scene=scene), "experiment config") for scene in scenes]
     for c in cfgs:   # before any work: every scene's passes drivable by the autopilot
         check_recordings([record_config(c)], second_pass="residential" in c.protocols)
-    for cfg, label in zip(cfgs, scene_labels(scenes)):
-        sdir = out / label
-        db, q, bdir, times = _stages(cfg, sdir, progress, log)
-        results = {}
-        if "revisit" in cfg.protocols:
-            results["revisit"] = compare(cfg, cfg.compare, label, db, q, _covered(cfg, db, q), bdir,
-                                         SatelliteMap.load(sdir / "rec" / "map"), sdir,
-                                         {"scene": cfg.scene, "config": to_dict(cfg)}, times, progress, log)
-        rc = read_json(sdir / "record.json")["config"]
-        for protocol in cfg.protocols:
-            if protocol != "revisit":
-                results[protocol] = _protocol(cfg, protocol, label, sdir, db, rc, progress, log)
-        for protocol, res in results.items():
-            for method, m in res.items():
-                rows.append({"method": method_name(method), "scene": label, "protocol": protocol,
-                             **{k: round(m[k], 3) for k in ("mean_m", "std_m", "median_m", "within_1m",
-                                                            "within_10m", "failure_rate", "ci95_low", "ci95_high")},
-                             "queries": m["queries"], "s_per_query": round(m["s_per_query"], 4),
-                             "odometry": odometry_label(cfg, method)})
+    labels = scene_labels(scenes)
+    runner = runner or Runner()
+    fabmap = [Unit(f"table1 {label} FAB-MAP training", _fabmap_unit, (cfg.compare, cfg.scene, out / label))
+              for cfg, label in zip(cfgs, labels) if uses_fabmap(cfg.compare)]
+    times = runner.run([Unit(f"table1 {label} stages", _stages_unit, (cfg, out / label))
+                        for cfg, label in zip(cfgs, labels)] + fabmap, progress, log)
+    # per scene: revisit first, then the other protocols in the configuration's order
+    jobs = [(i, p) for i, cfg in enumerate(cfgs)
+            for p in (["revisit"] if "revisit" in cfg.protocols else []) + [p for p in cfg.protocols if p != "revisit"]]
+    results = runner.run([Unit(f"table1 {labels[i]} {p}", _table1_unit, (cfgs[i], labels[i], out / labels[i], p,
+                                                                          times[i])) for i, p in jobs], progress, log)
+    for (i, protocol), res in zip(jobs, results):
+        for method, m in res.items():
+            rows.append({"method": method_name(method), "scene": labels[i], "protocol": protocol,
+                         **{k: round(m[k], 3) for k in ("mean_m", "std_m", "median_m", "within_1m",
+                                                        "within_10m", "failure_rate", "ci95_low", "ci95_high")},
+                         "queries": m["queries"], "s_per_query": round(m["s_per_query"], 4),
+                         "odometry": odometry_label(cfgs[i], method)})
     with atomic_path(out / "table1.csv", suffix=".csv") as tmp:
         with open(tmp, "w", newline="") as f:
             w = csv.writer(f)

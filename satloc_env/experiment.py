@@ -364,6 +364,14 @@ def _covered(cfg: ExperimentConfig, db: Sequence, q: Sequence) -> np.ndarray:
     return sel
 
 
+def mode_config(cfg, mode: str) -> LocalizerConfig:
+    """The localizer configuration of a mode of ``cfg.modes`` (``go``, ``full+align+track``, ...): its base
+    mode, bird's-eye alignment and tracking flags over ``cfg.localizer``."""
+    base, *flags = mode.split("+")
+    return from_dict(LocalizerConfig, dict(cfg.localizer, mode=base, refine="align" in flags, track="track" in flags),
+                     "experiment localizer")
+
+
 def localize_and_report(cfg, label: str, db: Sequence, q: Sequence, sel: np.ndarray, bdir: Path,
                         satmap: SatelliteMap, out: Path, head: dict, times: dict, progress: bool = True,
                         log=print, odometry: np.ndarray | None = None) -> dict:
@@ -384,9 +392,7 @@ def localize_and_report(cfg, label: str, db: Sequence, q: Sequence, sel: np.ndar
     results: dict[str, dict] = {}
     examples: dict[str, list[tuple[int, Localization]]] = {}
     for mode in cfg.modes:
-        base, *flags = mode.split("+")
-        lc = from_dict(LocalizerConfig, dict(cfg.localizer, mode=base, refine="align" in flags,
-                                             track="track" in flags), "experiment localizer")
+        lc = mode_config(cfg, mode)
         t = time.perf_counter()
         loc = load_localizer(bdir, lc, progress=progress)
         t_init = time.perf_counter() - t
