@@ -66,6 +66,7 @@ class SatLocVectorEnv(VectorEnv):
         self.action_space = batch_space(self.single_action_space, self.num_envs)
         self.batch_network = bool(batch_network)
         self._autoreset = np.zeros(self.num_envs, dtype=np.bool_)
+        self._obs_list: list = [None] * self.num_envs   # each car's latest observation
         self._ready = False
 
     # --- gym API ------------------------------------------------------------------------------------------
@@ -155,12 +156,6 @@ class SatLocVectorEnv(VectorEnv):
             by_loc.setdefault(id(loc), (loc, []))[1].append(self.envs[i]._frame())
         for loc, frames in by_loc.values():
             loc.prefetch(frames)
-
-    @property
-    def _obs_list(self) -> list:
-        if not hasattr(self, "_obs_items"):
-            self._obs_items = [None] * self.num_envs
-        return self._obs_items
 
     def _batched_obs(self) -> dict:
         out = create_empty_array(self.single_observation_space, n=self.num_envs, fn=np.empty)
