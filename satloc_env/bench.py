@@ -279,3 +279,25 @@ def bench_vo(scene: str = "residential", frames: int = 250, work=None, kitti=Non
                "height": camera.height, "vs_poses": odometry_drift(odo, poses, ()),
                "vs_oxts": odometry_drift(odo, oxts_poses, ()), "ms_per_frame": ms,
                "load_avg_1m": round(os.getloadavg()[0], 2)}
+
+
+def bench_active(map: str = "active_grid", episodes: int = 20, agents: tuple[str, ...] = ("random", "route",
+                                                                                             "entropy", "learned"),
+                 seed: int = 20_000) -> list[dict]:
+    """ActiveLoc-v0 decisions per second with each agent (environment plus the agent's choice), over
+    ``episodes`` episodes from ``reset(seed=seed + i)``; ``agent_ms`` is the agent's share per decision."""
+    from .active import ActiveLocEnv
+    from .agents import make_agent, run_episode
+
+    env = ActiveLocEnv(map=map)
+    rows = []
+    for name in agents:
+        agent = make_agent(name, seed=seed)
+        t0 = time.perf_counter()
+        eps = [run_episode(env, agent, seed + i) for i in range(episodes)]
+        dt = time.perf_counter() - t0
+        dec = sum(e["decisions"] for e in eps)
+        rows.append({"bench": "active", "map": env.map.scene, "agent": name, "episodes": episodes, "decisions": dec,
+                     "decisions_per_s": round(dec / dt, 1), "ms_per_decision": round(1000 * dt / max(dec, 1), 1),
+                     "agent_ms": round(1000 * sum(e["act_s"] for e in eps) / max(dec, 1), 1)})
+    return rows

@@ -11,7 +11,7 @@ import cv2
 import numpy as np
 
 from satloc.device import HELP as DEVICE_HELP
-from satloc.errors import SatlocError
+from satloc.errors import ConfigError, SatlocError
 
 
 def _save_rgb(path: Path, img: np.ndarray) -> None:
@@ -219,6 +219,11 @@ def cmd_bench(args) -> int:
 
         for n in args.num_envs:
             print(json.dumps(bench_env(args.resolution, args.steps, args.scene or "city", num_envs=n)), flush=True)
+    elif args.what == "active":
+        from satloc_env.bench import bench_active
+
+        for row in bench_active(args.scene or "active_grid", args.episodes):
+            print(json.dumps(row), flush=True)
     elif args.what == "vo":
         from satloc_env.bench import bench_vo
 
@@ -232,6 +237,47 @@ def cmd_bench(args) -> int:
                                   queries=args.queries, progress=not args.quiet, device=args.device):
             print(json.dumps(row), flush=True)
     return 0
+
+
+def cmd_agent(args) -> int:
+    if args.what == "evaluate":
+        from satloc_env.agents import evaluate_agents
+
+        cfg = dict(agents=tuple(a.strip() for a in args.agents.split(",") if a.strip()), episodes=args.episodes,
+                   seed=10_000 if args.seed is None else args.seed, policy=args.policy)
+        if args.maps:
+            cfg["maps"] = tuple(args.maps)
+        if args.config:
+            cfg["env"] = _yaml_dict(args.config)
+        evaluate_agents(cfg, args.out, progress=not args.quiet)
+    elif args.what == "train":
+        from satloc_env.agents import train_agent
+
+        train_agent(args.out, args.timesteps, 0 if args.seed is None else args.seed, args.maps[0] if args.maps else "active_grid",
+                    env=_yaml_dict(args.config) if args.config else None, progress=not args.quiet)
+    else:
+        from satloc_env.activemap import build_active_map
+
+        if not args.scene:
+            raise ConfigError("agent map: --scene is required")
+        build_active_map(dict(_yaml_dict(args.config) if args.config else {}, scene=args.scene), args.work or args.out,
+                         out=Path(args.out) / f"{Path(args.scene).stem}.npz", progress=not args.quiet)
+    return 0
+
+
+def _yaml_dict(path: str) -> dict:
+    import yaml
+
+    p = Path(path)
+    if not p.is_file():
+        raise ConfigError(f"--config {p}: file not found")
+    try:
+        d = yaml.safe_load(p.read_text()) or {}
+    except yaml.YAMLError as e:
+        raise ConfigError(f"--config {p}: not valid YAML ({e})") from e
+    if not isinstance(d, dict):
+        raise ConfigError(f"--config {p}: expected a mapping of settings")
+    return d
 
 
 def cmd_scene(args) -> int:
@@ -401,13 +447,15 @@ def build_parser() -> argparse.ArgumentParser:
     r.set_defaults(func=cmd_record)
 
     b = sub.add_parser("bench", help="print benchmark figures as JSON lines")
-    b.add_argument("what", choices=["env", "localize", "vo"])
+    b.add_argument("what", choices=["env", "localize", "vo", "active"])
     b.add_argument("--resolution", choices=["half", "full"], default="half")
     b.add_argument("--steps", type=int, default=2000, help="env: steps timed (of all cars together)")
     b.add_argument("--num-envs", type=int, nargs="+", default=[1],
                    help="env: cars stepped together, one run each (e.g. 1 8): 1 is the single environment, more the "
                         "batched vector environment (satloc_env.vector)")
-    b.add_argument("--scene", default=None, help="env: city; localize: loop (the longest route); vo: residential")
+    b.add_argument("--scene", default=None, help="env: city; localize: loop (the longest route); vo: residential; "
+                                                 "active: the active map (active_grid)")
+    b.add_argument("--episodes", type=int, default=20, help="active: episodes per agent")
     b.add_argument("--sizes-km", type=float, nargs="+", default=[0.25, 1.0, 4.0], help="localize: database sizes")
     b.add_argument("--queries", type=int, default=40, help="localize: queries timed per size")
     b.add_argument("--frames", type=int, default=250,
@@ -455,6 +503,25 @@ def build_parser() -> argparse.ArgumentParser:
     lo.set_defaults(func=cmd_localize)
 
     sub.add_parser("train-features", help="train the semantic/edge FCN on simulator renders (see its --help)")
+
+    ag = sub.add_parser("agent", help="active localization (satloc/ActiveLoc-v0): evaluate the agents (random, "
+                                      "route, entropy, learned), train the learned one, or make a scene's active map")
+    ag.add_argument("what", choices=["evaluate", "train", "map"])
+    ag.add_argument("--agents", default="random,route,entropy,learned", help="evaluate: comma-separated")
+    ag.add_argument("--episodes", type=int, default=100, help="evaluate: episodes per agent and map")
+    ag.add_argument("--maps", nargs="+", default=None,
+                    help="evaluate: active maps (scene names or .npz; default active_suburb, held out, and "
+                         "active_grid); train: the one to train on (default active_grid)")
+    ag.add_argument("--seed", type=int, default=None,
+                    help="evaluate: episode i starts from reset(seed=SEED + i) (default 10000); train: the run's seed (0)")
+    ag.add_argument("--timesteps", type=int, default=20000, help="train: decisions to train for")
+    ag.add_argument("--policy", default=None, help="evaluate: the learned agent's weights (default: the shipped ones)")
+    ag.add_argument("--scene", help="map: the scene (its database route must be a both-ways tour)")
+    ag.add_argument("--work", help="map: folder for the recording and build (default: --out)")
+    ag.add_argument("--config", help="YAML: evaluate/train: ActiveConfig fields; map: ActiveMapConfig fields")
+    ag.add_argument("--out", required=True)
+    ag.add_argument("--quiet", action="store_true")
+    ag.set_defaults(func=cmd_agent)
 
     s = sub.add_parser("scene", help="generate a scene; print its summary, save it or draw it")
     s.add_argument("scene")

@@ -63,16 +63,27 @@ def test_example_replay_evaluates_a_recorded_sequence(tmp_path):
     assert sorted(p.name for p in out.glob("view_*.png")) == ["view_000000.png", "view_000005.png"]
 
 
+def test_example_active_agents_prints_one_episode_per_agent():
+    r = subprocess.run([sys.executable, str(ROOT / "examples" / "active_agents.py"), "--map", "active_town",
+                        "--seed", "3", "--agents", "random", "route"], capture_output=True, text=True, timeout=300)
+    assert r.returncode == 0, r.stderr
+    lines = r.stdout.strip().splitlines()
+    assert [ln.split()[0] for ln in lines] == ["random", "route"]
+    assert all(("localized" in ln or "WRONG LOCK" in ln or "budget spent" in ln) and " m" in ln for ln in lines)
+
+
 @pytest.mark.parametrize("script, args, message", [
     ("replay.py", ["--sequence", "no/such/sequence"], "no/such/sequence"),
     ("drive.py", ["--scene", "no_such_scene", "--steps", "1"], "scene 'no_such_scene'"),
     ("stress.py", ["--scene", "no_such_scene", "--aliasing", "0", "--occlusion", "0"], "scene 'no_such_scene'"),
     ("revisit_change.py", ["--scene", "no_such_scene", "--places", "1"], "scene 'no_such_scene'"),
+    ("active_agents.py", ["--map", "no_such_map"], "active map 'no_such_map'"),
 ])
 def test_examples_print_bad_input_as_one_line_and_exit_1(tmp_path, script, args, message):
     """Bad input (a project error naming it) gives the message alone on stderr and status 1, no traceback."""
     r = subprocess.run([sys.executable, str(ROOT / "examples" / script), *args, "--out", str(tmp_path / "o")]
-                       if script != "revisit_change.py" else [sys.executable, str(ROOT / "examples" / script), *args],
+                       if script not in ("revisit_change.py", "active_agents.py")
+                       else [sys.executable, str(ROOT / "examples" / script), *args],
                        capture_output=True, text=True, timeout=300, env=dict(os.environ, PYOPENGL_PLATFORM="egl"),
                        cwd=tmp_path)
     assert r.returncode == 1, r.stderr
