@@ -285,7 +285,9 @@ def evaluate_agents(config: EvalConfig | dict | None = None, out: str | Path = "
                     log=print) -> list[dict]:
     """Every agent on the same starts of every map; writes ``out/agents.csv`` (one row per agent, all maps
     pooled), ``out/agents_by_map.csv``, ``out/episodes.csv``, ``out/summary.json`` and a picture of one episode
-    of the first agent that is not random (``out/episode.png``). Returns the pooled rows."""
+    of the first agent that is not random (``out/episode.png``); with the learned agent, its training curve
+    (``out/learning_curve.png``, from the ``learning_curve.csv`` or ``<policy>_curve.csv`` beside its weights).
+    Returns the pooled rows."""
     from tqdm import tqdm
 
     from satloc.config import from_dict
@@ -331,6 +333,16 @@ def evaluate_agents(config: EvalConfig | dict | None = None, out: str | Path = "
 
     write_json(out / "summary.json", {"config": to_dict(cfg), "agents": rows, "by_map": by_map, "timing": timing})
     log("\n" + markdown_rows(rows, CSV_COLUMNS))
+    if "learned" in cfg.agents:   # the learned agent's training curve, from beside its weights
+        pol = Path(cfg.policy) if cfg.policy else POLICY_PATH
+        for c in (pol.parent / "learning_curve.csv", pol.with_name(pol.stem + "_curve.csv")):
+            if c.is_file():
+                with open(c, newline="") as f:
+                    curve = [{k: float(v) for k, v in r.items()} for r in csv.DictReader(f)]
+                _plot_curve(curve, out / "learning_curve.png", window=100)
+                break
+        else:
+            log(f"no learning curve beside {pol} (learning_curve.csv or {pol.stem}_curve.csv)")
     pick = next((a for a in cfg.agents if a != "random"), cfg.agents[0])
     env = ActiveLocEnv(dict(cfg.env, map=cfg.maps[0]))
     ep = run_episode(env, make_agent(pick, policy=cfg.policy), cfg.seed, record=True)

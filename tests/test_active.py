@@ -250,9 +250,10 @@ def test_evaluate_writes_table(tmp_path):
 def test_cli_agent_evaluate(tmp_path):
     from satloc_env.cli import main
 
-    assert main(["agent", "evaluate", "--agents", "route", "--episodes", "1", "--maps", "active_suburb",
+    assert main(["agent", "evaluate", "--agents", "route,learned", "--episodes", "1", "--maps", "active_suburb",
                  "--out", str(tmp_path), "--quiet"]) == 0
     assert (tmp_path / "agents.csv").is_file()
+    assert (tmp_path / "learning_curve.png").stat().st_size > 10_000   # the shipped policy's training curve
     assert main(["agent", "evaluate", "--agents", "psychic", "--episodes", "1", "--out", str(tmp_path)]) == 2
 
 
