@@ -51,6 +51,7 @@ from satloc.geometry import Pose2, wrap_angle
 from satloc.track import TrackConfig, Tracker, compose_motion, relative_motion
 
 from .activemap import SLOTS, ActiveMap
+from .env import ActionError
 
 __all__ = ["ActiveConfig", "ActiveLocEnv", "OBS_FIELDS", "ACTIVE_ID", "belief_entropy"]
 
@@ -82,6 +83,20 @@ class ActiveConfig:
             raise ConfigError("ActiveLoc: budget_m and success_m must be > 0")
         if len(self.odometry_noise) != 2 or min(self.odometry_noise) < 0:
             raise ConfigError(f"ActiveLoc: odometry_noise: expected 2 non-negative numbers, got {self.odometry_noise}")
+
+
+def _slot(action) -> int:
+    """The action as a slot in [0, 3) (a Python or numpy integer, or an integer array of one element); anything
+    else raises :class:`satloc_env.env.ActionError` (a ValueError) and changes nothing."""
+    try:
+        a = np.asarray(action)
+    except (ValueError, TypeError):
+        a = np.asarray(None)
+    if a.size != 1 or not np.issubdtype(a.dtype, np.integer) or not 0 <= int(a.reshape(())) < K:
+        raise ActionError(f"action: expected a branch slot, an integer in [0, {K}) ({', '.join(SLOTS)}), got "
+                          f"{action!r} (a Python or numpy integer or an integer array of one element, not a float, "
+                          "bool or string; a slot the junction lacks takes its first allowed branch)")
+    return int(a.reshape(()))
 
 
 def obs_fields(top_k: int) -> list[str]:
@@ -167,9 +182,9 @@ class ActiveLocEnv(gym.Env):
             raise RuntimeError("call reset() first")
         if self._done:
             raise RuntimeError("the episode has ended; call reset()")
+        a = _slot(action)
         mask = self.action_masks()
-        a = int(action)
-        self.invalid_action = not (0 <= a < K and mask[a])
+        self.invalid_action = not mask[a]
         if self.invalid_action:   # gymnasium's checkers sample the whole space: take the first allowed branch
             a = int(np.flatnonzero(mask)[0])
         self.decisions += 1

@@ -113,7 +113,23 @@ def make(env_id, scenes, rec, **kw):
 
 def test_every_registered_id_is_covered():
     ids = {k for k in gym.registry if k.startswith("satloc/")}
-    assert ids == {ENV_ID, REPLAY_ID}   # add the new id's bad-input cases here
+    assert ids == {ENV_ID, REPLAY_ID, satloc_env.ACTIVE_ID}   # add the new id's bad-input cases here
+
+
+def test_activeloc_refuses_non_integer_and_out_of_range_actions():
+    from satloc_env.active import ActiveLocEnv
+
+    env = ActiveLocEnv(map="active_town")
+    _, info = env.reset(seed=0)
+    before = (env.distance, env.decisions, env.leg)
+    for bad in (np.nan, 1.0, 2.5, "1", True, None, [1, 2], np.array([0, 1]), -1, 3, 10**9, np.array([1.0])):
+        with pytest.raises(ActionError, match=r"expected a branch slot, an integer in \[0, 3\)") as e:
+            env.step(bad)
+        assert isinstance(e.value, ValueError)
+        assert (env.distance, env.decisions, env.leg) == before          # nothing applied
+    ok = int(np.flatnonzero(info["action_mask"])[0])
+    _, _, _, _, info = env.step(np.array([ok]))
+    assert info["decisions"] == 1 and not info["invalid_action"]
 
 
 # --- actions --------------------------------------------------------------------------------------------------
