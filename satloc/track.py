@@ -155,18 +155,23 @@ class Tracker:
         self.p_on = 1.0
         self.off = np.zeros((0, 5))
 
+    def locked_mass(self) -> float:
+        """The belief's probability within ``lock_m`` of its most probable candidate, times :attr:`p_on`
+        (0 before the first frame)."""
+        if self.belief is None:
+            return 0.0
+        mode = self.candidates[int(np.argmax(self.belief)), :2]
+        near = self._tree.query_ball_point(mode, self.config.lock_m, return_sorted=False)
+        return float(self.belief[near].sum()) * self.p_on
+
     def locked(self) -> bool:
         """Whether the belief is concentrated: at least ``lock_mass`` of it (times :attr:`p_on`) lies within
-        ``lock_m`` of its most probable candidate. No belief yet (the first frame, or after :meth:`reset`): not
-        locked. The localizer scores every candidate while the tracker is not locked (see the module docstring)."""
+        ``lock_m`` of its most probable candidate (:meth:`locked_mass`). No belief yet (the first frame, or after
+        :meth:`reset`): not locked. The localizer scores every candidate while the tracker is not locked (see the
+        module docstring)."""
         if self.belief is None:
             return False
-        cfg = self.config
-        if cfg.lock_mass <= 0:
-            return True
-        mode = self.candidates[int(np.argmax(self.belief)), :2]
-        near = self._tree.query_ball_point(mode, cfg.lock_m, return_sorted=False)
-        return float(self.belief[near].sum()) * self.p_on >= cfg.lock_mass
+        return self.config.lock_mass <= 0 or self.locked_mass() >= self.config.lock_mass
 
     def _spread(self, moved: np.ndarray, myaw: np.ndarray, sigma: np.ndarray):
         """For poses ``moved`` (n, 2) with headings ``myaw`` (n,) and spreads ``sigma`` (n,): the (source, candidate,

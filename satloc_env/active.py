@@ -188,7 +188,6 @@ class ActiveLocEnv(gym.Env):
         if self.invalid_action:   # gymnasium's checkers sample the whole space: take the first allowed branch
             a = int(np.flatnonzero(mask)[0])
         self.decisions += 1
-        self.taken.append((self.leg, a))
         before = self.distance
         self._enter(int(self.map.branches[self.leg, a]))
         outcome = self._drive()
@@ -219,14 +218,11 @@ class ActiveLocEnv(gym.Env):
         self.tracker.reset()
         self.leg, self.pos = leg, start
         q = int(self.map.leg_frames[leg][start])
-        self.frame = q
         self.pose = self.map.frame_pose[q].copy()
-        self.start_pose = self.pose.copy()
         self.trajectory = [self.pose.copy()]
         self.distance = 0.0
         self.steps = 0
         self.decisions = 0
-        self.taken: list[tuple[int, int]] = []
         self.outcome: str | None = None
         self.invalid_action = False
         self._done = False
@@ -268,7 +264,7 @@ class ActiveLocEnv(gym.Env):
                 z = self.np_random.normal(0.0, 1.0, 3)
                 noisy = true + z * np.array([cfg.odometry_noise[0] * d, cfg.odometry_noise[0] * d, cfg.odometry_noise[1]])
                 self._odo = compose_motion(self._odo, noisy)
-                self.pose, self.frame = new.copy(), q
+                self.pose = new.copy()
                 self.distance += d
                 self.steps += 1
                 self._since += 1
@@ -341,7 +337,7 @@ class ActiveLocEnv(gym.Env):
         cfg, m, t = self.config, self.map, self.tracker
         b = t.belief
         est = self.estimate()
-        v = [belief_entropy(b) / math.log(len(b)), self._locked_mass(), t.p_on, self.distance / cfg.budget_m]
+        v = [belief_entropy(b) / math.log(len(b)), t.locked_mass(), t.p_on, self.distance / cfg.budget_m]
         places = self.places()
         c, s = math.cos(est[2]), math.sin(est[2])
         for i in range(cfg.top_k):
@@ -368,11 +364,6 @@ class ActiveLocEnv(gym.Env):
             sep = belief_entropy(g / g.sum()) / math.log(cfg.top_k) if cfg.top_k > 1 and g.sum() > 0 else 0.0
             v += [1.0, m.leg_length[nxt] / 100.0, m.turns[self.leg, slot] / math.pi, sep]
         return np.clip(np.asarray(v, np.float32), -5.0, 5.0)
-
-    def _locked_mass(self) -> float:
-        t = self.tracker
-        near = self._tree.query_ball_point(self.estimate()[:2], self.config.tracking.lock_m, return_sorted=False)
-        return float(t.belief[near].sum()) * t.p_on
 
     def _info(self) -> dict[str, Any]:
         t = self.tracker

@@ -197,8 +197,8 @@ class ActiveMap:
         index = {(int(u), int(v)): i for i, (u, v) in enumerate(self.legs)}
         self.reverse = np.array([index[(int(v), int(u))] for u, v in self.legs])
         #: per leg, its frames in driving order (farthest from the leg's end first)
-        self.leg_frames = [np.flatnonzero(self.frame_leg == i) for i in range(len(self.legs))]
-        self.leg_frames = [f[np.argsort(-self.frame_rest[f], kind="stable")] for f in self.leg_frames]
+        order = np.lexsort((-self.frame_rest, self.frame_leg))
+        self.leg_frames = np.split(order, np.searchsorted(self.frame_leg[order], np.arange(1, len(self.legs))))
         #: per leg: the branch at its end in each slot (-1: none), the way back excluded
         self.branches = np.full((len(self.legs), len(SLOTS)), -1, np.int64)
         self.turns = np.zeros((len(self.legs), len(SLOTS)))
@@ -289,8 +289,8 @@ class ActiveMap:
 
 
 # --- building -------------------------------------------------------------------------------------------
-def _legs_of_route(route) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Junctions, legs and the arc length of each waypoint of a closed route whose waypoints are junctions."""
+def _legs_of_route(route) -> tuple[np.ndarray, np.ndarray]:
+    """Junctions and legs of a closed route whose waypoints are junctions."""
     if not route.closed or route.laps != 1:
         raise ConfigError(f"active map: route {route.name} must be closed, one lap (its waypoints the junctions, "
                           "every street once each way)")
@@ -302,7 +302,7 @@ def _legs_of_route(route) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     nodes = np.array(list(ids.keys()), np.float64)
     seq = [ids[k] for k in key]
     legs = np.array([(seq[i], seq[(i + 1) % len(seq)]) for i in range(len(seq))], np.int64)
-    return nodes, legs, route.cum
+    return nodes, legs
 
 
 def _leg_of_poses(poses: np.ndarray, nodes: np.ndarray, legs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -370,7 +370,7 @@ def build_active_map(config: ActiveMapConfig | dict | None = None, work: str | o
         raise ConfigError(f"active map: scene {cfg.scene!r} must drive one route in both passes (database_route "
                           f"{route!r}, query_route {scene.spec.query_route!r}): a closed route whose waypoints are the "
                           "junctions in driving order, every street once each way (satloc_env.activemap.both_ways_circuit)")
-    nodes, legs, _ = _legs_of_route(scene.routes[route])
+    nodes, legs = _legs_of_route(scene.routes[route])
     pairs = [(int(u), int(v)) for u, v in legs]
     if len(set(pairs)) != len(pairs) or any((v, u) not in set(pairs) for u, v in pairs):
         raise ConfigError(f"active map: scene {cfg.scene!r}: route {route!r} must drive every street once in each "

@@ -26,8 +26,10 @@ from typing import Any
 
 import numpy as np
 
+from satloc.config import from_dict, to_dict
 from satloc.errors import ConfigError, FormatError
 from satloc.geometry import Pose2
+from satloc.metrics import bootstrap_ci
 from satloc.persist import atomic_path, write_json
 from satloc.track import relative_motion
 
@@ -235,20 +237,12 @@ def _snapshot(env: ActiveLocEnv, info: dict) -> dict:
             "leg": env.leg}
 
 
-def _bootstrap(x: np.ndarray, n: int = 2000, seed: int = 0) -> tuple[float, float]:
-    if len(x) == 0:
-        return float("nan"), float("nan")
-    rng = np.random.default_rng(seed)
-    means = x[rng.integers(0, len(x), (n, len(x)))].mean(axis=1)
-    return float(np.percentile(means, 2.5)), float(np.percentile(means, 97.5))
-
-
 def summarize(agent: str, eps: list[dict]) -> dict[str, Any]:
     """The table row of one agent's episodes (rates in percent; distances over the successful episodes; the
     95 % interval is a bootstrap of the success rate)."""
     succ = np.array([e["success"] for e in eps], float)
     dist = np.array([e["distance_m"] for e in eps if e["success"]])
-    lo, hi = _bootstrap(100.0 * succ)
+    lo, hi = bootstrap_ci(100.0 * succ)
     return {"agent": agent, "success_rate": round(100.0 * succ.mean(), 1),
             "wrong_lock_rate": round(100.0 * np.mean([e["wrong_lock"] for e in eps]), 1),
             "median_distance_m": round(float(np.median(dist)), 1) if len(dist) else float("nan"),
@@ -290,8 +284,6 @@ def evaluate_agents(config: EvalConfig | dict | None = None, out: str | Path = "
     Returns the pooled rows."""
     from tqdm import tqdm
 
-    from satloc.config import from_dict
-
     cfg = config if isinstance(config, EvalConfig) else from_dict(EvalConfig, dict(config or {}), "agent evaluate")
     if cfg.episodes < 1:
         raise ConfigError(f"agent evaluate: episodes must be >= 1, got {cfg.episodes}")
@@ -329,8 +321,6 @@ def evaluate_agents(config: EvalConfig | dict | None = None, out: str | Path = "
     _write_csv(out / "episodes.csv", episodes, ["map", "agent", "seed", "outcome", "success", "wrong_lock",
                                                 "truncated", "distance_m", "final_error_m", "decisions", "redraws",
                                                 "act_s"])
-    from satloc.config import to_dict
-
     write_json(out / "summary.json", {"config": to_dict(cfg), "agents": rows, "by_map": by_map, "timing": timing})
     log("\n" + markdown_rows(rows, CSV_COLUMNS))
     if "learned" in cfg.agents:   # the learned agent's training curve, from beside its weights
@@ -438,7 +428,7 @@ def train_agent(out: str | Path, timesteps: int = 20_000, seed: int = 0, map: st
     for a, b in zip(mine, linears):
         a.weight.data.copy_(b.weight.data)
         a.bias.data.copy_(b.bias.data)
-    top_k = ActiveLocEnv(dict(kw)).config.top_k
+    top_k = venv.envs[0].config.top_k
     meta = {"format": "satloc-active-policy", "obs_dim": int(venv.observation_space.shape[0]), "hidden": list(hidden),
             "top_k": top_k, "obs_fields": obs_fields(top_k), "map": map, "timesteps": timesteps, "seed": seed,
             "n_envs": n_envs, "n_steps": n_steps, "env": kw, "algorithm": "sb3-contrib MaskablePPO",

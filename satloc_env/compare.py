@@ -97,10 +97,9 @@ def uses_fabmap(cc: CompareConfig) -> bool:
 
 
 def _fabmap_unit(cc: CompareConfig, test_scene: str, out: Path, progress: bool = True, log=print) -> None:
-    """FAB-MAP's training stage of ``out`` (:func:`trained_fabmap`) as a unit of its own: the units after it
-    that share it only read it."""
-    if uses_fabmap(cc):
-        trained_fabmap(cc, test_scene, out, progress, log)
+    """FAB-MAP's training stage of ``out`` (:func:`trained_fabmap`) as a unit of its own, for configurations
+    that use it: the units after it that share it only read it (the model stays on disk)."""
+    trained_fabmap(cc, test_scene, out, progress, log)
 
 
 def _stages_unit(cfg: ExperimentConfig, out: Path, progress: bool = True, log=print) -> dict:
@@ -570,8 +569,9 @@ def sweep(out: str | Path, config: dict | None = None, progress: bool = True, lo
     combos = [(a, o, p) for a in sc.aliasing for o in sc.occlusion for p in sc.appearance]
     names = [f"a{a:g}_o{o:g}_p{p:g}" for a, o, p in combos]
     stages = [Unit(f"sweep {n} stages", _stages_unit, (_sweep_config(sc, *c), out / n)) for n, c in zip(names, combos)]
-    fabmap = [Unit("FAB-MAP training", _fabmap_unit, (sc.experiment.compare, sc.scene, out))]
-    times = runner.run(stages + (fabmap if uses_fabmap(sc.experiment.compare) else []), progress, log)
+    if uses_fabmap(sc.experiment.compare):   # shared by every combination: beside their stages
+        stages.append(Unit("FAB-MAP training", _fabmap_unit, (sc.experiment.compare, sc.scene, out)))
+    times = runner.run(stages, progress, log)
     units = [Unit(f"sweep {n}", _sweep_unit, (sc, *c, out, t)) for n, c, t in zip(names, combos, times)]
     rows = [r for part in runner.run(units, progress, log) for r in part]
     cols = list(SWEEP_COLUMNS)
