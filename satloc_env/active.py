@@ -81,6 +81,8 @@ class ActiveConfig:
             raise ConfigError("ActiveLoc: fuse_every, top_k and max_redraws must be >= 1")
         if not (self.budget_m > 0 and self.success_m > 0):
             raise ConfigError("ActiveLoc: budget_m and success_m must be > 0")
+        if not (math.isfinite(self.evidence) and self.evidence >= 0):
+            raise ConfigError(f"ActiveLoc: evidence must be a finite number >= 0, got {self.evidence}")
         if len(self.odometry_noise) != 2 or min(self.odometry_noise) < 0:
             raise ConfigError(f"ActiveLoc: odometry_noise: expected 2 non-negative numbers, got {self.odometry_noise}")
 
@@ -146,20 +148,23 @@ class ActiveLocEnv(gym.Env):
             d["tracking"] = dict(to_dict(base.tracking), **d["tracking"])
         return from_dict(ActiveConfig, dict(to_dict(base), **d), "ActiveLoc config")
 
-    def _load_map(self) -> None:
-        m = ActiveMap.load(self.config.map)
-        self.map = m
-        self._tree = cKDTree(m.candidates[:, :2])
-        self._template = Tracker(m.candidates, self.config.tracking)   # copied per episode: its k-d tree is shared
+    def _load_map(self, config: ActiveConfig | None = None) -> None:
+        """Load ``config``'s map (default: the current config's) and make ``config`` the current one; nothing
+        changes if the map cannot be loaded."""
+        config = self.config if config is None else config
+        m = ActiveMap.load(config.map)
+        tree = cKDTree(m.candidates[:, :2])
+        template = Tracker(m.candidates, config.tracking)   # copied per episode: its k-d tree is shared
+        self.config, self.map, self._tree, self._template = config, m, tree, template
 
     # --- gymnasium API --------------------------------------------------------------------------------------
     def reset(self, *, seed: int | None = None, options: dict | None = None):
         super().reset(seed=seed)
         if options:
-            old = self.config.map
-            self.config = self._make_config(options, self.config)
-            if self.config.map != old:
-                self._load_map()
+            config = self._make_config(options, self.config)
+            if config.map != self.config.map:
+                self._load_map(config)      # a map that fails to load leaves the config and the map as they were
+            self.config = config
         cfg, m = self.config, self.map
         self.redraws = 0
         while True:

@@ -77,9 +77,10 @@ class ActiveMapConfig:
     query_seed: int = 1
 
     def __post_init__(self):
-        if not 0 <= self.min_relative < 1 or min(self.frame_spacing_m, self.database_spacing_m,
-                                                  self.candidate_spacing_m) <= 0:
-            raise ConfigError("active map: min_relative in [0, 1) and spacings > 0 are required")
+        if not _FLOOR <= self.min_relative < 1 or min(self.frame_spacing_m, self.database_spacing_m,
+                                                       self.candidate_spacing_m) <= 0:
+            raise ConfigError(f"active map: min_relative in [{_FLOOR:g}, 1) (a map stores values down to {_FLOOR:g} "
+                              "of each frame's largest) and spacings > 0 are required")
 
 
 def both_ways_circuit(graph) -> list:
@@ -89,7 +90,11 @@ def both_ways_circuit(graph) -> list:
     At every node the arriving directions are paired with the leaving ones by rotating the sorted neighbour
     list (arriving from neighbour i, leave to neighbour i + 1: never back, unless the node is a dead end), which
     splits the streets into closed walks; walks meeting at a node are then merged by swapping two of its
-    pairings (keeping both free of U-turns). The route the ``tour:`` of the ActiveLoc scenes was made with."""
+    pairings (keeping both free of U-turns). The route the ``tour:`` of the ActiveLoc scenes was made with.
+
+    Such a swap exists only where four or more streets meet (at a T-junction every swap makes a U-turn), so some
+    connected graphs that have a tour are refused (e.g. a square with one diagonal): ConfigError. The grids of
+    the ActiveLoc scenes are toured."""
     nodes = sorted(graph.nodes)
     trans: dict[tuple, Any] = {}
     for n in nodes:
@@ -128,7 +133,9 @@ def both_ways_circuit(graph) -> list:
             if merged:
                 break
         if not merged:
-            raise ConfigError("both_ways_circuit: the graph is not connected (or cannot be toured without U-turns)")
+            raise ConfigError(f"both_ways_circuit: {len(cs)} closed walks could not be merged: the graph is not "
+                              "connected, or its walks meet only where fewer than four streets meet (this method "
+                              "merges walks only at such crossings; give the scene a tour of your own)")
         cs = cycles()
     if not cs:
         raise ConfigError("both_ways_circuit: the graph has no edge")
@@ -166,6 +173,8 @@ _SPEC = {
 }
 #: posterior values are stored as uint8 levels of -log10(value / the frame's largest), LEVELS per decade
 LEVELS = 255 / 4.0
+#: the smallest value a stored posterior row holds, relative to its largest (level 255: 4 decades down)
+_FLOOR = 10.0 ** (-255 / LEVELS)
 
 
 class ActiveMap:
@@ -227,8 +236,14 @@ class ActiveMap:
         if len(self._ptr) != q + 1 or self._ptr[0] != 0 or np.any(np.diff(self._ptr) < 0) \
                 or self._ptr[-1] != len(self._idx) or len(self._idx) != len(self._val):
             raise FormatError(f"{w}: damaged posterior rows (post_ptr / post_idx / post_val)")
-        if len(self._idx) and self._idx.max() >= m:
+        if len(self._idx) and (self._idx.max() >= m or self._idx.min() < 0):
             raise FormatError(f"{w}: a posterior entry refers to a candidate that does not exist")
+        inner = np.ones(len(self._idx), bool)          # entries that follow another of the same row
+        inner[self._ptr[:-1][np.diff(self._ptr) > 0]] = False
+        if np.any(np.diff(self._idx)[inner[1:]] <= 0):
+            raise FormatError(f"{w}: the candidates of a posterior row must be in increasing order, each once")
+        if not np.all(np.isfinite(self._val) & (self._val > 0)):
+            raise FormatError(f"{w}: posterior values must be finite and > 0 (rows hold only their non-zero entries)")
         pairs = {(int(u), int(v)) for u, v in self.legs}
         if len(pairs) != l or any((v, u) not in pairs for u, v in pairs):
             raise FormatError(f"{w}: every street must be one leg in each direction (each pair once)")
@@ -251,8 +266,10 @@ class ActiveMap:
     def save(self, path: str | os.PathLike) -> None:
         """Write the map (npz, format ``satloc-active-map``). Posterior rows are stored compactly: candidate
         indices as gaps from the previous entry of the row (uint16 when they fit), values as uint8 levels of
-        -log10(value / the row's largest), :data:`LEVELS` per decade (1.6 % steps; values 4 decades below the
-        row's largest get level 255), and each row's largest as float32."""
+        -log10(value / the row's largest), :data:`LEVELS` per decade (steps of 3.7 %, so a stored value is within
+        1.8 % of the original; level 255 is 4 decades below the row's largest), and each row's largest as float32.
+        A value further below its row's largest than that cannot be stored: ValueError, nothing written (maps
+        built with ``min_relative`` >= 1e-4 have none)."""
         q = len(self.frame_pose)
         rows = np.repeat(np.arange(q), np.diff(self._ptr))
         first = np.zeros(len(self._idx), bool)
@@ -260,7 +277,13 @@ class ActiveMap:
         gap = np.where(first, self._idx, self._idx - np.concatenate([[0], self._idx[:-1]]))
         vmax = np.zeros(q)
         np.maximum.at(vmax, rows, self._val)
-        level = np.clip(np.round(-np.log10(np.maximum(self._val, 1e-300) / vmax[rows]) * LEVELS), 0, 255)
+        raw = -np.log10(self._val / vmax[rows]) * LEVELS
+        if np.any(raw > 255.5):
+            k = int(np.flatnonzero(raw > 255.5)[0])
+            raise ValueError(f"{path}: frame {int(rows[k])} has a posterior value of {self._val[k] / vmax[rows[k]]:.3g} "
+                             f"of its row's largest, below the {_FLOOR:g} a map can store; drop such entries before "
+                             "saving (nothing written)")
+        level = np.clip(np.round(raw), 0, 255)
         arrays = dict(nodes=self.nodes, legs=self.legs, candidates=self.candidates, cand_leg=self.cand_leg,
                       cand_rest=self.cand_rest, frame_pose=self.frame_pose, frame_leg=self.frame_leg,
                       frame_rest=self.frame_rest, post_ptr=self._ptr,

@@ -99,7 +99,7 @@ class EntropyAgent:
                 path = self._path(env, cand, int(a))
                 if path is None or p <= 0:   # that place has no such branch: the mask rules it out
                     continue
-                total += p * self._entropy_after(env, path)
+                total += p * self._entropy_after(env, cand, path)
                 weight += p
             h = total / weight if weight > 0 else math.inf
             if h < best_h - 1e-12:
@@ -117,21 +117,28 @@ class EntropyAgent:
         ahead = [int(q) for q in m.leg_frames[leg] if m.frame_rest[q] < m.cand_rest[cand]]
         return ahead + [int(q) for q in m.leg_frames[nxt]]
 
-    def _entropy_after(self, env: ActiveLocEnv, path: list[int]) -> float:
+    def _entropy_after(self, env: ActiveLocEnv, cand: int, path: list[int]) -> float:
+        return belief_entropy(self._belief_after(env, cand, path))
+
+    def _belief_after(self, env: ActiveLocEnv, cand: int, path: list[int]) -> np.ndarray:
+        """The belief after driving ``path`` from candidate ``cand``: before each fused frame it moves by the
+        motion from the previous one (from ``cand`` before the first), as the environment moves it by the
+        odometry since its last fused frame."""
         m = env.map
         t = copy.copy(env.tracker)
         t.belief, t.off = env.tracker.belief.copy(), env.tracker.off.copy()
-        prev = None
+        prev = m.candidates[cand]
         fused = path[self.stride - 1::self.stride] or path[-1:]
         for q in fused:
             pose = m.frame_pose[q]
-            if prev is not None:
-                t.predict(relative_motion(Pose2(*prev), Pose2(*pose)))
+            t.predict(relative_motion(Pose2(*prev), Pose2(*pose)))
             prev = pose
             post = m.posterior(q)
+            if env.config.evidence != 1.0:   # tempered as the environment tempers what it fuses
+                post = post ** env.config.evidence
             if post.sum() > 0:
                 t.fuse(post)
-        return belief_entropy(t.belief)
+        return t.belief
 
 
 class LearnedAgent:
@@ -287,6 +294,9 @@ def evaluate_agents(config: EvalConfig | dict | None = None, out: str | Path = "
     cfg = config if isinstance(config, EvalConfig) else from_dict(EvalConfig, dict(config or {}), "agent evaluate")
     if cfg.episodes < 1:
         raise ConfigError(f"agent evaluate: episodes must be >= 1, got {cfg.episodes}")
+    if not cfg.agents or not cfg.maps:
+        raise ConfigError(f"agent evaluate: need at least one agent and one map, got agents={list(cfg.agents)}, "
+                          f"maps={list(cfg.maps)}")
     for a in cfg.agents:
         if a not in AGENTS:
             raise ConfigError(f"agent evaluate: unknown agent {a!r}; expected some of {', '.join(AGENTS)}")
@@ -389,7 +399,7 @@ def train_agent(out: str | Path, timesteps: int = 20_000, seed: int = 0, map: st
     """Train the learned agent with sb3-contrib's MaskablePPO on ``map`` (training starts: the environments'
     own seeded streams ``seed`` .. ``seed + n_envs - 1``, never the evaluation's ``reset(seed=10000 + i)``);
     writes ``out/active_policy.pt`` (the policy MLP, loadable by :class:`LearnedAgent`), ``out/learning_curve.csv``
-    and ``.png`` (per finished training episode: timesteps, success, distance, return) and ``out/train.json``.
+    and ``.png`` (per finished training episode: timesteps, success, wrong_lock, distance_m) and ``out/train.json``.
     Needs the ``rl`` extra (``pip install -e '.[rl]'``)."""
     try:
         from sb3_contrib import MaskablePPO

@@ -272,3 +272,52 @@ def test_train_tiny(tmp_path):
     bad.write_bytes(b"not a policy")
     with pytest.raises(FormatError, match="bad.pt"):
         LearnedAgent(bad)
+
+
+def test_entropy_lookahead_moves_the_belief_from_the_place_to_the_path():
+    """Driven from the true place, the agent's predicted belief ends where the path ends (it moves the belief
+    from the place to the first frame before fusing it, as the environment moves it by the odometry)."""
+    env = ActiveLocEnv(map="active_town")
+    agent = EntropyAgent()
+    m = env.map
+    ends = []
+    for seed in range(4):
+        _, info = env.reset(seed=seed)
+        on_leg = np.flatnonzero(m.cand_leg == env.leg)
+        cand = int(on_leg[np.argmin(np.hypot(*(m.candidates[on_leg, :2] - env.pose[:2]).T))])   # the truth
+        for slot in np.flatnonzero(info["action_mask"]):
+            path = agent._path(env, cand, int(slot))
+            b = agent._belief_after(env, cand, path)
+            mode, end = m.candidates[int(np.argmax(b))], m.frame_pose[path[-1]]
+            ends.append(math.hypot(mode[0] - end[0], mode[1] - end[1]))
+    assert len(ends) >= 6 and np.median(ends) < 5.0 and max(ends) < 15.0, ends
+
+
+def test_active_config_and_map_checks(tmp_path, town):
+    for bad in (-1.0, float("nan"), float("inf")):
+        with pytest.raises(ConfigError, match="evidence"):
+            ActiveLocEnv(map="active_town", evidence=bad)
+    env = ActiveLocEnv(map="active_town")
+    env.reset(seed=0)
+    with pytest.raises(ConfigError, match="no shipped map"):
+        env.reset(seed=0, options={"map": "no_such_scene", "fuse_every": 3})
+    assert env.config.map == "active_town" and env.config.fuse_every == 1 and env.map.scene == "active_town"
+    env.reset(seed=0)                                   # still the old map and settings
+    from satloc_env.activemap import ActiveMapConfig
+    with pytest.raises(ConfigError, match="min_relative"):
+        ActiveMapConfig(min_relative=1e-6)               # below what a stored row can hold
+    arrays = {k: getattr(town, k) for k in ("nodes", "legs", "candidates", "cand_leg", "cand_rest", "frame_pose",
+                                            "frame_leg", "frame_rest")}
+    ptr, idx, val = town._ptr.copy(), town._idx.copy(), town._val.copy()
+    tiny = val.copy()
+    tiny[ptr[0] + 1] = val[ptr[0]:ptr[1]].max() * 1e-6  # 6 decades below the row's largest: cannot be stored
+    m = ActiveMap(dict(arrays, post_ptr=ptr, post_idx=idx, post_val=tiny), town.meta)
+    with pytest.raises(ValueError, match="0.0001"):
+        m.save(tmp_path / "tiny.npz")
+    assert not list(tmp_path.iterdir())                 # nothing written
+    swapped = idx.copy()
+    swapped[ptr[0]], swapped[ptr[0] + 1] = idx[ptr[0] + 1], idx[ptr[0]]
+    with pytest.raises(FormatError, match="increasing"):
+        ActiveMap(dict(arrays, post_ptr=ptr, post_idx=swapped, post_val=val), town.meta)
+    with pytest.raises(ConfigError, match="at least one agent"):
+        evaluate_agents(dict(agents=[], maps=["active_town"], episodes=1), out=tmp_path / "ev", progress=False)
