@@ -26,7 +26,9 @@ def bench_env(resolution: str = "half", steps: int = 2000, scene: str = "city", 
     rendered (``gl_renderer``: e.g. llvmpipe for Mesa's software rasterizer, the GPU's name on a vendor's
     driver). ``num_envs`` > 1: the batched vector environment (:class:`satloc_env.vector.SatLocVectorEnv`) with
     that many cars; ``steps`` and ``steps_per_s`` then count the steps of all cars together (``steps`` is
-    rounded up to a multiple of ``num_envs``)."""
+    rounded up to a multiple of ``num_envs``). ``peak_rss_mb``: the largest resident size sampled during this
+    run (after the warm-up steps, every 16 step calls and at the end), not the process's lifetime peak, so that runs of several
+    ``num_envs`` in one process each report their own."""
     if num_envs < 1:
         raise ConfigError(f"num_envs: expected an integer >= 1, got {num_envs}")
     kw = dict(scene=scene, resolution=resolution, depth=True, localizer=None)   # rendering only
@@ -56,15 +58,19 @@ def bench_env(resolution: str = "half", steps: int = 2000, scene: str = "city", 
         for _ in range(warmup):
             step()
         rss_start = _rss_mb()
+        peak = rss_start
         episodes = num_envs
         t0 = time.perf_counter()
-        for _ in range(calls):
+        for i in range(calls):
             term, trunc = step()
+            if i % 16 == 15:
+                peak = max(peak, _rss_mb())
             if num_envs == 1 and (term or trunc):
                 env.reset(seed=episodes)
             episodes += int(np.count_nonzero(np.logical_or(term, trunc)))
         dt = time.perf_counter() - t0
         rss_end = _rss_mb()
+        peak = max(peak, rss_end)
         gl = renderer().gl_info
     finally:
         env.close()
@@ -75,7 +81,7 @@ def bench_env(resolution: str = "half", steps: int = 2000, scene: str = "city", 
         "num_envs": num_envs, "gl_renderer": gl["renderer"], "gl_version": gl["version"],
         "steps": total, "episodes": episodes, "steps_per_s": round(total / dt, 1),
         "ms_per_step": round(1000 * dt / total, 2), "rss_start_mb": round(rss_start, 1),
-        "rss_end_mb": round(rss_end, 1), "peak_rss_mb": round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024, 1),
+        "rss_end_mb": round(rss_end, 1), "peak_rss_mb": round(peak, 1),
     }
 
 

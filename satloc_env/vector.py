@@ -18,7 +18,10 @@ sub-environments that gave it). ``reset(seed=s)`` seeds sub-environment i with `
 every sub-environment (``options["reset_mask"]``: reset only those).
 
 Configuration: the keywords of ``SatLoc-v0`` (:class:`~satloc_env.env.EnvConfig`), the same for all
-sub-environments, and ``batch_network``. With a localizer, each sub-environment localizes its own frames;
+sub-environments, ``batch_network``, and ``max_episode_steps`` (``gym.make_vec(..., max_episode_steps=n)``:
+each car's episodes are truncated after n steps, as ``gym.make``'s TimeLimit truncates a single environment's).
+Every action is checked before any car moves: a bad one raises :class:`~satloc_env.env.ActionError` naming its
+sub-environment and changes nothing. With a localizer, each sub-environment localizes its own frames;
 with ``batch_network`` (the default) the network part of the features of all the frames localized in a step
 runs first as one batch (:meth:`satloc.localizer.Localizer.prefetch`; 1.5 times the throughput of 8 single
 calls on the 2-core CPU machine). Batched convolutions round differently: the network's outputs differ from
@@ -35,7 +38,7 @@ from gymnasium.vector.utils import batch_space, concatenate, create_empty_array
 
 from satloc.errors import ConfigError
 
-from .env import SatLocEnv
+from .env import ActionError, SatLocEnv
 
 __all__ = ["SatLocVectorEnv"]
 
@@ -51,7 +54,13 @@ class SatLocVectorEnv(VectorEnv):
 
         if isinstance(num_envs, bool) or not isinstance(num_envs, (int, np.integer)) or num_envs < 1:
             raise ConfigError(f"num_envs: expected an integer >= 1, got {num_envs!r}")
-        config.pop("max_episode_steps", None)   # gymnasium passes the spec's; SatLoc-v0 has max_steps instead
+        # What gym.make_vec passes on: max_episode_steps truncates each car's episodes as gym.make's TimeLimit
+        # does (on top of SatLoc-v0's own max_steps); the env checker is for single environments.
+        limit = config.pop("max_episode_steps", None)
+        config.pop("disable_env_checker", None)
+        if limit is not None and (isinstance(limit, bool) or not isinstance(limit, (int, np.integer)) or limit < 1):
+            raise ConfigError(f"max_episode_steps: expected an integer >= 1 or None, got {limit!r}")
+        self.max_episode_steps = None if limit is None else int(limit)
         self.num_envs = int(num_envs)
         self.envs = [SatLocEnv(render_mode=render_mode, **config) for _ in range(self.num_envs)]
         first = self.envs[0]
@@ -66,6 +75,7 @@ class SatLocVectorEnv(VectorEnv):
         self.action_space = batch_space(self.single_action_space, self.num_envs)
         self.batch_network = bool(batch_network)
         self._autoreset = np.zeros(self.num_envs, dtype=np.bool_)
+        self._elapsed = np.zeros(self.num_envs, dtype=np.int64)   # steps since each car's reset (max_episode_steps)
         self._obs_list: list = [None] * self.num_envs   # each car's latest observation
         self._ready = False
 
@@ -96,6 +106,7 @@ class SatLocVectorEnv(VectorEnv):
             self._obs_list[i] = obs
             infos = self._add_info(infos, info, i)
             self._autoreset[i] = False
+            self._elapsed[i] = 0
         self._ready = True
         return self._batched_obs(), infos
 
@@ -112,6 +123,12 @@ class SatLocVectorEnv(VectorEnv):
         truncations = np.zeros(n, np.bool_)
         infos: dict = {}
         stepping, moved = [], {}
+        for i, env in enumerate(self.envs):   # every action checked before any car moves: a bad one changes nothing
+            if not self._autoreset[i]:
+                try:
+                    env._check_action(actions[i])
+                except ActionError as e:
+                    raise ActionError(f"sub-environment {i}: {e}") from None
         for i, env in enumerate(self.envs):
             if self._autoreset[i]:
                 continue
@@ -132,9 +149,13 @@ class SatLocVectorEnv(VectorEnv):
         for i, env in enumerate(self.envs):
             if self._autoreset[i]:
                 self._obs_list[i], info = env.reset()
+                self._elapsed[i] = 0
             else:
                 (self._obs_list[i], rewards[i], terminations[i], truncations[i],
                  info) = env._finish_step(observed[i], moved[i][1])
+                self._elapsed[i] += 1
+                if self.max_episode_steps is not None and self._elapsed[i] >= self.max_episode_steps:
+                    truncations[i] = True
             infos = self._add_info(infos, info, i)
         self._autoreset = terminations | truncations
         return self._batched_obs(), rewards, terminations, truncations, infos

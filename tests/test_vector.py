@@ -7,6 +7,7 @@ from gymnasium.vector import AutoresetMode
 
 import satloc_env  # noqa: F401  (registers the ids)
 from satloc import ConfigError
+from satloc_env.env import ActionError
 from satloc_env.vector import SatLocVectorEnv
 
 ID = "satloc/SatLoc-v0"
@@ -58,11 +59,13 @@ def test_make_vec_uses_the_batched_env_and_its_spaces():
 
 @pytest.mark.parametrize("extra", [dict(depth=True, labels=True, occlusion=0.6, appearance=0.5, random_start=True),
                                    dict(odometry="visual", random_start=True, max_steps=6),
-                                   dict(change=0.5, n=2, steps=3)])
+                                   dict(change=0.5, n=2, steps=3),
+                                   dict(max_episode_steps=3, n=2, steps=7)])
 def test_same_as_single_environments_bit_for_bit(extra):
     """Observations, rewards, flags and infos equal those of the same number of single environments
     (Gymnasium's SyncVectorEnv over gym.make), through an autoreset (max_steps 6), with occluders, appearance
-    changes, depth, labels, visual odometry, and revisit-changed worlds (each car its own, in one scene)."""
+    changes, depth, labels, visual odometry, and revisit-changed worlds (each car its own, in one scene); with
+    make_vec's max_episode_steps (gym.make's TimeLimit for the single environments)."""
     extra = dict(extra)
     n, steps = extra.pop("n", 3), extra.pop("steps", 14)
     kw = dict(KW, **{"max_steps": 6, **extra})
@@ -141,6 +144,12 @@ def test_errors():
             env.reset(options={"reset_mask": np.array([False, False])})
         with pytest.raises(ConfigError, match="resolution"):
             env.reset(options={"resolution": "full"})   # fixed when made, as for the single env
+        poses = [e.pose for e in env.envs]
+        with pytest.raises(ActionError, match="sub-environment 1"):
+            env.step(np.array([[5.0, 0.0], [np.nan, 0.0]]))
+        assert [e.pose for e in env.envs] == poses and [e.steps for e in env.envs] == [0, 0]   # no car moved
+        with pytest.raises(ConfigError, match="max_episode_steps"):
+            SatLocVectorEnv(2, max_episode_steps=0, **KW)
     finally:
         env.close()
 
