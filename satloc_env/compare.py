@@ -520,6 +520,9 @@ class SweepConfig:
             v = getattr(self, name)
             if not v or any(not 0 <= x <= 1 for x in v):
                 raise ConfigError(f"{name}: expected a non-empty list of values in [0, 1], got {list(v)}")
+            if len({f"{x:g}" for x in v}) != len(v):   # each combination has a folder of its own, named by them
+                raise ConfigError(f"{name}: values must differ in their first 6 significant digits (each "
+                                  f"combination is the folder a<aliasing>_o<occlusion>_p<appearance>), got {list(v)}")
 
 
 SWEEP_COLUMNS = ("scene", "aliasing", "occlusion", "appearance", "method", "mean_m", "ci95_low", "ci95_high",

@@ -116,7 +116,10 @@ def set_threads(cpus: int, counts: dict[str, int] | None = None) -> None:
 
 def _run_unit(unit: Unit, cpus: int, counts: dict[str, int] | None, cwd: str) -> tuple[Any, list[str], float]:
     """A unit in a Ray worker: its result, its log lines and its wall time (seconds)."""
-    if cwd and os.path.isdir(cwd):
+    if cwd:
+        if not os.path.isdir(cwd):   # relative paths (--out) would land somewhere else on this node
+            raise ConfigError(f"Ray task {unit.name}: the driver's working directory {cwd} does not exist on this "
+                              "node; run from a folder on a file system every node shares, at the same path")
         os.chdir(cwd)
     set_threads(cpus, counts)
     lines: list[str] = []
@@ -127,7 +130,8 @@ def _run_unit(unit: Unit, cpus: int, counts: dict[str, int] | None, cwd: str) ->
 
 class Runner:
     """Runs lists of :class:`Unit` s: serially here (``ray=False``), or as Ray tasks on the cluster at
-    ``address`` (None: ``ray.init()``'s default, a new local cluster unless ``RAY_ADDRESS`` names one). A Ray
+    ``address`` (None: a new local cluster, or the one ``RAY_ADDRESS`` names; never a cluster this machine's
+    ``ray start`` left running, which ``ray.init()`` alone would join). A Ray
     already initialized in this process is used as it is; one this runner started is shut down by
     :meth:`close` (or at the end of a ``with`` block). ``exact``: the tasks' torch and BLAS thread counts are
     this process's (results identical to a serial run), else the task's CPUs (see the module's docstring)."""
@@ -148,9 +152,9 @@ class Runner:
         ray = import_ray()
         if not ray.is_initialized():
             try:
-                ray.init(address=self.address, logging_level="WARNING")
-            except ConnectionError as e:
-                raise ConfigError(f"--ray {self.address}: cannot connect to a Ray cluster there ({e}); start "
+                ray.init(address=self.address or os.environ.get("RAY_ADDRESS") or "local", logging_level="WARNING")
+            except (ConnectionError, ValueError) as e:
+                raise ConfigError(f"--ray {self.address or os.environ.get('RAY_ADDRESS') or ''}: cannot connect to a Ray cluster there ({e}); start "
                                   "one with `ray start --head`, or give --ray without an address for a local "
                                   "one. A cluster that `ray start` made with token authentication (the default "
                                   "since Ray 2.59) needs RAY_AUTH_MODE=token here, and its token (`ray "
@@ -249,9 +253,12 @@ class EnvActor:
 
 def env_actor(num_envs: int | None = None, num_cpus: int = 1, **kwargs):
     """A Ray actor holding an :class:`EnvActor` with ``num_cpus`` CPUs (and as many threads); ``kwargs``
-    go to ``gym.make``/``gym.make_vec``. Call its methods with ``.remote(...)`` and ``ray.get`` the results."""
+    go to ``gym.make``/``gym.make_vec``. Call its methods with ``.remote(...)`` and ``ray.get`` the results.
+    Arrays that ``ray.get`` returns are read-only views of Ray's object store (a local environment's are
+    writable): copy one (``np.array(obs["left"])``) before changing it in place. Without a Ray in this process
+    it starts a new local one (or joins the cluster ``RAY_ADDRESS`` names), as :class:`Runner` does."""
     ray = import_ray()
     if not ray.is_initialized():
-        ray.init(logging_level="WARNING")
+        ray.init(address=os.environ.get("RAY_ADDRESS") or "local", logging_level="WARNING")
     return ray.remote(EnvActor).options(num_cpus=num_cpus).remote(num_envs, num_cpus, **kwargs)
 

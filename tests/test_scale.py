@@ -122,3 +122,21 @@ def test_env_actor_steps_like_a_local_env(cluster):
         local.close()
     for a, b in ((obs, ref), (obs2, ref2)):
         assert set(a) == set(b) and all(np.array_equal(a[k], b[k]) for k in a)
+
+
+def test_a_task_refuses_a_working_directory_its_node_lacks(tmp_path):
+    """A Ray task runs in the driver's working directory (relative --out paths); on a node without that
+    folder it stops with a clear error instead of writing somewhere else."""
+    from satloc_env.scale import _run_unit
+
+    with pytest.raises(ConfigError, match="does not exist on this node"):
+        _run_unit(Unit("sq", _square, (3,)), 1, None, str(tmp_path / "not_here"))
+
+
+def test_sweep_refuses_knob_values_that_share_a_folder():
+    from satloc_env.compare import SweepConfig
+
+    with pytest.raises(ConfigError, match="first 6 significant digits"):
+        SweepConfig(aliasing=(0.0, 0.0))
+    with pytest.raises(ConfigError, match="occlusion"):
+        SweepConfig(occlusion=(0.1234561, 0.1234564))   # both print as 0.123456: one folder
