@@ -275,24 +275,31 @@ def _table2_recording(t2: Table2Config) -> tuple[RecordConfig, dict[str, PassCon
     return rec, more, rc
 
 
-def _record_table2_pass(rec: RecordConfig, name: str, p: PassConfig | None, out: Path, progress: bool = True,
-                        log=print) -> None:
+def _record_table2_pass(rec: RecordConfig, name: str, p: PassConfig | None, out: Path, rc: dict,
+                        progress: bool = True, log=print) -> None:
     """One recording of Table II into ``out/rec``: with ``p`` None the database and query passes of ``rec``
     (:func:`satloc_env.record.record_passes`), else the pass ``p`` into ``out/rec/<name>`` with an environment
-    of its own (the same frames as one environment reset with each pass's seed)."""
+    of its own (the same frames as one environment reset with each pass's seed). Each finished recording is
+    stamped (``out/record_<name>.json``, for Table II's recording configuration ``rc``), so that a rerun after
+    a failure elsewhere in its batch (another recording, FAB-MAP's training) skips it."""
+    stamp = out / f"record_{name}.json"
+    if _stage_done(stamp, rc) and (out / "rec" / name / "sequence.json").is_file():
+        log(f"[table2] the {name} recording of an earlier run is reused")
+        return
     if p is None:
         from .record import record_passes
 
         record_passes(rec, out / "rec", progress)
-        return
-    env = make_env(scene=rec.scene, resolution=rec.resolution, aliasing=rec.aliasing, speed_mps=rec.speed_mps,
-                   depth=True, labels=False, localizer=None)
-    try:
-        env.reset(seed=p.seed)
-        record_pass(env, p, p.route, out / "rec" / name, name, progress,
-                    {"source": "satloc_env", "scene": env.scene.name})
-    finally:
-        env.close()
+    else:
+        env = make_env(scene=rec.scene, resolution=rec.resolution, aliasing=rec.aliasing, speed_mps=rec.speed_mps,
+                       depth=True, labels=False, localizer=None)
+        try:
+            env.reset(seed=p.seed)
+            record_pass(env, p, p.route, out / "rec" / name, name, progress,
+                        {"source": "satloc_env", "scene": env.scene.name})
+        finally:
+            env.close()
+    _stamp(stamp, rc)
 
 
 #: Table II's query passes: the test revisit of the ring and the branch pass, their calibration counterparts
@@ -364,8 +371,9 @@ def table2(out: str | Path, config: dict | None = None, progress: bool = True, l
     if not recorded:
         log(f"[{t2.scene}] recording the database pass, and the test and calibration passes on "
             f"{t2.inside_route} and {t2.outside_route}")
-        units = [Unit("table2 record database, inside", _record_table2_pass, (rec, "query", None, out))]
-        units += [Unit(f"table2 record {name}", _record_table2_pass, (rec, name, p, out)) for name, p in more.items()]
+        units = [Unit("table2 record database, inside", _record_table2_pass, (rec, "query", None, out, rc))]
+        units += [Unit(f"table2 record {name}", _record_table2_pass, (rec, name, p, out, rc))
+                  for name, p in more.items()]
     if uses_fabmap(e.compare):   # trained on another scene: beside the recordings
         units.append(Unit("FAB-MAP training", _fabmap_unit, (e.compare, e.scene, out)))
     runner.run(units, progress, log)

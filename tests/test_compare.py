@@ -203,3 +203,47 @@ def test_table2_calibrates_on_other_passes_and_reports_the_test(tmp_path):
     assert "calibration queries" in md and "oracle" in md
     with pytest.raises(ConfigError, match="calibration_seeds"):
         Table2Config(calibration_seeds=(1, 5))
+
+
+def test_table2_recordings_finished_before_a_failure_are_reused(tmp_path, monkeypatch):
+    """Each Table II recording is stamped when it ends, so a rerun after a failure elsewhere in its batch
+    (another recording, FAB-MAP's training) records only what is missing; another configuration redoes it."""
+    import types
+    from pathlib import Path
+
+    import satloc_env.compare as C
+    import satloc_env.record as R
+
+    calls = []
+
+    def fake_passes(rec, out_dir, progress):
+        calls.append("query")
+        (Path(out_dir) / "query").mkdir(parents=True, exist_ok=True)
+        (Path(out_dir) / "query" / "sequence.json").write_text("{}")
+
+    def fake_pass(env, p, route, out_dir, name, progress, meta):
+        calls.append(name)
+        Path(out_dir).mkdir(parents=True, exist_ok=True)
+        (Path(out_dir) / "sequence.json").write_text("{}")
+
+    class FakeEnv:
+        scene = types.SimpleNamespace(name="ring")
+
+        def reset(self, seed=None):
+            pass
+
+        def close(self):
+            pass
+
+    monkeypatch.setattr(R, "record_passes", fake_passes)
+    monkeypatch.setattr(C, "record_pass", fake_pass)
+    monkeypatch.setattr(C, "make_env", lambda **kw: FakeEnv())
+    rec = types.SimpleNamespace(scene="ring", resolution="half", aliasing=0.0, speed_mps=8.0)
+    outside = types.SimpleNamespace(seed=2, route="branch")
+    for rc in ({"v": 1}, {"v": 1}, {"v": 2}):
+        C._record_table2_pass(rec, "query", None, tmp_path, rc, log=lambda m: None)
+        C._record_table2_pass(rec, "outside", outside, tmp_path, rc, log=lambda m: None)
+    assert calls == ["query", "outside", "query", "outside"]     # the second run reused both; the third redid them
+    (tmp_path / "rec" / "outside" / "sequence.json").unlink()    # a stamp without its recording: recorded again
+    C._record_table2_pass(rec, "outside", outside, tmp_path, {"v": 2}, log=lambda m: None)
+    assert calls[-1] == "outside" and len(calls) == 5
