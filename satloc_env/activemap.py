@@ -278,11 +278,12 @@ class ActiveMap:
         vmax = np.zeros(q)
         np.maximum.at(vmax, rows, self._val)
         raw = -np.log10(self._val / vmax[rows]) * LEVELS
-        if np.any(raw > 255.5):
-            k = int(np.flatnonzero(raw > 255.5)[0])
-            raise ValueError(f"{path}: frame {int(rows[k])} has a posterior value of {self._val[k] / vmax[rows[k]]:.3g} "
-                             f"of its row's largest, below the {_FLOOR:g} a map can store; drop such entries before "
-                             "saving (nothing written)")
+        bad = np.flatnonzero(raw > 255.5)
+        if len(bad):
+            k = int(bad[0])
+            raise ValueError(f"{path}: frame {int(rows[k])} has a posterior value of {10 ** (-raw[k] / LEVELS):.3g} of "
+                             f"its row's largest, below the {_FLOOR:g} a map can store; drop such entries before saving "
+                             "(nothing written)")
         level = np.clip(np.round(raw), 0, 255)
         arrays = dict(nodes=self.nodes, legs=self.legs, candidates=self.candidates, cand_leg=self.cand_leg,
                       cand_rest=self.cand_rest, frame_pose=self.frame_pose, frame_leg=self.frame_leg,

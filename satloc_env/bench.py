@@ -27,8 +27,8 @@ def bench_env(resolution: str = "half", steps: int = 2000, scene: str = "city", 
     driver). ``num_envs`` > 1: the batched vector environment (:class:`satloc_env.vector.SatLocVectorEnv`) with
     that many cars; ``steps`` and ``steps_per_s`` then count the steps of all cars together (``steps`` is
     rounded up to a multiple of ``num_envs``). ``peak_rss_mb``: the largest resident size sampled during this
-    run (after the warm-up steps, every 16 step calls and at the end), not the process's lifetime peak, so that runs of several
-    ``num_envs`` in one process each report their own."""
+    run (after the warm-up steps, every 16 step calls and at the end), not the process's lifetime peak, so that
+    runs of several ``num_envs`` in one process each report their own."""
     if num_envs < 1:
         raise ConfigError(f"num_envs: expected an integer >= 1, got {num_envs}")
     kw = dict(scene=scene, resolution=resolution, depth=True, localizer=None)   # rendering only

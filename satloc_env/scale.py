@@ -128,6 +128,12 @@ def _run_unit(unit: Unit, cpus: int, counts: dict[str, int] | None, cwd: str) ->
     return result, lines, time.perf_counter() - t
 
 
+def _address(address: str | None) -> str:
+    """What ``ray.init`` gets: ``address``, else the cluster ``RAY_ADDRESS`` names, else ``"local"`` (a new local
+    cluster; ``ray.init()`` without an address would join one that ``ray start`` left running here)."""
+    return address or os.environ.get("RAY_ADDRESS") or "local"
+
+
 class Runner:
     """Runs lists of :class:`Unit` s: serially here (``ray=False``), or as Ray tasks on the cluster at
     ``address`` (None: a new local cluster, or the one ``RAY_ADDRESS`` names; never a cluster this machine's
@@ -152,9 +158,9 @@ class Runner:
         ray = import_ray()
         if not ray.is_initialized():
             try:
-                ray.init(address=self.address or os.environ.get("RAY_ADDRESS") or "local", logging_level="WARNING")
+                ray.init(address=_address(self.address), logging_level="WARNING")
             except (ConnectionError, ValueError) as e:
-                raise ConfigError(f"--ray {self.address or os.environ.get('RAY_ADDRESS') or ''}: cannot connect to a Ray cluster there ({e}); start "
+                raise ConfigError(f"--ray {_address(self.address)}: cannot connect to a Ray cluster there ({e}); start "
                                   "one with `ray start --head`, or give --ray without an address for a local "
                                   "one. A cluster that `ray start` made with token authentication (the default "
                                   "since Ray 2.59) needs RAY_AUTH_MODE=token here, and its token (`ray "
@@ -259,6 +265,6 @@ def env_actor(num_envs: int | None = None, num_cpus: int = 1, **kwargs):
     it starts a new local one (or joins the cluster ``RAY_ADDRESS`` names), as :class:`Runner` does."""
     ray = import_ray()
     if not ray.is_initialized():
-        ray.init(address=os.environ.get("RAY_ADDRESS") or "local", logging_level="WARNING")
+        ray.init(address=_address(None), logging_level="WARNING")
     return ray.remote(EnvActor).options(num_cpus=num_cpus).remote(num_envs, num_cpus, **kwargs)
 

@@ -75,7 +75,6 @@ class SatLocVectorEnv(VectorEnv):
         self.action_space = batch_space(self.single_action_space, self.num_envs)
         self.batch_network = bool(batch_network)
         self._autoreset = np.zeros(self.num_envs, dtype=np.bool_)
-        self._elapsed = np.zeros(self.num_envs, dtype=np.int64)   # steps since each car's reset (max_episode_steps)
         self._obs_list: list = [None] * self.num_envs   # each car's latest observation
         self._ready = False
 
@@ -106,7 +105,6 @@ class SatLocVectorEnv(VectorEnv):
             self._obs_list[i] = obs
             infos = self._add_info(infos, info, i)
             self._autoreset[i] = False
-            self._elapsed[i] = 0
         self._ready = True
         return self._batched_obs(), infos
 
@@ -149,13 +147,11 @@ class SatLocVectorEnv(VectorEnv):
         for i, env in enumerate(self.envs):
             if self._autoreset[i]:
                 self._obs_list[i], info = env.reset()
-                self._elapsed[i] = 0
             else:
                 (self._obs_list[i], rewards[i], terminations[i], truncations[i],
                  info) = env._finish_step(observed[i], moved[i][1])
-                self._elapsed[i] += 1
-                if self.max_episode_steps is not None and self._elapsed[i] >= self.max_episode_steps:
-                    truncations[i] = True
+                if self.max_episode_steps is not None and env.steps >= self.max_episode_steps:
+                    truncations[i] = True   # env.steps: the steps since its reset, as TimeLimit counts them
             infos = self._add_info(infos, info, i)
         self._autoreset = terminations | truncations
         return self._batched_obs(), rewards, terminations, truncations, infos
