@@ -12,8 +12,8 @@ import gymnasium as gym
 
 import satloc_env  # noqa: F401  (registers satloc/ActiveLoc-v0)
 from satloc.errors import run_script
-from satloc_env.activemap import SLOTS
-from satloc_env.agents import AGENTS, make_agent
+from satloc_env.agents.policies import AGENTS, make_agent
+from satloc_env.envs.active_map import SLOTS
 
 
 def main(argv=None):

@@ -2,13 +2,13 @@
 
 At each of N places evenly spread along the scene's database route, the database pass's view (right lane, no
 occluders, reference appearance) and the query pass's (1 m further left, occlusion 0.3, appearance 0.5: the
-defaults of ``satloc_env.record.RecordConfig().query``) at each ``--change`` strength (``satloc_env.revisit``)
+defaults of ``satloc_env.envs.record.RecordConfig().query``) at each ``--change`` strength (``satloc_env.world.revisit``)
 are rendered, and the RANSAC inliers between the two left images are counted by EFM's own pipeline (SIFT,
 1,000 features, ratio test, USAC homography: ``satloc.baselines.efm.estimate_homography``). Prints, per
 strength, the median, the 10th and 90th percentiles and the share of places under EFM's 12-inlier minimum.
 
     python examples/revisit_change.py --scene residential --places 40 --change 0 0.5 1
-    python examples/revisit_change.py --scene residential --picture examples/images/revisit_change.jpg
+    python examples/revisit_change.py --scene residential --picture docs/images/revisit_change.jpg
 """
 import argparse
 import sys
@@ -19,8 +19,8 @@ import numpy as np
 
 from satloc.baselines.efm import estimate_homography
 from satloc.errors import run_script
-from satloc_env.env import SatLocEnv
-from satloc_env.record import QUERY_CHANGE, RecordConfig
+from satloc_env.envs.drive import SatLocEnv
+from satloc_env.envs.record import QUERY_CHANGE, RecordConfig
 
 
 def view(env: SatLocEnv, s: float, change: float | None = None, database: bool = False,

@@ -15,7 +15,7 @@ from pathlib import Path
 import numpy as np
 
 from satloc.errors import run_script
-from satloc_env.experiment import METHOD_NAMES, ExperimentConfig, run_scene
+from satloc_env.experiments.scene_run import METHOD_NAMES, ExperimentConfig, run_scene
 
 
 def main(argv=None):

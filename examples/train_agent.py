@@ -13,7 +13,8 @@ import sys
 from pathlib import Path
 
 from satloc.errors import run_script
-from satloc_env.agents import evaluate_agents, train_agent
+from satloc_env.agents.evaluate import evaluate_agents
+from satloc_env.agents.train import train_agent
 
 
 def main(argv=None):

@@ -10,6 +10,13 @@ from .sequence import Frame, Sequence, SequenceWriter
 
 __version__ = "0.1.0"
 
+# modules that moved after 0.1.0: the old names still import, with a FutureWarning naming the new one
+MOVED = {"satloc.georef": "satloc.geodata.georef", "satloc.radiometry": "satloc.geodata.radiometry",
+         "satloc.vectors": "satloc.geodata.vectors"}
+from ._moved import alias_modules as _alias_modules  # noqa: E402
+
+__getattr__ = _alias_modules(__name__, MOVED)
+
 __all__ = [
     "ConfigError", "FormatError", "SatlocError", "SatlocWarning", "Pose2", "StereoCamera", "wrap_angle", "SatelliteMap",
     "Frame", "Sequence", "SequenceWriter", "__version__",

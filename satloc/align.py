@@ -189,7 +189,7 @@ class BevAligner:
         group; None where too little ground is seen.
 
         A likelihood over the whole map from the ground view alone, independent of the dictionary (used to
-        measure perceptual aliasing, :func:`satloc_env.experiment.aliasing`). Candidates are grouped by heading
+        measure perceptual aliasing, :func:`satloc_env.experiments.scene_run.aliasing`). Candidates are grouped by heading
         bin and by connected stretches of path; each group's satellite crop is resampled once per candidate
         set (cached) and slid under the BEV by one ``cv2.matchTemplate``, so the cost grows with the length of
         path, not with the number of candidates."""

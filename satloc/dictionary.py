@@ -13,6 +13,7 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
+from ._threads import single_threaded_blas
 from .config import from_dict, to_dict
 from .context import ContextConfig, ground_context, satellite_context
 from .errors import ConfigError, FormatError
@@ -22,7 +23,6 @@ from .persist import ArraySpec, header_number, header_point, load_npz, nonfinite
 from .satmap import SatelliteMap
 from .sequence import Frame, Sequence
 from .stereo import StereoConfig, StereoDepth
-from ._threads import single_threaded_blas
 
 
 @dataclass(frozen=True)

@@ -4,7 +4,7 @@ The project ships its own network, :class:`SegEdgeNet`, trained from scratch on 
 :mod:`satloc_env` (whose labels are exact), because no pretrained weights can be downloaded. It is an
 encoder-decoder with skip connections and two heads: per-pixel scores of the :data:`satloc.labels.CLASSES`
 and one boundary logit. There is one network per view (``ground``, ``satellite``), both stored in one
-weights file, ``satloc/weights/fcn.pt`` (retrain with ``python -m satloc_env.train_features``).
+weights file, ``satloc/weights/fcn.pt`` (retrain with ``python -m satloc_env.experiments.train_features``).
 
 Extractors (the :mod:`satloc.extractor` interface, ``extractor(image, view) -> (H, W, dim) float32``):
 

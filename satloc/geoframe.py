@@ -9,7 +9,7 @@ convergence) and its scale error grows by about 1.6e-4 per km north or south of 
 
 The frame is a PROJ Mercator (variant B, ``lat_ts = lat0``) on the WGS84 sphere, the way EPSG:3857 treats
 WGS84 coordinates, with a false northing that puts ``lat0`` at y = 0: pyproj does every conversion, and
-rasterio can reproject an image straight into it (:mod:`satloc.georef`).
+rasterio can reproject an image straight into it (:mod:`satloc.geodata.georef`).
 """
 from __future__ import annotations
 

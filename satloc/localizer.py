@@ -36,16 +36,16 @@ import numpy as np
 from scipy.spatial import cKDTree
 from tqdm import tqdm
 
+from ._threads import _END, overlapped, single_threaded_blas
 from .align import AlignConfig, BevAligner, posterior_peaks
 from .device import check_device, device_field
 from .dictionary import Dictionary, FrameDepth, SatelliteFeatures, ground_features, ground_samples
 from .errors import ConfigError, FormatError
-from .persist import ArraySpec, check_arrays, header_number, load_npz, save_npz
 from .features import FeatureExtractor
 from .geometry import Pose2, StereoCamera, arc_length
 from .nn import NNIndex
+from .persist import ArraySpec, check_arrays, header_number, load_npz, save_npz
 from .projection import Projections
-from ._threads import _END, overlapped, single_threaded_blas
 from .sequence import Frame
 from .track import TrackConfig, Tracker
 

@@ -5,12 +5,12 @@ Georeference: ``origin`` is the map-frame position (metres) of the *top-left cor
 Pixel (u, v) has its centre at map point ``(origin_x + (u + 0.5) * mpp, origin_y - (v + 0.5) * mpp)``.
 
 ``frame`` places the map plane on Earth: a :class:`~satloc.geoframe.GeoFrame` for maps of real places (loaded
-by :func:`satloc.georef.load_map`), ``None`` for the local frame of a synthetic scene, which has no place on
+by :func:`satloc.geodata.georef.load_map`), ``None`` for the local frame of a synthetic scene, which has no place on
 Earth. ``map.json`` records it as ``"geo_frame"`` (the frame's ``to_dict()``, or null); a ``map.json`` written
 before the key existed loads with no frame.
 
 ``radiometry`` records how a map read from imagery got its 8-bit colours (the source's sample type, the bands,
-the stretch and its per-band levels: :func:`satloc.radiometry.to_rgb8`), None for other maps; ``map.json``
+the stretch and its per-band levels: :func:`satloc.geodata.radiometry.to_rgb8`), None for other maps; ``map.json``
 keeps it as ``"radiometry"``.
 """
 from __future__ import annotations
@@ -38,7 +38,7 @@ class SatelliteMap:
     frame: GeoFrame | None = None  # where the map plane lies on Earth; None: a synthetic local frame
     radiometry: dict | None = field(default=None, repr=False, compare=False)  # how imagery became 8-bit RGB
     # (H, W) bool: the pixels that hold imagery (False: nodata, masked, transparent or beyond the image's
-    # footprint, black in ``image``); None: every pixel. Set by satloc.georef.load_map; not saved.
+    # footprint, black in ``image``); None: every pixel. Set by satloc.geodata.georef.load_map; not saved.
     valid: np.ndarray | None = field(default=None, repr=False, compare=False)
 
     def __post_init__(self):
@@ -85,7 +85,7 @@ class SatelliteMap:
     def _geo(self, what: str) -> GeoFrame:
         if self.frame is None:
             raise ConfigError(f"SatelliteMap.{what}: this map has no geo frame (a synthetic local frame); "
-                              f"load a georeferenced image with satloc.georef.load_map")
+                              f"load a georeferenced image with satloc.geodata.georef.load_map")
         return self.frame
 
     def lonlat_to_pixel(self, lonlat) -> np.ndarray:
@@ -319,7 +319,7 @@ def _read_tiff_gdal(data: bytes, path: str | Path, grayscale: bool) -> np.ndarra
     from rasterio.enums import ColorInterp
     from rasterio.errors import NotGeoreferencedWarning, RasterioIOError
 
-    from .radiometry import expand_palette, palette_table
+    from .geodata.radiometry import expand_palette, palette_table
 
     try:
         with warnings.catch_warnings(), rasterio.MemoryFile(data) as mem:

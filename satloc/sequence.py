@@ -18,7 +18,8 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Callable, Iterator, Sequence as Seq
+from typing import Callable, Iterator
+from typing import Sequence as Seq
 
 import cv2
 import numpy as np

@@ -5,13 +5,14 @@ import argparse
 import json
 import shutil
 import sys
+import warnings
 from pathlib import Path
 
 import cv2
 import numpy as np
 
 from satloc.device import HELP as DEVICE_HELP
-from satloc.errors import ConfigError, SatlocError
+from satloc.errors import ConfigError, SatlocError, SatlocWarning
 
 
 def _save_rgb(path: Path, img: np.ndarray) -> None:
@@ -74,7 +75,7 @@ def cmd_demo(args) -> int:
     projections, localize every query with GO, NP, full and full refined by bird's-eye alignment, single
     images and tracked, print mean (std) errors and write pictures."""
     from satloc.config import from_dict
-    from satloc_env.experiment import ExperimentConfig, run_scene
+    from satloc_env.experiments.scene_run import ExperimentConfig, run_scene
 
     overrides = {"scene": args.scene, "database_frames": args.db_frames or None, "features": args.features}
     if args.query_frames:
@@ -118,10 +119,10 @@ def _mb(path: Path) -> float:
 
 
 def cmd_experiment(args) -> int:
-    from satloc_env.compare import table1
-    from satloc_env.experiment import aliasing, markdown_table
-
     import yaml
+
+    from satloc_env.experiments.scene_run import aliasing, markdown_table
+    from satloc_env.experiments.tables import table1
 
     config = {}
     if args.config:
@@ -132,18 +133,18 @@ def cmd_experiment(args) -> int:
     log = (lambda *a, **k: None) if args.quiet else (lambda m: print(m, file=sys.stderr, flush=True))
     if args.ray is not None and args.which not in ("table1", "table2", "sweep"):
         raise SatlocError(f"--ray: only table1, table2 and sweep run on Ray, not {args.which}")
-    from satloc_env.scale import Runner
+    from satloc_env.experiments.scale import Runner
 
     with Runner(ray=args.ray is not None, address=args.ray, exact=args.ray_threads == "serial") as runner:
         if args.which == "table2":
-            from satloc_env.compare import table2
+            from satloc_env.experiments.tables import table2
 
             table2(args.out, config, progress=not args.quiet, log=log, runner=runner)
             print((Path(args.out) / "table2.md").read_text(), end="")
             print(f"written: {Path(args.out) / 'table2.csv'}, {Path(args.out) / 'pr_curves.png'}")
             return 0
         if args.which == "sweep":
-            from satloc_env.compare import sweep
+            from satloc_env.experiments.tables import sweep
 
             sweep(args.out, config, progress=not args.quiet, log=log, runner=runner)
             print((Path(args.out) / "sweep.md").read_text(), end="")
@@ -155,7 +156,7 @@ def cmd_experiment(args) -> int:
             print(f"written: {Path(args.out) / 'table1.csv'}")
             return 0
     if args.which == "tune":
-        from satloc_env.tune import tune
+        from satloc_env.experiments.tune import tune
 
         res = tune(args.out, config, progress=not args.quiet, log=log)
         print((Path(args.out) / "tune.md").read_text(), end="")
@@ -171,8 +172,8 @@ def cmd_experiment(args) -> int:
 
 def cmd_evaluate(args) -> int:
     """The method on replayed real data: a KITTI raw drive or a Malaga extract, its queries (another drive or
-    a split of the same one) and a georeferenced satellite image (satloc_env/evaluate.py)."""
-    from satloc_env.evaluate import EvaluateConfig, evaluate
+    a split of the same one) and a georeferenced satellite image (satloc_env/experiments/evaluate.py)."""
+    from satloc_env.experiments.evaluate import EvaluateConfig, evaluate
 
     overrides = {"resolution": args.resolution, "mpp": args.mpp, "split": args.split,
                  "modes": list(args.modes) if args.modes else None}
@@ -197,7 +198,7 @@ def cmd_evaluate(args) -> int:
 
 
 def cmd_record(args) -> int:
-    from satloc_env.record import PassConfig, RecordConfig, record_passes
+    from satloc_env.envs.record import PassConfig, RecordConfig, record_passes
 
     cfg = RecordConfig(
         scene=args.scene, resolution=args.resolution, aliasing=args.aliasing,
@@ -215,23 +216,23 @@ def cmd_record(args) -> int:
 
 def cmd_bench(args) -> int:
     if args.what == "env":
-        from satloc_env.bench import bench_env
+        from satloc_env.experiments.bench import bench_env
 
         for n in args.num_envs:
             print(json.dumps(bench_env(args.resolution, args.steps, args.scene or "city", num_envs=n)), flush=True)
     elif args.what == "active":
-        from satloc_env.bench import bench_active
+        from satloc_env.experiments.bench import bench_active
 
         for row in bench_active(args.scene or "active_grid", args.episodes):
             print(json.dumps(row), flush=True)
     elif args.what == "vo":
-        from satloc_env.bench import bench_vo
+        from satloc_env.experiments.bench import bench_vo
 
         for row in bench_vo(args.scene or "residential", args.frames, args.work or None, args.kitti or None,
                             progress=not args.quiet):
             print(json.dumps(row), flush=True)
     else:
-        from satloc_env.bench import bench_localize
+        from satloc_env.experiments.bench import bench_localize
 
         for row in bench_localize(args.sizes_km, args.work or None, scene=args.scene or "loop",
                                   queries=args.queries, progress=not args.quiet, device=args.device):
@@ -241,7 +242,7 @@ def cmd_bench(args) -> int:
 
 def cmd_agent(args) -> int:
     if args.what == "evaluate":
-        from satloc_env.agents import evaluate_agents
+        from satloc_env.agents.evaluate import evaluate_agents
 
         cfg = dict(agents=tuple(a.strip() for a in args.agents.split(",") if a.strip()), episodes=args.episodes,
                    seed=10_000 if args.seed is None else args.seed, policy=args.policy)
@@ -251,12 +252,12 @@ def cmd_agent(args) -> int:
             cfg["env"] = _yaml_dict(args.config)
         evaluate_agents(cfg, args.out, progress=not args.quiet)
     elif args.what == "train":
-        from satloc_env.agents import train_agent
+        from satloc_env.agents.train import train_agent
 
         train_agent(args.out, args.timesteps, 0 if args.seed is None else args.seed, args.maps[0] if args.maps else "active_grid",
                     env=_yaml_dict(args.config) if args.config else None, progress=not args.quiet)
     else:
-        from satloc_env.activemap import build_active_map
+        from satloc_env.envs.active_map import build_active_map
 
         if not args.scene:
             raise ConfigError("agent map: --scene is required")
@@ -281,8 +282,8 @@ def _yaml_dict(path: str) -> dict:
 
 
 def cmd_scene(args) -> int:
-    from satloc_env.record import check_scene_routes
-    from satloc_env.scene import load_scene
+    from satloc_env.envs.record import check_scene_routes
+    from satloc_env.world.scene import load_scene
 
     scene = load_scene(args.scene, args.aliasing)
     check_scene_routes(scene)   # every route drivable by the autopilot at the recorder's lane offsets
@@ -384,15 +385,15 @@ def build_parser() -> argparse.ArgumentParser:
     ex.add_argument("which", choices=["table1", "table2", "sweep", "aliasing", "tune"])
     ex.add_argument("--out", required=True)
     ex.add_argument("--scenes", nargs="+", default=["city", "residential"])
-    ex.add_argument("--config", help="YAML with ExperimentConfig fields (satloc_env/experiment.py); table2: "
-                                     "Table2Config, sweep: SweepConfig fields (satloc_env/compare.py), tune: "
-                                     "TuneConfig fields (satloc_env/tune.py); --scenes is not used by these)")
+    ex.add_argument("--config", help="YAML with ExperimentConfig fields (satloc_env/experiments/scene_run.py); table2: "
+                                     "Table2Config, sweep: SweepConfig fields (satloc_env/experiments/tables.py), tune: "
+                                     "TuneConfig fields (satloc_env/experiments/tune.py); --scenes is not used by these)")
     ex.add_argument("--quiet", action="store_true")
     ex.add_argument("--ray", nargs="?", const="", default=None, metavar="ADDRESS",
                     help="table1, table2, sweep: run the independent units (scenes, protocols, passes, knob "
                          "combinations) as Ray tasks: a local Ray cluster of this machine's cores, or the cluster at "
                          "ADDRESS (e.g. auto, or host:6379 after `ray start --head`); the same CSV as without it. "
-                         "Needs pip install -e '.[ray]' (satloc_env/scale.py)")
+                         "Needs pip install -e '.[ray]' (satloc_env/experiments/scale.py)")
     ex.add_argument("--ray-threads", choices=["serial", "cpus"], default="serial",
                     help="with --ray: torch and BLAS threads of each task: serial (default) as many as a serial run "
                          "here, so that the CSV is byte-identical to a serial run's (more threads than cores while "
@@ -423,7 +424,7 @@ def build_parser() -> argparse.ArgumentParser:
     ev.add_argument("--modes", nargs="+", default=None, metavar="MODE",
                     help="modes to localize with: go np full full+align go+track np+track full+track "
                          "full+track+align (default: all of these, as table1)")
-    ev.add_argument("--config", help="YAML with EvaluateConfig fields (satloc_env/evaluate.py), e.g. 'margin_m: "
+    ev.add_argument("--config", help="YAML with EvaluateConfig fields (satloc_env/experiments/evaluate.py), e.g. 'margin_m: "
                                      "20' (the map's margin around the route)")
     ev.add_argument("--quiet", action="store_true")
     ev.set_defaults(func=cmd_evaluate)
@@ -440,7 +441,7 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--occlusion", type=float, default=0.3)
     r.add_argument("--appearance", type=float, default=0.5)
     r.add_argument("--change", type=float, default=0.5,
-                   help="the query pass's revisit change of the world in [0, 1] (satloc_env.revisit)")
+                   help="the query pass's revisit change of the world in [0, 1] (satloc_env.world.revisit)")
     r.add_argument("--max-frames", type=int, default=None)
     r.add_argument("--seed", type=int, default=0)
     r.add_argument("--quiet", action="store_true")
@@ -452,7 +453,7 @@ def build_parser() -> argparse.ArgumentParser:
     b.add_argument("--steps", type=int, default=2000, help="env: steps timed (of all cars together)")
     b.add_argument("--num-envs", type=int, nargs="+", default=[1],
                    help="env: cars stepped together, one run each (e.g. 1 8): 1 is the single environment, more the "
-                        "batched vector environment (satloc_env.vector)")
+                        "batched vector environment (satloc_env.envs.vector)")
     b.add_argument("--scene", default=None, help="env: city; localize: loop (the longest route); vo: residential; "
                                                  "active: the active map (active_grid)")
     b.add_argument("--episodes", type=int, default=20, help="active: episodes per agent")
@@ -536,15 +537,32 @@ def build_parser() -> argparse.ArgumentParser:
 EXIT_INTERRUPTED = 130
 
 
+def _show_warning(message, category, filename, lineno, file=None, line=None) -> None:
+    """A warning as the command's one line, ``satloc: warning: ...`` (not Python's form with the internal
+    file, line number and source line). satloc's own warnings say what they are about; others keep their
+    category's name."""
+    text = " ".join(str(message).split())
+    if not issubclass(category, SatlocWarning):
+        text = f"{category.__name__}: {text}"
+    print(f"satloc: warning: {text}", file=sys.stderr if file is None else file, flush=True)
+
+
 def main(argv: list[str] | None = None) -> int:
     """Run a command; 2 with one line on a :class:`SatlocError`, 130 with one line on Ctrl-C (SIGINT).
+    Warnings are printed as one line each (``satloc: warning: ...``).
 
     An interrupted command leaves its outputs as they were or marked incomplete (every file is written
     atomically; see each stage), and running it again resumes or starts over."""
+    with warnings.catch_warnings():
+        warnings.showwarning = _show_warning
+        return _main(argv)
+
+
+def _main(argv: list[str] | None) -> int:
     argv = sys.argv[1:] if argv is None else list(argv)
     try:
         if argv[:1] == ["train-features"]:  # its own parser (argparse cannot forward options through REMAINDER)
-            from satloc_env.train_features import main as train_main
+            from satloc_env.experiments.train_features import main as train_main
 
             return train_main(argv[1:]) or 0
         args = build_parser().parse_args(argv)

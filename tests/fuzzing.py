@@ -412,7 +412,7 @@ def _make_foreign(kind: str) -> bytes:
     if kind == "tiff":
         import tempfile
 
-        from satloc.georef import write_geotiff
+        from satloc.geodata.georef import write_geotiff
 
         with tempfile.TemporaryDirectory() as tmp:
             p = Path(tmp) / "f.tif"

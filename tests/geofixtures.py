@@ -1,4 +1,4 @@
-"""Georeferenced test images of our own making, in the formats :mod:`satloc.georef` reads.
+"""Georeferenced test images of our own making, in the formats :mod:`satloc.geodata.georef` reads.
 
 Every fixture paints one ground pattern, defined on lon/lat, over the same box near Karlsruhe (the KITTI
 area): each pixel's centre is taken to lon/lat through pyproj and coloured by :func:`texture`, so the
@@ -19,8 +19,8 @@ import numpy as np
 import pyproj
 from affine import Affine
 
+from satloc.geodata.georef import write_geotiff, write_world_file
 from satloc.geoframe import GeoFrame
-from satloc.georef import write_geotiff, write_world_file
 
 LON0, LAT0 = 8.43, 49.01
 REF = GeoFrame(LON0, LAT0)  # the frame the pattern is defined in (metres east/north of LON0, LAT0)

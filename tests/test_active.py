@@ -1,4 +1,4 @@
-"""satloc/ActiveLoc-v0 (satloc_env.active), its maps (satloc_env.activemap) and agents (satloc_env.agents)."""
+"""satloc/ActiveLoc-v0 (satloc_env.envs.active), its maps (satloc_env.envs.active_map) and agents (satloc_env.agents)."""
 import csv
 import math
 
@@ -10,17 +10,10 @@ from gymnasium.utils.env_checker import check_env
 
 import satloc_env
 from satloc.errors import ConfigError, FormatError
-from satloc_env.active import ActiveLocEnv
-from satloc_env.activemap import SLOTS, ActiveMap, _leg_of_poses, both_ways_circuit
-from satloc_env.agents import (
-    CSV_COLUMNS,
-    EntropyAgent,
-    LearnedAgent,
-    RouteAgent,
-    evaluate_agents,
-    make_agent,
-    run_episode,
-)
+from satloc_env.agents.evaluate import CSV_COLUMNS, evaluate_agents, run_episode
+from satloc_env.agents.policies import EntropyAgent, LearnedAgent, RouteAgent, make_agent
+from satloc_env.envs.active import ActiveLocEnv
+from satloc_env.envs.active_map import SLOTS, ActiveMap, _leg_of_poses, both_ways_circuit
 
 
 @pytest.fixture(scope="module")
@@ -36,8 +29,8 @@ def test_check_env_registered():
 
 @pytest.mark.parametrize("scene, streets", [("active_town", 17), ("active_grid", 60), ("active_suburb", 49)])
 def test_shipped_maps_match_their_scenes(scene, streets):
-    from satloc_env.record import scene_identity
-    from satloc_env.scene import load_scene
+    from satloc_env.envs.record import scene_identity
+    from satloc_env.world.scene import load_scene
 
     m = ActiveMap.load(scene)
     assert m.meta["scene"] == scene and m.meta["scene_sha256"] == scene_identity(scene)[2]   # rebuilt after edits
@@ -96,7 +89,7 @@ def test_action_mask_and_invalid_action(town):
         assert town.reverse[env.leg] not in town.branches[env.leg]        # never the way back
         assert env.observation_space.contains(obs)
         # the observation's slot entries say which branches exist
-        f = satloc_env.active.OBS_FIELDS
+        f = satloc_env.envs.active.OBS_FIELDS
         np.testing.assert_array_equal([obs[f.index(f"{s}_exists")] for s in SLOTS], mask.astype(np.float32))
         obs, _, term, trunc, info = env.step(int(np.flatnonzero(mask)[0]))
         if term or trunc:
@@ -217,7 +210,7 @@ def test_both_ways_circuit():
 
 
 def test_map_needs_a_both_ways_tour(tmp_path):
-    from satloc_env.activemap import build_active_map
+    from satloc_env.envs.active_map import build_active_map
 
     with pytest.raises(ConfigError, match="once in each direction"):
         build_active_map({"scene": "city"}, tmp_path, progress=False)
@@ -260,7 +253,7 @@ def test_cli_agent_evaluate(tmp_path):
 
 def test_train_tiny(tmp_path):
     pytest.importorskip("sb3_contrib")
-    from satloc_env.agents import train_agent
+    from satloc_env.agents.train import train_agent
 
     path = train_agent(tmp_path, timesteps=64, map="active_town", n_envs=2, n_steps=32, log=lambda *a: None)
     agent = LearnedAgent(path)
@@ -303,7 +296,7 @@ def test_active_config_and_map_checks(tmp_path, town):
         env.reset(seed=0, options={"map": "no_such_scene", "fuse_every": 3})
     assert env.config.map == "active_town" and env.config.fuse_every == 1 and env.map.scene == "active_town"
     env.reset(seed=0)                                   # still the old map and settings
-    from satloc_env.activemap import ActiveMapConfig
+    from satloc_env.envs.active_map import ActiveMapConfig
     with pytest.raises(ConfigError, match="min_relative"):
         ActiveMapConfig(min_relative=1e-6)               # below what a stored row can hold
     arrays = {k: getattr(town, k) for k in ("nodes", "legs", "candidates", "cand_leg", "cand_rest", "frame_pose",

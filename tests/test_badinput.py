@@ -33,11 +33,17 @@ from satloc.localizer import LocalizerConfig
 from satloc.pipeline import BuildConfig, build, load_localizer
 from satloc.projection import ProjectionConfig
 from satloc.sequence import Sequence
-from satloc_env import autoloc
-from satloc_env.env import (MAP_MAX_DIFFERING, ActionError, SatLocEnv, build_identity, check_localizer_map,
-                            map_difference)
-from satloc_env.record import PassConfig, record_pass
-from satloc_env.vehicle import VehicleParams, step_bicycle
+from satloc_env.envs import auto_localizer as autoloc
+from satloc_env.envs.drive import (
+    MAP_MAX_DIFFERING,
+    ActionError,
+    SatLocEnv,
+    build_identity,
+    check_localizer_map,
+    map_difference,
+)
+from satloc_env.envs.record import PassConfig, record_pass
+from satloc_env.envs.vehicle import VehicleParams, step_bicycle
 
 ENV_ID, REPLAY_ID = satloc_env.ENV_ID, satloc_env.REPLAY_ID
 
@@ -117,7 +123,7 @@ def test_every_registered_id_is_covered():
 
 
 def test_activeloc_refuses_non_integer_and_out_of_range_actions():
-    from satloc_env.active import ActiveLocEnv
+    from satloc_env.envs.active import ActiveLocEnv
 
     env = ActiveLocEnv(map="active_town")
     _, info = env.reset(seed=0)
@@ -341,7 +347,7 @@ def test_localizer_of_another_scene_is_refused_by_satloc_v0(scenes, loc, build_d
 def test_without_colour_features_the_build_record_decides(scenes, loc, build_dir, monkeypatch):
     """A localizer whose features hold no colours (the semantic set) cannot be compared with the map; a build
     directory's recorded scene then decides."""
-    monkeypatch.setattr("satloc_env.env._rgb_channels", lambda extractor: None)
+    monkeypatch.setattr("satloc_env.envs.drive._rgb_channels", lambda extractor: None)
     assert map_difference(loc, satloc_env.load_scene(scenes["tiny2"]).satmap) is None
     with pytest.raises(ConfigError, match=r"the build '.*' of scene 'tiny' \(aliasing 0\) is not a build of scene "
                                           r"'tiny2' \(aliasing 0\)"):
@@ -417,7 +423,7 @@ def test_replay_refuses_a_localizer_of_other_data(scenes, rec, loc, build_dir, t
 
 # --- soak (issue 15 item 6), in miniature ---------------------------------------------------------------------
 def test_soak_report(scenes, build_dir, tmp_path, capsys):
-    from satloc_env.soak import SoakConfig, main, soak
+    from satloc_env.experiments.soak import SoakConfig, main, soak
 
     lines = []
     # the default "small" localizer, with the module's small build configuration: served from its cache entry

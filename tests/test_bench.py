@@ -30,7 +30,7 @@ def test_bench_env_prints_steps_per_second(capsys):
 def test_bench_localize_reuses_only_a_recording_that_covers_the_longest_size(tmp_path):
     """A recording of another scene, or one shorter than the longest size asked, is not reused (it once
     measured a 1.14 km database under build_4km and said nothing)."""
-    from satloc_env.bench import bench_recording
+    from satloc_env.experiments.bench import bench_recording
 
     def done(name):
         (tmp_path / name / "query").mkdir(parents=True)
@@ -51,7 +51,7 @@ def test_bench_localize_refuses_a_size_longer_than_the_route(tmp_path, monkeypat
 
     import satloc.sequence
     from satloc.errors import ConfigError
-    from satloc_env import bench
+    from satloc_env.experiments import bench
 
     class Short:   # a recording of a 0.1 km route
         poses = np.c_[np.linspace(0, 100, 60), np.zeros(60), np.zeros(60)]

@@ -1,4 +1,4 @@
-"""3-D objects from map vectors: building footprints and trees (satloc.vectors, satloc_env.scenebuildings).
+"""3-D objects from map vectors: building footprints and trees (satloc.geodata.vectors, satloc_env.world.scene_buildings).
 
 The imagery and the vectors are made here, in tmp_path, as in test_roads.py: a GeoTIFF in UTM zone 32N near
 lon 8.43, lat 49.01 (160 m x 120 m at 0.5 m per pixel), road centre lines in CRS84 GeoJSON, and footprints
@@ -13,13 +13,12 @@ import pyproj
 import pytest
 import shapely
 import yaml
+from test_roads import E0, N0, RES, UTM, image, local, plain_image_scene, write_vectors
 
 from satloc import ConfigError, SatlocWarning
+from satloc.geodata.vectors import LEVEL_HEIGHT_M, building_height, read_footprints, read_trees
 from satloc.labels import CLASS_ID
-from satloc.vectors import LEVEL_HEIGHT_M, building_height, read_footprints, read_trees
-from satloc_env.scene import Scene, load_scene
-
-from test_roads import E0, N0, RES, UTM, image, local, plain_image_scene, write_vectors
+from satloc_env.world.scene import Scene, load_scene
 
 # footprints in metres east / north of (E0, N0): beside the main road (y about 60, 8 m wide), a courtyard
 # block, one straddling the tile's east edge (x = 160), one on the road, and one tagged building=no
@@ -205,7 +204,7 @@ def test_footprints_become_buildings_on_the_tile(scene):
 
 
 def test_heights_are_seeded_and_the_same_on_every_load(scene_dir, scene):
-    from satloc_env.scene import build_scene, load_spec
+    from satloc_env.world.scene import build_scene, load_spec
 
     spec, base = load_spec(write_scene(scene_dir, buildings="buildings.geojson", trees="trees.geojson"))
     with warnings.catch_warnings():
@@ -241,9 +240,9 @@ def test_extruded_buildings_and_trees_appear_in_the_label_and_depth_images(scene
     """The camera on the main road looks north at HOUSE_A's south wall, 7 m off the road's centre line, then
     at the tree; labels and depth show them standing, where the flat world has ground."""
     from satloc.geometry import Pose2, StereoCamera
-    from satloc_env.render import StereoRenderer
-    from satloc_env.world import build_world
-    from satloc_env.layout import Layout
+    from satloc_env.render.stereo import StereoRenderer
+    from satloc_env.world.layout import Layout
+    from satloc_env.world.meshes import build_world
 
     cam = StereoCamera.kitti_half()
     lay = scene.layout
@@ -326,7 +325,6 @@ def test_one_osm_export_gives_roads_buildings_and_trees(tmp_path):
 def test_pixels_without_imagery_are_neutral_ground_not_black(tmp_path):
     """A tile whose west strip is nodata: the scene's ground (and tile) there is the imagery's median colour."""
     from affine import Affine
-
     from test_roads import H_PX, W_PX
 
     rr, cc = np.mgrid[0:H_PX, 0:W_PX]

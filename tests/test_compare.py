@@ -1,4 +1,4 @@
-"""The comparison harness (satloc_env/compare.py): every method on one split, Table II's counting."""
+"""The comparison harness (satloc_env/experiments/tables.py): every method on one split, Table II's counting."""
 import json
 
 import numpy as np
@@ -6,9 +6,9 @@ import pytest
 
 from satloc.errors import ConfigError
 from satloc.persist import load_npz
-from satloc_env.compare import CompareConfig, Table2Config, _write_table2, operating_point, trained_fabmap
-from satloc_env.experiment import ExperimentConfig
 from satloc.sequence import Sequence
+from satloc_env.experiments.scene_run import ExperimentConfig
+from satloc_env.experiments.tables import CompareConfig, Table2Config, _write_table2, operating_point, trained_fabmap
 
 TINY_BASELINES = {"fabmap": {"vocabulary_size": 40, "max_features": 150, "new_place_samples": 5},
                   "efm": {"features": 200}, "fabmap_train_frames": 6}
@@ -19,7 +19,7 @@ def meta_of(path):
 
 
 def test_fabmap_motion_window_from_the_steps():
-    from satloc_env.compare import fabmap_motion_window
+    from satloc_env.experiments.tables import fabmap_motion_window
 
     db = np.column_stack([np.arange(0, 100, 2.0), np.zeros(50), np.zeros(50)])      # places every 2 m
     assert fabmap_motion_window(db, db[::5]) == 6                                    # 10 m steps: 5 places + 1
@@ -71,7 +71,7 @@ def test_config_errors(tmp_path):
 
 
 def test_protocol_splits():
-    from satloc_env.compare import protocol_split
+    from satloc_env.experiments.tables import protocol_split
 
     db, q = protocol_split("city", 50, 0.4, seed=3)
     assert len(db) == 20 and len(q) == 30 and len(np.intersect1d(db, q)) == 0
@@ -88,7 +88,7 @@ def test_protocol_splits():
 
 
 def test_table1_protocols_on_a_tiny_section(tmp_path):
-    from satloc_env.compare import table1
+    from satloc_env.experiments.tables import table1
 
     # every method on the same splits: two modes, FAB-MAP (a small vocabulary trained on a few frames of
     # residential) and EFM (few features)
@@ -125,7 +125,7 @@ def test_table1_protocols_on_a_tiny_section(tmp_path):
 
 
 def test_sweep_config_and_figure(tmp_path):
-    from satloc_env.compare import SweepConfig, plot_sweep
+    from satloc_env.experiments.tables import SweepConfig, plot_sweep
 
     with pytest.raises(ConfigError, match="occlusion"):
         SweepConfig(occlusion=(0.0, 1.5))
@@ -138,7 +138,7 @@ def test_sweep_config_and_figure(tmp_path):
 def test_sweep_end_to_end_reports_intervals_failures_and_odometry(tmp_path):
     """sweep() on one tiny combination: sweep.csv has SWEEP_COLUMNS, one row per method, each the figures of
     that combination's compare.json (failures counted, bootstrap interval around the mean)."""
-    from satloc_env.compare import SWEEP_COLUMNS, sweep
+    from satloc_env.experiments.tables import SWEEP_COLUMNS, sweep
 
     exp = {"database_frames": 30, "query_frames": 4, "query_spacing_m": 6.0, "features": "rgb",
            "modes": ["go", "go+track"], "compare": dict(TINY_BASELINES, baselines=["efm"]), "pictures": False}
@@ -160,7 +160,7 @@ def test_table2_calibrates_on_other_passes_and_reports_the_test(tmp_path):
     """table2() end to end on a tiny configuration of loop: the thresholds come from the calibration passes
     (other seeds and spacing), the test figures are computed at them, with intervals, beside the oracle."""
     from satloc.metrics import precision_recall
-    from satloc_env.compare import TABLE2_COLUMNS, table2
+    from satloc_env.experiments.tables import TABLE2_COLUMNS, table2
 
     exp = {"database_frames": 30, "query_frames": 4, "query_spacing_m": 6.0, "features": "rgb",
            "modes": ["go", "go+track"], "compare": dict(TINY_BASELINES, baselines=["efm"]), "pictures": False}
@@ -190,7 +190,7 @@ def test_table2_calibrates_on_other_passes_and_reports_the_test(tmp_path):
                                                        "baseline_efm.npz"))["errors"] for p in ("inside", "outside")])
         sc = np.concatenate([np.load(tmp_path / p / (f"localization_{key}.npz" if key != "efm" else
                                                       "baseline_efm.npz"))["inlier_score"] for p in ("inside", "outside")])
-        from satloc_env.experiment import covered_queries
+        from satloc_env.experiments.scene_run import covered_queries
         db = Sequence.load(tmp_path / "rec" / "database")
         inside = np.concatenate([np.isin(sel[p], covered_queries(db, q[p], 5.0)) for p in ("inside", "outside")])
         sc = np.where(np.isfinite(err), sc, np.nan)
@@ -211,8 +211,8 @@ def test_table2_recordings_finished_before_a_failure_are_reused(tmp_path, monkey
     import types
     from pathlib import Path
 
-    import satloc_env.compare as C
-    import satloc_env.record as R
+    import satloc_env.envs.record as R
+    import satloc_env.experiments.tables as C
 
     calls = []
 

@@ -3,7 +3,7 @@ import json
 import numpy as np
 import pytest
 
-from satloc import ConfigError, Frame, FormatError, Pose2, Sequence, SequenceWriter, StereoCamera
+from satloc import ConfigError, FormatError, Frame, Pose2, Sequence, SequenceWriter, StereoCamera
 from satloc.config import from_dict, override
 from satloc.persist import load_npz, save_npz
 from satloc.sequence import decode_depth, encode_depth

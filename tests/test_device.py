@@ -9,20 +9,19 @@ import json
 import numpy as np
 import pytest
 import torch
+from test_method import synthetic_dictionary
 
 from satloc import ConfigError
 from satloc.config import from_dict, to_dict
 from satloc.device import check_device, resolve_device
-from satloc.fcn import FCNPredictor, SegEdgeNet, default_predictor, load_fcn, save_fcn, ViewNet
+from satloc.fcn import FCNPredictor, SegEdgeNet, ViewNet, default_predictor, load_fcn, save_fcn
 from satloc.features import make_extractor
 from satloc.labels import NUM_CLASSES
 from satloc.localizer import LocalizerConfig
 from satloc.pipeline import BuildConfig
 from satloc.projection import ProjectionConfig, train_projections
 from satloc_env.cli import main
-from satloc_env.train_features import TrainConfig, class_weights, train_features, train_view
-
-from test_method import synthetic_dictionary
+from satloc_env.experiments.train_features import TrainConfig, class_weights, train_features, train_view
 
 CUDA = torch.cuda.is_available()
 no_cuda = pytest.mark.skipif(CUDA, reason="CUDA is available here")
@@ -94,7 +93,7 @@ def test_frozen_configs_check_the_spelling(cls):
 
 
 def test_cache_keys_do_not_depend_on_the_device():
-    from satloc_env.autoloc import cache_key
+    from satloc_env.envs.auto_localizer import cache_key
 
     a = cache_key("city", max_frames=20)
     assert a == cache_key("city", max_frames=20, build_config=BuildConfig(device="cpu"),

@@ -20,8 +20,8 @@ from satloc.persist import read_json
 from satloc.pipeline import BuildConfig, load_localizer
 from satloc.projection import ProjectionConfig
 from satloc.track import Tracker, compose_motion
-from satloc_env import autoloc
-from satloc_env.env import ESTIMATE_RGB, PANEL_PX, PosteriorView, compose_view
+from satloc_env.envs import auto_localizer as autoloc
+from satloc_env.envs.drive import ESTIMATE_RGB, PANEL_PX, PosteriorView, compose_view
 
 ID = "satloc/SatLoc-v0"
 K = 16  # posterior_k of the small localizer (the default is 32)
@@ -306,7 +306,7 @@ def test_overview_shows_a_far_off_estimate():
 
 
 def test_vector_env_with_a_localizer_equals_single_envs(loc):
-    """The batched vector environment (satloc_env.vector) localizes each car as a single environment does:
+    """The batched vector environment (satloc_env.envs.vector) localizes each car as a single environment does:
     tracked posteriors, estimates and rewards equal those of SyncVectorEnv over the same seeds (this small
     localizer has RGB features: no network, so the batched network call changes nothing)."""
     from test_vector import assert_same

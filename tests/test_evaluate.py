@@ -1,4 +1,4 @@
-"""``satloc evaluate`` (satloc_env/evaluate.py) end to end on real-data layouts of our own making.
+"""``satloc evaluate`` (satloc_env/experiments/evaluate.py) end to end on real-data layouts of our own making.
 
 A short drive is rendered with the simulator over the shipped ``city`` scene (KITTI's full-resolution rig),
 written as a KITTI raw drive (OXTS lat/lon from the poses through a GeoFrame) and as a Malaga extract, and
@@ -15,16 +15,16 @@ import numpy as np
 import pytest
 import yaml
 from kittifixture import DEFAULT_FRAME, SynthRig, write_kitti_drive
-from realfixtures import REAL, lidar_mosaic
 from malagafixture import MALAGA_LAT0, MALAGA_LON0, T0, write_malaga_extract
+from realfixtures import REAL, lidar_mosaic
 
 from satloc import ConfigError, Frame, Pose2, Sequence, StereoCamera
+from satloc.geodata.georef import save_geotiff
 from satloc.geoframe import GeoFrame
-from satloc.georef import save_geotiff
 from satloc.persist import load_npz
 from satloc.satmap import SatelliteMap
 from satloc_env.cli import main
-from satloc_env.evaluate import output_camera, parse_split, passes_split, random_split
+from satloc_env.experiments.evaluate import output_camera, parse_split, passes_split, random_split
 
 # the tracked rows here move by the drive's poses plus noise: drive 3 jumps from the end of pass A back to its
 # start on another lane (a cut no odometry sees), and pass B's frames are 6.4 m apart, beyond what frame-to-frame
@@ -57,7 +57,7 @@ def data(tmp_path_factory):
     frame. Configurations: ``small.yaml`` (rgb features, few projection epochs) and ``shipped.yaml`` (the same
     with the shipped FCN features, which the revisit pass B needs: with rgb features GO's median error on B
     was 19.6 m against 0.51 m)."""
-    from satloc_env.env import SatLocEnv
+    from satloc_env.envs.drive import SatLocEnv
 
     root = tmp_path_factory.mktemp("evaluate")
     env = SatLocEnv(scene="city", resolution="full", localizer=None, start_s_m=460.0)
@@ -358,7 +358,7 @@ def test_uncovered_route_error_says_how_to_change_margin_m(tmp_path):
     from geofixtures import REF, UTM, make_world_image
 
     from satloc_env.cli import _stage_config
-    from satloc_env.evaluate import EvaluateConfig, load_satellite
+    from satloc_env.experiments.evaluate import EvaluateConfig, load_satellite
 
     path, _, _ = make_world_image(tmp_path / "w.png", UTM, gsd_m=1.0)
     poses = np.array([[-30.0, -20.0, 0.0], [30.0, 20.0, 0.0]])
@@ -382,8 +382,8 @@ def test_satellite_map_stage_follows_the_files_it_was_read_from(tmp_path):
     from affine import Affine
     from geofixtures import REF, UTM, make_tiles, make_world_image
 
-    from satloc.georef import load_map, write_world_file
-    from satloc_env.evaluate import EvaluateConfig, load_satellite
+    from satloc.geodata.georef import load_map, write_world_file
+    from satloc_env.experiments.evaluate import EvaluateConfig, load_satellite
 
     poses = np.array([[-30.0, -20.0, 0.0], [30.0, 20.0, 0.0]])
     cfg = EvaluateConfig(mpp=1.0, margin_m=20.0)

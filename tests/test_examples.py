@@ -32,9 +32,9 @@ def test_example_stress_runs_and_writes_its_table_and_curve(tmp_path):
 def test_example_replay_evaluates_a_recorded_sequence(tmp_path):
     from satloc.pipeline import BuildConfig
     from satloc.projection import ProjectionConfig
-    from satloc_env import autoloc
-    from satloc_env.env import SatLocEnv
-    from satloc_env.record import PassConfig, record_pass
+    from satloc_env.envs import auto_localizer as autoloc
+    from satloc_env.envs.drive import SatLocEnv
+    from satloc_env.envs.record import PassConfig, record_pass
 
     # a short pass 0.5 m beside the database lane of a small city build (the first 25 m of the route)
     env = SatLocEnv(scene="city", localizer=None, depth=True)

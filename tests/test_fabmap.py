@@ -280,7 +280,7 @@ def test_save_load_round_trip_and_damage(tmp_path):
 def rendered(tmp_path_factory):
     """Places: 40 city frames. Training (vocabulary, tree, new-place samples): the first 30 frames of a
     residential drive, disjoint from the places as the paper requires; its last 4 frames are unseen images."""
-    from satloc_env.record import PassConfig, RecordConfig, record_passes
+    from satloc_env.envs.record import PassConfig, RecordConfig, record_passes
 
     out = tmp_path_factory.mktemp("fabmap")
     city = RecordConfig(scene="city", database=PassConfig(spacing_m=6.0, max_frames=40, depth=False),

@@ -1,4 +1,4 @@
-"""Tests of the FCN features (satloc.fcn) and their training (satloc_env.train_features)."""
+"""Tests of the FCN features (satloc.fcn) and their training (satloc_env.experiments.train_features)."""
 from __future__ import annotations
 
 import cv2
@@ -8,11 +8,20 @@ import torch
 from torch import nn
 
 from satloc import ConfigError, FormatError
+from satloc.fcn import (
+    DEFAULT_WEIGHTS,
+    FORMAT,
+    EdgeFeatures,
+    FCNPredictor,
+    SegEdgeNet,
+    SemanticFeatures,
+    ViewNet,
+    load_fcn,
+    save_fcn,
+)
 from satloc.features import FeatureStack
-from satloc.fcn import (DEFAULT_WEIGHTS, FORMAT, EdgeFeatures, FCNPredictor, SegEdgeNet, SemanticFeatures, ViewNet,
-                        load_fcn, save_fcn)
 from satloc.labels import NUM_CLASSES
-from satloc_env.train_features import TrainConfig, class_weights, label_boundaries, train_view
+from satloc_env.experiments.train_features import TrainConfig, class_weights, label_boundaries, train_view
 
 # Sanity floors of pixel accuracy of the shipped weights; the held-out accuracies measured by the training
 # report (satloc/weights/fcn_report.json) are well above them.
@@ -39,7 +48,7 @@ def predictor() -> FCNPredictor:
 def residential_tile() -> tuple[np.ndarray, np.ndarray]:
     """A 352 x 400 px crop of the residential scene's tile and its labels, from the bottom strip of the tile
     that training holds out."""
-    from satloc_env.scene import load_scene
+    from satloc_env.world.scene import load_scene
 
     sm = load_scene("residential").satmap
     return np.ascontiguousarray(sm.image[-352:, 900:1300]), sm.labels[-352:, 900:1300]

@@ -19,8 +19,8 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-
 from fuzzing import Format, Target, Targeted, run_format
+
 from satloc import Frame, Pose2, SatelliteMap, Sequence, StereoCamera
 from satloc.geoframe import GeoFrame
 from satloc.labels import NUM_CLASSES
@@ -123,7 +123,7 @@ knobs: {aliasing: 0.0, occlusion: 0.2, appearance: 0.1}
 
 
 def check_scene(sc) -> None:
-    from satloc_env.scene import Scene
+    from satloc_env.world.scene import Scene
 
     assert isinstance(sc, Scene)
     check_satmap(sc.satmap)
@@ -170,7 +170,7 @@ def make_scene_yaml(d: Path) -> None:
 
 
 def load_scene_yaml(d: Path):
-    from satloc_env.scene import build_scene, load_spec
+    from satloc_env.world.scene import build_scene, load_spec
 
     path = d / "fuzz.yaml"
     spec, base = load_spec(path)
@@ -183,7 +183,7 @@ def make_saved_scene(d: Path) -> None:
 
 
 def load_saved_scene(d: Path):
-    from satloc_env.scene import Scene
+    from satloc_env.world.scene import Scene
 
     return Scene.load(d / "scene")
 
@@ -334,7 +334,7 @@ def make_build(d: Path) -> None:
     from satloc.context import ContextConfig
     from satloc.pipeline import BuildConfig, build, train_projection
     from satloc.projection import ProjectionConfig
-    from satloc_env.autoloc import load_cached_localizer
+    from satloc_env.envs.auto_localizer import load_cached_localizer
 
     rng = np.random.default_rng(6)
     cam, frames = BUILD_CAMERA, []
@@ -352,7 +352,7 @@ def make_build(d: Path) -> None:
 
 
 def load_build(d: Path):
-    from satloc_env.autoloc import load_cached_localizer
+    from satloc_env.envs.auto_localizer import load_cached_localizer
 
     return load_cached_localizer(d / "build", "full")
 
@@ -390,7 +390,7 @@ def make_autoloc(d: Path) -> None:
     from satloc.persist import FORMAT_VERSION, header, write_json
     from satloc.pipeline import BuildConfig
     from satloc.projection import ProjectionConfig
-    from satloc_env.record import RecordConfig
+    from satloc_env.envs.record import RecordConfig
 
     key = {"scene": "fuzz", "source": "/somewhere/fuzz.yaml", "scene_sha256": "0" * 64, "aliasing": 0.0,
            "resolution": "half", "format_version": FORMAT_VERSION, "satloc_version": "0.1.0", "key_version": 1,
@@ -400,7 +400,7 @@ def make_autoloc(d: Path) -> None:
 
 
 def load_autoloc(d: Path):
-    from satloc_env.autoloc import describe_entry
+    from satloc_env.envs.auto_localizer import describe_entry
 
     return describe_entry(d / "entry")
 
@@ -501,7 +501,8 @@ def _malaga_images(d: Path) -> list[str]:
 
 
 def make_geotiff(d: Path) -> None:
-    from geofixtures import UTM, make_geotiff as mk
+    from geofixtures import UTM
+    from geofixtures import make_geotiff as mk
 
     d.mkdir(parents=True)
     mk(d / "map.tif", UTM, gsd_m=4.0)
@@ -529,7 +530,7 @@ def make_tiles(d: Path) -> None:
 
 def load_georef(name: str):
     def load(d: Path):
-        from satloc.georef import load_map
+        from satloc.geodata.georef import load_map
 
         return load_map(d / name)
 

@@ -1,4 +1,4 @@
-"""Georeferenced satellite input (satloc.georef) and the satellite map's geo frame (satloc.satmap)."""
+"""Georeferenced satellite input (satloc.geodata.georef) and the satellite map's geo frame (satloc.satmap)."""
 import json
 import shutil
 
@@ -9,8 +9,8 @@ from geofixtures import REF, UTM, make_geotiff, make_tiles, make_world_image, ma
 from PIL import Image
 
 from satloc import ConfigError, FormatError, SatelliteMap
+from satloc.geodata.georef import load_map, read_world_file, save_geotiff, write_geotiff, write_world_file
 from satloc.geoframe import GeoFrame
-from satloc.georef import load_map, read_world_file, save_geotiff, write_geotiff, write_world_file
 
 
 @pytest.fixture(scope="module")
@@ -324,7 +324,7 @@ def test_check_covers():
 
 
 def test_map_bounds_input_files_and_aligned_bands(tmp_path, inputs):
-    from satloc.georef import input_files, is_georeferenced, map_bounds, reproject_band
+    from satloc.geodata.georef import input_files, is_georeferenced, map_bounds, reproject_band
 
     for kind in ("geotiff_utm", "jpg_world_rotated", "xyz_tiles"):
         sm = load_map(inputs[kind], mpp=1.0)               # map_bounds: the same frame and extent, no pixels

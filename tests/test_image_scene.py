@@ -1,5 +1,5 @@
 """Scenes over georeferenced imagery (``generator: {type: image}`` with a GeoTIFF or a world file), lon/lat
-routes, routes traced from a road mask (satloc_env.roadtrace), their errors, and the shipped `suburb_utm`
+routes, routes traced from a road mask (satloc_env.world.roadtrace), their errors, and the shipped `suburb_utm`
 (its GeoJSON roads and derived routes, and the same image with its raster road mask and a traced route).
 
 The imagery is made here, in tmp_path: small GeoTIFFs in UTM zone 32N (EPSG:32632) near lon 8.43, lat
@@ -17,11 +17,11 @@ import yaml
 from affine import Affine
 
 from satloc import ConfigError
+from satloc.geodata.georef import write_geotiff, write_world_file
 from satloc.geometry import Pose2, StereoCamera
-from satloc.georef import write_geotiff, write_world_file
 from satloc.labels import CLASS_ID
-from satloc_env.roadtrace import RoadTraceError, TraceParams, trace_route
-from satloc_env.scene import Scene, load_scene, load_spec
+from satloc_env.world.roadtrace import RoadTraceError, TraceParams, trace_route
+from satloc_env.world.scene import Scene, load_scene, load_spec
 
 UTM = "EPSG:32632"
 TO_UTM = pyproj.Transformer.from_crs("EPSG:4326", UTM, always_xy=True)
@@ -363,7 +363,7 @@ def test_suburb_raster_mask_still_traces_its_main_road(suburb_raster, suburb):
 
 
 def test_shipped_suburb_renders_the_image_on_the_ground(suburb):
-    from satloc_env.render import StereoRenderer
+    from satloc_env.render.stereo import StereoRenderer
 
     cam = StereoCamera.kitti_half()
     route = suburb.routes["main"]
@@ -413,7 +413,7 @@ def test_autopilot_drives_the_traced_route_on_road(suburb):
 
 
 def test_changing_the_mask_changes_the_auto_localizer_key(tmp_path):
-    from satloc_env.autoloc import cache_key
+    from satloc_env.envs.auto_localizer import cache_key
 
     g = _base(tmp_path)
     p = write_scene(tmp_path, g, {"main": {"trace": True}})
@@ -436,8 +436,8 @@ def test_shipped_suburb_spec_round_trips(tmp_path, suburb):
 def test_experiment_records_again_when_a_scene_file_changes(tmp_path, monkeypatch):
     """``satloc experiment`` reuses a scene's recorded passes only while the scene's files are unchanged (the
     YAML, the image and the road mask: what the auto-localizer's key hashes), not just its name or path."""
-    import satloc_env.compare as compare
-    import satloc_env.experiment as experiment
+    import satloc_env.experiments.scene_run as experiment
+    import satloc_env.experiments.tables as compare
 
     recorded = []
     monkeypatch.setattr(experiment, "record_passes", lambda rec, out, progress: recorded.append(rec.scene))

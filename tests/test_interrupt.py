@@ -24,15 +24,15 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
+from test_process import TINY_SCENE, communicate_or_kill
 
 from satloc import ConfigError, FormatError
 from satloc.localizer import LocalizerConfig
 from satloc.persist import _host_tag, remove_stale_temps
 from satloc.pipeline import load_localizer, train_projection
 from satloc.projection import Projections
-from satloc_env import autoloc
-from satloc_env.record import load_recording
-from test_process import TINY_SCENE, communicate_or_kill
+from satloc_env.envs import auto_localizer as autoloc
+from satloc_env.envs.record import load_recording
 
 FRAMES = 12                     # per pass: the database pass spans about 18 m, the query pass 110 m of the loop
 BUILD_CFG = "features: rgb\n"
@@ -82,7 +82,7 @@ if argv[0] == "cli":
 import logging
 from satloc.pipeline import BuildConfig
 from satloc.projection import ProjectionConfig
-from satloc_env.autoloc import auto_build_dir
+from satloc_env.envs.auto_localizer import auto_build_dir
 logging.basicConfig(level=logging.INFO, format="%(message)s")  # the cache's announcements, without progress bars
 if started:
     Path(started).touch()

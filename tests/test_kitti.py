@@ -8,9 +8,10 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
-from hypothesis import given, settings, strategies as st
-
+from hypothesis import given, settings
+from hypothesis import strategies as st
 from kittifixture import DEFAULT_FRAME, SynthRig, default_poses, wall_images, write_calibration, write_kitti_drive
+
 from satloc import ConfigError, FormatError
 from satloc.datasets.kitti import OXTS_FIELDS, load_kitti, read_oxts_file, read_rig
 from satloc.geoframe import GeoFrame

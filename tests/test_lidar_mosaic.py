@@ -19,8 +19,8 @@ from satloc.datasets.lidar_mosaic import (
     record_path,
 )
 from satloc.errors import FormatError
+from satloc.geodata.georef import load_map
 from satloc.geoframe import GeoFrame
-from satloc.georef import load_map
 
 RIG = SynthRig(width=320, height=96, fx=200.0, fy=200.0, cx=159.5, cy=47.5, pitch=0.06, roll=0.0)
 N = 4

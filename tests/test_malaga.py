@@ -5,9 +5,8 @@ import pickle
 import cv2
 import numpy as np
 import pytest
+from malagafixture import MALAGA_LAT0, MALAGA_LON0, T0, TurnTrack, synthetic_pair, track_lonlat, write_malaga_extract
 
-from malagafixture import (MALAGA_LAT0, MALAGA_LON0, T0, TurnTrack, synthetic_pair, track_lonlat,
-                           write_malaga_extract)
 from satloc import ConfigError, FormatError, Sequence
 from satloc.datasets.malaga import GPS_COLUMNS, MalagaConfig, load_malaga, read_gps_log
 from satloc.geoframe import GeoFrame
@@ -316,6 +315,7 @@ def test_bad_configuration(tmp_path):
 
 def test_camera_file_details(tmp_path):
     from malagafixture import write_camera_file
+
     from satloc.datasets.malaga import read_camera_params
 
     p = tmp_path / "camera_params_rectified_a=0_800x600.txt"

@@ -3,7 +3,7 @@ import math
 import numpy as np
 import pytest
 
-from satloc import ConfigError, Frame, FormatError, Pose2, SatelliteMap, Sequence, StereoCamera
+from satloc import ConfigError, FormatError, Frame, Pose2, SatelliteMap, Sequence, StereoCamera
 from satloc.dictionary import Dictionary, GridConfig, SatelliteFeatures, build_dictionary, ground_samples
 from satloc.features import BilateralRGB
 from satloc.localizer import Localizer, LocalizerConfig, candidate_poses

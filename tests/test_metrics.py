@@ -5,8 +5,16 @@ import numpy as np
 import pytest
 
 from satloc import ConfigError
-from satloc.metrics import (PRCurve, bootstrap_ci, error_stats, pr_curve, precision_recall, precision_recall_ci,
-                            select_threshold, worst_case_errors)
+from satloc.metrics import (
+    PRCurve,
+    bootstrap_ci,
+    error_stats,
+    pr_curve,
+    precision_recall,
+    precision_recall_ci,
+    select_threshold,
+    worst_case_errors,
+)
 
 
 def test_error_stats_by_hand():

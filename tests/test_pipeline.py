@@ -6,11 +6,11 @@ import pytest
 import yaml
 
 from satloc import Sequence
-from satloc.pipeline import BuildConfig, build, load_localizer, localize, train_projection
 from satloc.localizer import LocalizerConfig
+from satloc.pipeline import BuildConfig, build, load_localizer, localize, train_projection
 from satloc.projection import ProjectionConfig
 from satloc_env.cli import main
-from satloc_env.record import PassConfig, RecordConfig, record_passes
+from satloc_env.envs.record import PassConfig, RecordConfig, record_passes
 
 
 @pytest.fixture(scope="module")
@@ -104,8 +104,8 @@ def test_localizer_lands_within_1m_on_a_small_scene(recording, tmp_path):
 
 
 def test_demo_and_table1_on_a_tiny_section(tmp_path, capsys):
-    from satloc_env.compare import table1
-    from satloc_env.experiment import MODES
+    from satloc_env.experiments.scene_run import MODES
+    from satloc_env.experiments.tables import table1
 
     out = tmp_path / "demo"
     assert main(["demo", "--out", str(out), "--db-frames", "20", "--query-frames", "3", "--features", "rgb",
@@ -160,7 +160,7 @@ def test_demo_and_table1_on_a_tiny_section(tmp_path, capsys):
         m = np.array([np.nan if v is None else v for v in al["margins"][cue]])
         assert np.isfinite(m[valid]).all() and al["cues"][cue]["far_wins"] == int((m[valid] <= 0).sum())
     # the GO margin of the first query, recomputed from the unpruned posterior (definition in aliasing_scene)
-    from satloc_env.experiment import FAR_M, NEAR_M, NEAR_YAW_DEG
+    from satloc_env.experiments.scene_run import FAR_M, NEAR_M, NEAR_YAW_DEG
 
     t1 = tmp_path / "t1" / "city"
     loc = load_localizer(t1 / "build", LocalizerConfig(mode="go", prune_regions=0))
@@ -170,6 +170,6 @@ def test_demo_and_table1_on_a_tiny_section(tmp_path, capsys):
     near = (d <= NEAR_M) & (np.abs(np.angle(np.exp(1j * (c[:, 2] - f.pose.yaw)))) <= np.radians(NEAR_YAW_DEG))
     assert al["margins"]["go"][0] == pytest.approx(np.log(post[near].max() / post[d > FAR_M].max()), abs=1e-3)
     # the ground view's bird's-eye correlation puts the truth first on all but at most one query of this section
-    # (the revisit has another day's shadows, road wear and season: satloc_env.revisit)
+    # (the revisit has another day's shadows, road wear and season: satloc_env.world.revisit)
     assert al["cues"]["bev"]["far_wins"] <= 1 < al["measured"]
     assert (tmp_path / "t1" / "city" / "aliasing.png").stat().st_size > 5000

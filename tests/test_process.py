@@ -133,8 +133,8 @@ def test_fork_before_any_render_works(vec_script, tiny_scene):
 def test_gl_entry_points_refuse_in_a_forked_process(monkeypatch):
     """In process: pretend the GL context was created by another process (what a fork child sees)."""
     from satloc.geometry import Pose2, StereoCamera
-    from satloc_env import _gl
-    from satloc_env.render import StereoRenderer
+    from satloc_env.render import gl as _gl
+    from satloc_env.render.stereo import StereoRenderer
 
     r = _gl.MultiViewOffscreenRenderer(16, 16)           # a context of this process
     assert _gl._gl_pid == os.getpid()
@@ -206,7 +206,7 @@ import numpy as np
 import gymnasium as gym
 
 import satloc_env  # noqa: F401
-from satloc_env._gl import pyrender
+from satloc_env.render.gl import pyrender
 
 
 def main():
@@ -268,7 +268,7 @@ def test_draw_order_of_equally_near_meshes_does_not_depend_on_set_order(monkeypa
     """Two coplanar quads in different meshes, equally far from the camera: the image must not depend on the
     order in which pyrender's node set yields them (it follows memory addresses: it differs between
     processes). The node named first is drawn first and wins the depth tie."""
-    from satloc_env._gl import MultiViewOffscreenRenderer, pyrender
+    from satloc_env.render.gl import MultiViewOffscreenRenderer, pyrender
 
     scene = pyrender.Scene(bg_color=np.zeros(4))
     quad = dict(positions=np.array([[-5, -5, -4], [5, -5, -4], [5, 5, -4], [-5, 5, -4]], np.float32),
@@ -374,9 +374,9 @@ def test_import_graph_is_acyclic_and_satloc_stands_alone():
     g = import_graph()
     # the graph sees the imports it must see (so that an empty graph cannot pass)
     assert "satloc.fcn" in g["satloc.features"] and "satloc.extractor" in g["satloc.fcn"]
-    assert {"satloc_env.autoloc", "satloc_env.render"} <= g["satloc_env.env"]
-    assert "satloc_env.record" in g["satloc_env.autoloc"]
-    assert "satloc_env.env" in g["satloc_env"]
+    assert {"satloc_env.envs.auto_localizer", "satloc_env.render.stereo"} <= g["satloc_env.envs.drive"]
+    assert "satloc_env.envs.record" in g["satloc_env.envs.auto_localizer"]
+    assert "satloc_env.envs.drive" in g["satloc_env.envs"] and "satloc_env.envs" in g["satloc_env"]
     assert not cycles(g), cycles(g)
     into_env = {m: sorted(t for t in ts if t.split(".")[0] == "satloc_env")
                 for m, ts in g.items() if m.split(".")[0] == "satloc"}
@@ -399,8 +399,8 @@ def test_graph_sees_deferred_and_relative_imports(tmp_path):
 
 def test_recorders_make_the_registered_environment():
     import satloc_env
-    from satloc_env.env import SatLocEnv
-    from satloc_env.record import ENV_ID, make_env
+    from satloc_env.envs.drive import SatLocEnv
+    from satloc_env.envs.record import ENV_ID, make_env
 
     assert ENV_ID == satloc_env.ENV_ID
     env = make_env(scene="city", localizer=None)

@@ -1,4 +1,4 @@
-"""Radiometry of georeferenced imagery (satloc.radiometry through satloc.georef.load_map): any bit depth and
+"""Radiometry of georeferenced imagery (satloc.geodata.radiometry through satloc.geodata.georef.load_map): any bit depth and
 band count, band selection, nodata / alpha / NaN masks, the per-band stretch (recorded, overridable), the
 warnings for pictures that come out dark or constant, scenes' ``bands:``/``stretch:``, and GeoTIFFs read
 without OpenCV's TIFF tag warnings.
@@ -20,8 +20,8 @@ from geofixtures import REF, UTM, grid, make_geotiff, paint, write_image, write_
 from rasterio.enums import ColorInterp
 
 from satloc import ConfigError, FormatError, SatelliteMap, SatlocWarning
-from satloc.georef import load_map, save_geotiff, write_geotiff
-from satloc.radiometry import Radiometry
+from satloc.geodata.georef import load_map, save_geotiff, write_geotiff
+from satloc.geodata.radiometry import Radiometry
 from satloc.satmap import read_image
 
 GSD = 2.0   # metres per source pixel: small rasters, quick loads
@@ -312,7 +312,7 @@ def test_band_out_of_range_names_the_file(tmp_path, ground):
     path = write_raster(tmp_path / "pan.tif", _grey(rgb)[None], tr)
     with pytest.raises(ConfigError, match=r"bands: .*pan\.tif has 1 band, so band 2 does not exist"):
         load_map(path, GSD, frame=REF, radiometry=Radiometry(bands=[2]))
-    with pytest.raises(ConfigError, match="radiometry: expected a satloc.radiometry.Radiometry"):
+    with pytest.raises(ConfigError, match="radiometry: expected a satloc.geodata.radiometry.Radiometry"):
         load_map(path, GSD, frame=REF, radiometry={"bands": [1]})
 
 
@@ -329,7 +329,7 @@ def _scene_yaml(tmp_path, image: str, name: str = "s.yaml", **generator) -> str:
 
 def test_scene_with_bands_and_stretch(tmp_path, ground, capsys):
     from satloc_env.cli import main
-    from satloc_env.scene import load_scene
+    from satloc_env.world.scene import load_scene
 
     tr, rgb = ground
     b = _bands(rgb).astype(np.uint16) * 8
@@ -360,7 +360,7 @@ def test_scene_with_bands_and_stretch(tmp_path, ground, capsys):
     ({"bands": [1], "gamma": 2}, r"unknown key\(s\) \['gamma'\]"),
 ])
 def test_scene_bad_bands_and_stretch(tmp_path, ground, generator, match):
-    from satloc_env.scene import load_scene
+    from satloc_env.world.scene import load_scene
 
     tr, rgb = ground
     write_raster(tmp_path / "five.tif", np.repeat(_bands(rgb)[:1].astype(np.uint16), 5, axis=0), tr)
@@ -369,7 +369,7 @@ def test_scene_bad_bands_and_stretch(tmp_path, ground, generator, match):
 
 
 def test_plain_image_scene_refuses_bands(tmp_path):
-    from satloc_env.scene import load_scene
+    from satloc_env.world.scene import load_scene
 
     write_image(tmp_path / "plain.png", np.full((100, 120, 3), 128, np.uint8))
     p = tmp_path / "p.yaml"
@@ -382,7 +382,7 @@ def test_plain_image_scene_refuses_bands(tmp_path):
 
 def test_evaluate_config_fields():
     from satloc.config import from_dict
-    from satloc_env.evaluate import EvaluateConfig
+    from satloc_env.experiments.evaluate import EvaluateConfig
 
     cfg = from_dict(EvaluateConfig, {"satellite_bands": [3, 2, 1], "satellite_stretch": "none"})
     assert cfg.satellite_radiometry == Radiometry((3, 2, 1), "none")
@@ -418,7 +418,7 @@ def test_geotiff_masks_are_read_without_tiff_tag_warnings(tmp_path, ground, capf
 
 
 def test_scene_with_a_geotiff_road_mask_prints_no_tiff_warnings(tmp_path, ground, capfd):
-    from satloc_env.scene import load_scene
+    from satloc_env.world.scene import load_scene
 
     tr, rgb = ground
     write_geotiff(tmp_path / "img.tif", rgb, tr, UTM)
@@ -430,3 +430,21 @@ def test_scene_with_a_geotiff_road_mask_prints_no_tiff_warnings(tmp_path, ground
     err = capfd.readouterr().err
     assert "TIFF_Warning" not in err and "Unknown field with tag" not in err, err
     assert scene.drivable.any() and scene.summary()["radiometry"]["dtype"] == "uint8"
+
+
+def test_the_command_prints_a_warning_as_one_line(tmp_path, ground):
+    """``satloc scene`` over a dark image: the warning is one ``satloc: warning:`` line naming the file, not
+    Python's form (the internal file and line, then the source line)."""
+    import subprocess
+    import sys
+
+    tr, rgb = ground
+    write_raster(tmp_path / "dark.tif", (_bands(rgb) // 8).astype(np.uint8), tr, photometric="RGB")
+    path = _scene_yaml(tmp_path, "dark.tif")
+    r = subprocess.run([sys.executable, "-m", "satloc_env.cli", "scene", path], capture_output=True, text=True,
+                       timeout=300)
+    assert r.returncode == 0, r.stderr
+    lines = [ln for ln in r.stderr.splitlines() if ln.strip()]
+    assert len(lines) == 1, r.stderr
+    assert re.fullmatch(r"satloc: warning: .*dark\.tif: is mostly dark after conversion to 8 bits .*", lines[0])
+    assert "SatlocWarning" not in r.stderr and ".py:" not in r.stderr

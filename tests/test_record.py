@@ -6,9 +6,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from satloc import Sequence, SatelliteMap
+from satloc import SatelliteMap, Sequence
 from satloc_env.cli import main
-from satloc_env.record import PassConfig, RecordConfig, record_passes
+from satloc_env.envs.record import PassConfig, RecordConfig, record_passes
 
 ROOT = Path(__file__).resolve().parent.parent
 

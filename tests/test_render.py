@@ -1,4 +1,4 @@
-"""Tests of the world builder (satloc_env.world) and the offscreen stereo renderer (satloc_env.render).
+"""Tests of the world builder (satloc_env.world.meshes) and the offscreen stereo renderer (satloc_env.render.stereo).
 
 One tiny synthetic layout (60 m x 60 m at 0.1 m per texel): grass, a north-south road with a dashed centre
 line, two painted patches of known colour and class, one building, one tree and one parked car. The vehicle
@@ -29,11 +29,9 @@ import pytest
 
 from satloc.geometry import Pose2, StereoCamera
 from satloc.labels import CLASS_ID
-from satloc_env.layout import Building, Car, Layout, Obstacle, Person, Tree
-from satloc_env.world import PAD, build_world
-
-
-from satloc_env.render import StereoRenderer  # noqa: E402
+from satloc_env.render.stereo import StereoRenderer  # noqa: E402
+from satloc_env.world.layout import Building, Car, Layout, Obstacle, Person, Tree
+from satloc_env.world.meshes import PAD, build_world
 
 SIZE, MPP = 60.0, 0.1
 RED = (200, 40, 40)        # 'parking' patch [27, 29] x [18, 24]
@@ -147,7 +145,7 @@ def test_chunking_splits_ground_and_assigns_objects(layout):
 
 # --- renderer ---------------------------------------------------------------------------------------------
 def test_import_creates_no_gl_context():
-    code = ("import sys, satloc_env.render, satloc_env.world; "
+    code = ("import sys, satloc_env.render.stereo, satloc_env.world.meshes; "
             "assert 'pyrender' not in sys.modules and 'OpenGL' not in sys.modules")
     subprocess.run([sys.executable, "-c", code], check=True)
 
@@ -295,8 +293,8 @@ def test_chunk_seams_with_mipmaps_llvmpipe_only(layout, frame, camera):
 
 def test_installed_pyrender_works_on_numpy2():
     """pyrender 0.1.45's Mesh.bounds used np.infty (removed in numpy 2); the pyrender2 fork the project depends
-    on fixed it. Guards against an environment that still has the old files (see satloc_env._gl)."""
-    from satloc_env._gl import pyrender
+    on fixed it. Guards against an environment that still has the old files (see satloc_env.render.gl)."""
+    from satloc_env.render.gl import pyrender
 
     box = pyrender.Mesh([pyrender.Primitive(positions=np.array([[0, 0, 0], [1, 2, 3], [-1, 0, 5]], np.float32))])
     np.testing.assert_array_equal(box.bounds, [[-1, 0, 0], [1, 2, 5]])
@@ -317,7 +315,7 @@ sys.modules["pyglet"] = None          # as on a machine where pyglet cannot load
 sys.path.insert(0, {tests!r})
 import numpy as np
 import test_render as t
-from satloc_env._gl import ViewerUnavailableError, pyrender
+from satloc_env.render.gl import ViewerUnavailableError, pyrender
 with t.StereoRenderer(t.build_world(t.make_layout()), t.StereoCamera.kitti_half()) as r:
     img = r.render(t.POSE, depth=False)["left"]
 assert img.std() > 10, img.std()
@@ -374,7 +372,7 @@ def test_renders_on_a_machine_without_x11_libraries():
 
 def test_torch_optimiser_after_the_first_render():
     """With a CUDA build of torch, triton (its own LLVM) loaded after Mesa's llvmpipe (another LLVM) crashed the
-    process at the first torch.optim.Adam after a render (see satloc_env._gl). With the CPU wheel there is no
+    process at the first torch.optim.Adam after a render (see satloc_env.render.gl). With the CPU wheel there is no
     triton and this passes trivially; where triton is installed, it is the regression test."""
     code = ("import sys; sys.path.insert(0, {tests!r})\nimport test_render as t, torch\n"
             "with t.StereoRenderer(t.build_world(t.make_layout()), t.StereoCamera.kitti_half()) as r:\n"
@@ -388,7 +386,7 @@ def test_torch_optimiser_after_the_first_render():
 def test_old_pyrender_files_are_refused_with_the_repair_command():
     code = ("import sys, types; fake = types.ModuleType('pyrender'); fake.__version__ = '0.1.45'; "
             "fake.__file__ = '/site-packages/pyrender/__init__.py'; sys.modules['pyrender'] = fake\n"
-            "try:\n    import satloc_env._gl\nexcept ImportError as e:\n    print(e)\n")
+            "try:\n    import satloc_env.render.gl\nexcept ImportError as e:\n    print(e)\n")
     res = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
     assert res.returncode == 0, res.stderr[-2000:]
     assert "pyrender 0.1.45" in res.stdout and "pip install --force-reinstall --no-deps pyrender2" in res.stdout

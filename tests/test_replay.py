@@ -1,4 +1,4 @@
-"""The replay environment ``satloc/SatLocReplay-v0`` (satloc_env/replay.py): stepping through a recorded sequence,
+"""The replay environment ``satloc/SatLocReplay-v0`` (satloc_env/envs/replay.py): stepping through a recorded sequence,
 its observation and info contract (the same as SatLoc-v0's), the skip action, truncation, frames without a pose,
 the localizer in the loop, rendering and configuration errors.
 
@@ -23,10 +23,10 @@ from satloc.pipeline import BuildConfig, load_localizer
 from satloc.projection import ProjectionConfig
 from satloc.sequence import Frame, Sequence
 from satloc.track import Tracker, compose_motion, relative_motion
-from satloc_env import autoloc
-from satloc_env.env import PANEL_PX, SatLocEnv, compose_view
-from satloc_env.record import PassConfig, record_pass
-from satloc_env.replay import EPISODE_KEYS, SatLocReplayEnv
+from satloc_env.envs import auto_localizer as autoloc
+from satloc_env.envs.drive import PANEL_PX, SatLocEnv, compose_view
+from satloc_env.envs.record import PassConfig, record_pass
+from satloc_env.envs.replay import EPISODE_KEYS, SatLocReplayEnv
 
 ID = "satloc/SatLocReplay-v0"
 K = 16
@@ -393,7 +393,7 @@ def test_map_from_georeferenced_imagery(tmp_path, monkeypatch):
     assert errs["red"] < 1.0 and math.isinf(errs["blue"]), errs
     assert env.render().shape[0] == PANEL_PX
     # a path longer than MAX_MAP_PX pixels of the image's own resolution: read coarser, never larger
-    import satloc_env.replay as replay_module
+    import satloc_env.envs.replay as replay_module
 
     monkeypatch.setattr(replay_module, "MAX_MAP_PX", 64)
     coarse = gym.make(ID, sequence=seq, map=str(tif)).unwrapped.map
@@ -413,8 +413,8 @@ def test_real_kitti_drive_replayed_with_a_localizer_built_from_it(tmp_path):
     from realfixtures import REAL, lidar_mosaic
 
     from satloc.datasets import load_kitti
+    from satloc.geodata.georef import load_map
     from satloc.geoframe import GeoFrame
-    from satloc.georef import load_map
     from satloc.pipeline import build, train_projection
 
     lidar_mosaic(REAL, tmp_path / "mosaic.tif")

@@ -1,4 +1,4 @@
-"""Revisits that change (satloc_env.revisit): the layout function, the env's ``change`` knob, the recorded
+"""Revisits that change (satloc_env.world.revisit): the layout function, the env's ``change`` knob, the recorded
 query pass and the example script, on one-block scenes (they load in under a second)."""
 import hashlib
 import importlib.util
@@ -10,16 +10,16 @@ import gymnasium as gym
 import numpy as np
 import pytest
 from gymnasium.utils.env_checker import check_env
+from test_env import run
 
 import satloc_env  # noqa: F401  (registers the ids)
 from satloc import ConfigError
 from satloc.labels import CLASS_ID as C
 from satloc.labels import DRIVABLE
-from satloc_env.generator import GridParams, generate_grid
-from satloc_env.record import QUERY_CHANGE, PassConfig, RecordConfig, record_passes
-from satloc_env.revisit import changed_layout, changed_world
-from satloc_env.scene import load_scene
-from test_env import run
+from satloc_env.envs.record import QUERY_CHANGE, PassConfig, RecordConfig, record_passes
+from satloc_env.world.generator import GridParams, generate_grid
+from satloc_env.world.revisit import changed_layout, changed_world
+from satloc_env.world.scene import load_scene
 
 ROOT = Path(__file__).resolve().parent.parent
 
@@ -126,8 +126,8 @@ def test_each_part_changes_what_it_should_and_only_that(lots):
 
 
 def test_changed_world_changes_foliage_and_never_the_tile(scene_path):
-    from satloc_env.revisit import change_foliage
-    from satloc_env.world import build_world
+    from satloc_env.world.meshes import build_world
+    from satloc_env.world.revisit import change_foliage
 
     scene = load_scene(scene_path)
     tile = digest(scene.satmap.image, scene.satmap.labels)

@@ -1,6 +1,6 @@
-"""Map vectors (satloc.vectors), the road graph and its derived routes (satloc_env.roadgraph), snapped routes,
+"""Map vectors (satloc.geodata.vectors), the road graph and its derived routes (satloc_env.world.roadgraph), snapped routes,
 lane offsets that follow the road's width, the ground beyond the tile's edge, and the drivability check
-that ``satloc scene``, the recorder and the experiments run before any work (satloc_env.drivecheck).
+that ``satloc scene``, the recorder and the experiments run before any work (satloc_env.envs.drivecheck).
 
 The imagery and the vectors are made here, in tmp_path: a GeoTIFF in UTM zone 32N near lon 8.43, lat 49.01
 (160 m x 120 m at 0.5 m per pixel) and road centre lines written with pyogrio as GeoJSON (CRS84),
@@ -20,11 +20,11 @@ import yaml
 from affine import Affine
 
 from satloc import ConfigError, FormatError
-from satloc.georef import write_geotiff
-from satloc.vectors import LANE_WIDTH_M, read_road_lines, road_width
-from satloc_env.roadgraph import GraphParams, covering_tour, graph_from_lines, graph_from_mask
-from satloc_env.route import Route
-from satloc_env.scene import load_scene
+from satloc.geodata.georef import write_geotiff
+from satloc.geodata.vectors import LANE_WIDTH_M, read_road_lines, road_width
+from satloc_env.world.roadgraph import GraphParams, covering_tour, graph_from_lines, graph_from_mask
+from satloc_env.world.route import Route
+from satloc_env.world.scene import load_scene
 
 UTM = "EPSG:32632"
 TO_UTM = pyproj.Transformer.from_crs("EPSG:4326", UTM, always_xy=True)
@@ -175,7 +175,7 @@ def test_graph_from_lines_nodes_crossings_and_snaps_near_misses():
 
 
 def test_tour_covers_the_network_and_its_revisit_drives_it_back(derived):
-    from satloc_env.drivecheck import first_off_road
+    from satloc_env.envs.drivecheck import first_off_road
 
     rg_main = local(derived, np.asarray(MAIN))
     assert sorted(derived.routes) == ["main", "revisit"] and derived.spec.query_route == "main"
@@ -223,8 +223,8 @@ def test_tour_coverage_and_dead_ends():
 
 def test_derived_routes_keep_the_margin_and_no_view_shows_the_tile_edge(derived, scene_dir):
     from satloc.geometry import StereoCamera
-    from satloc_env.render import StereoRenderer
-    from satloc_env.world import build_world
+    from satloc_env.render.stereo import StereoRenderer
+    from satloc_env.world.meshes import build_world
 
     m = derived.spec.road_graph.edge_margin_m
     w, h = derived.layout.width_m, derived.layout.height_m
@@ -336,8 +336,8 @@ OFF_MSG = r"routes\.main: the autopilot leaves the road at \(\d+\.\d, \d+\.\d\) 
 
 
 def test_the_check_drives_as_the_environment_does(derived, scene_dir):
-    from satloc_env.drivecheck import autopilot_drive
-    from satloc_env.record import make_env
+    from satloc_env.envs.drivecheck import autopilot_drive
+    from satloc_env.envs.record import make_env
 
     env = make_env(scene=str(scene_dir / "s.yaml"), localizer=None)
     try:
@@ -364,8 +364,8 @@ def test_satloc_scene_refuses_a_route_leaving_the_road(scene_dir, capsys):
 
 
 def test_recording_and_experiments_check_before_any_work(scene_dir, tmp_path, monkeypatch):
-    import satloc_env.compare as compare
-    from satloc_env.record import PassConfig, RecordConfig, record_passes
+    import satloc_env.experiments.tables as compare
+    from satloc_env.envs.record import PassConfig, RecordConfig, record_passes
 
     bad = write_scene(scene_dir, OFF_ROAD, "off.yaml")
     good = scene_dir / "s.yaml"
@@ -387,7 +387,7 @@ def test_recording_and_experiments_check_before_any_work(scene_dir, tmp_path, mo
 def test_recorder_reports_leaving_the_road_as_a_config_error(scene_dir, tmp_path):
     """Where a pass is recorded without the check (record_pass alone), leaving the road is still a
     ConfigError naming the route and the point, not a RuntimeError."""
-    from satloc_env.record import PassConfig, make_env, record_pass
+    from satloc_env.envs.record import PassConfig, make_env, record_pass
 
     bad = write_scene(scene_dir, OFF_ROAD, "off.yaml")
     env = make_env(scene=str(bad), localizer=None, depth=False)
@@ -438,7 +438,7 @@ def test_a_street_ending_centimetres_off_a_ring_joins_it_once():
 def test_a_generated_scene_without_routes_gets_them_from_its_ground(tmp_path):
     """A grid scene with no routes: the road graph of its painted roads, a tour over them and its revisit;
     the streets' stubs that end at the tile's edge are left out but two (where the tour starts and ends)."""
-    from satloc_env.drivecheck import first_off_road
+    from satloc_env.envs.drivecheck import first_off_road
 
     p = tmp_path / "grid.yaml"
     p.write_text(yaml.safe_dump({"name": "grid", "seed": 3, "meters_per_pixel": 0.2, "ground_mpp": 0.2,

@@ -1,4 +1,4 @@
-"""satloc_env.scale: the experiments' units as Ray tasks give the serial run's tables, byte for byte, and a rerun
+"""satloc_env.experiments.scale: the experiments' units as Ray tasks give the serial run's tables, byte for byte, and a rerun
 skips their finished stages; Ray errors; simulator environments stepped in Ray actors."""
 import sys
 
@@ -10,10 +10,10 @@ ray = pytest.importorskip("ray")
 
 from satloc.errors import ConfigError
 from satloc_env.cli import main
-from satloc_env.scale import Runner, Unit, env_actor
+from satloc_env.experiments.scale import Runner, Unit, env_actor
 
 # tests/test_compare.py's tiny sweep, two knob combinations, FAB-MAP (a stage the combinations share) and the
-# learned projections (torch: thread-count dependent sums, see satloc_env.scale)
+# learned projections (torch: thread-count dependent sums, see satloc_env.experiments.scale)
 TINY_SWEEP = {"aliasing": [0.0], "occlusion": [0.0, 0.3], "appearance": [0.5],
               "experiment": {"database_frames": 24, "query_frames": 3, "query_spacing_m": 6.0, "features": "rgb",
                              "modes": ["go", "full"], "pictures": False,
@@ -127,14 +127,14 @@ def test_env_actor_steps_like_a_local_env(cluster):
 def test_a_task_refuses_a_working_directory_its_node_lacks(tmp_path):
     """A Ray task runs in the driver's working directory (relative --out paths); on a node without that
     folder it stops with a clear error instead of writing somewhere else."""
-    from satloc_env.scale import _run_unit
+    from satloc_env.experiments.scale import _run_unit
 
     with pytest.raises(ConfigError, match="does not exist on this node"):
         _run_unit(Unit("sq", _square, (3,)), 1, None, str(tmp_path / "not_here"))
 
 
 def test_sweep_refuses_knob_values_that_share_a_folder():
-    from satloc_env.compare import SweepConfig
+    from satloc_env.experiments.tables import SweepConfig
 
     with pytest.raises(ConfigError, match="first 6 significant digits"):
         SweepConfig(aliasing=(0.0, 0.0))

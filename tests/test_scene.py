@@ -4,9 +4,9 @@ import yaml
 
 from satloc import ConfigError
 from satloc.labels import CLASS_ID
-from satloc_env.generator import GridParams, alias_sources, generate_grid
-from satloc_env.route import Route
-from satloc_env.scene import Scene, available_scenes, build_scene, load_scene, load_spec
+from satloc_env.world.generator import GridParams, alias_sources, generate_grid
+from satloc_env.world.route import Route
+from satloc_env.world.scene import Scene, available_scenes, build_scene, load_scene, load_spec
 
 SMALL = {
     "name": "small", "seed": 3,

@@ -13,6 +13,7 @@ KITTI = (Path(__file__).resolve().parents[2] / "shared" / "realdata" / "kitti_ra
 
 def test_sgbm_depth_on_rendered_ground():
     import gymnasium as gym
+
     import satloc_env  # noqa: F401
 
     env = gym.make("satloc/SatLoc-v0", scene="city", depth=True, localizer=None)

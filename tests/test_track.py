@@ -3,12 +3,11 @@ import math
 
 import numpy as np
 import pytest
+from test_method import GridConfig, build_dictionary, tiny_setup
 
 from satloc import ConfigError, Pose2
 from satloc.localizer import Localizer, LocalizerConfig
 from satloc.track import TrackConfig, Tracker, compose_motion, noisy_odometry, relative_motion
-
-from test_method import build_dictionary, GridConfig, tiny_setup
 
 STEP = 5.0
 
@@ -310,7 +309,7 @@ def test_pipeline_localize_needs_matching_odometry_to_track(tmp_path):
 
 
 def test_experiment_modes_name_tracking_and_alignment():
-    from satloc_env.experiment import METHOD_NAMES, MODES, ExperimentConfig
+    from satloc_env.experiments.scene_run import METHOD_NAMES, MODES, ExperimentConfig
 
     assert set(MODES) <= set(METHOD_NAMES)
     assert METHOD_NAMES["full+track+align"] == "Ours-full + track + BEV align"

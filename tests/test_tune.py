@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 
 from satloc.errors import ConfigError
-from satloc_env.tune import TuneConfig, pick_lowest, pick_smallest_within, tune
+from satloc_env.experiments.tune import TuneConfig, pick_lowest, pick_smallest_within, tune
 
 
 def rows(*spec):

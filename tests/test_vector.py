@@ -1,4 +1,4 @@
-"""The batched vector environment (``gym.make_vec("satloc/SatLoc-v0", n)``, :mod:`satloc_env.vector`): the same
+"""The batched vector environment (``gym.make_vec("satloc/SatLoc-v0", n)``, :mod:`satloc_env.envs.vector`): the same
 results as n single environments, bit for bit, Gymnasium 1.x's autoreset, seeding and errors."""
 import gymnasium as gym
 import numpy as np
@@ -7,8 +7,8 @@ from gymnasium.vector import AutoresetMode
 
 import satloc_env  # noqa: F401  (registers the ids)
 from satloc import ConfigError
-from satloc_env.env import ActionError
-from satloc_env.vector import SatLocVectorEnv
+from satloc_env.envs.drive import ActionError
+from satloc_env.envs.vector import SatLocVectorEnv
 
 ID = "satloc/SatLoc-v0"
 KW = dict(scene="city", localizer=None)
@@ -155,9 +155,9 @@ def test_errors():
 
 
 def test_view_volume_culling_changes_no_pixel(monkeypatch):
-    """Chunks wholly outside a camera's view volume are skipped (satloc_env.render._box_in_view); the images
+    """Chunks wholly outside a camera's view volume are skipped (satloc_env.render.stereo._box_in_view); the images
     are the same as when every chunk within reach is drawn."""
-    import satloc_env.render as render
+    import satloc_env.render.stereo as render
 
     def box(xs, ys, zs):   # corners in the camera frame (the camera at the origin: map_from_cam = identity)
         return np.array([[[x, y, z, 1.0] for x in xs for y in ys for z in zs]])

@@ -6,16 +6,15 @@ import math
 
 import numpy as np
 import pytest
-
 from kittifixture import DEFAULT_FRAME, SynthRig, write_kitti_drive
+from realfixtures import REAL
+
 from satloc import ConfigError, Frame, Pose2, Sequence
 from satloc.config import from_dict
 from satloc.datasets.kitti import OXTS_FIELDS, load_kitti, oxts_odometry
 from satloc.geometry import wrap_angle
 from satloc.track import noisy_odometry, relative_motion
 from satloc.vo import StereoVO, VOConfig, integrate_odometry, odometry_drift, visual_odometry
-
-from realfixtures import REAL
 
 needs_real = pytest.mark.skipif(not REAL.is_dir(), reason="shared KITTI fixture absent")
 
@@ -34,7 +33,7 @@ def true_odometry(poses):
 def drive():
     """60 frames of residential's database route from 140 m, one per simulator step, through its 94-degree
     left turn (28 m: the autopilot slows for the turn); seeded, in memory."""
-    from satloc_env.record import make_env
+    from satloc_env.envs.record import make_env
 
     env = make_env(scene="residential", localizer=None, depth=True)
     try:

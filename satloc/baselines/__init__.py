@@ -3,5 +3,5 @@
 * :mod:`satloc.baselines.fabmap`: FAB-MAP (Cummins and Newman, IJRR 2008): SIFT words, a Chow-Liu tree,
   the detector model, a sampled or mean-field new place and the Bayesian update over database places.
 """
-from .fabmap import ChowLiuTree, FabMap, FabMapConfig, chow_liu_tree
 from .efm import Efm, EfmConfig, estimate_homography
+from .fabmap import ChowLiuTree, FabMap, FabMapConfig, chow_liu_tree

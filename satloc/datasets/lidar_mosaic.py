@@ -141,7 +141,7 @@ def _build(drive: Path, path: Path, mpp: float, margin_m: float, max_depth_m: fl
     import cv2
     from affine import Affine
 
-    from ..georef import write_geotiff
+    from ..geodata.georef import write_geotiff
 
     _check(mpp, margin_m, max_depth_m)
     seq = load_kitti(drive)

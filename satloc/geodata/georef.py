@@ -28,7 +28,7 @@ much less than the largest inscribed rectangle when it is turned by tens of degr
 then). A ``region`` is widened outwards to the lattice and must lie in the image (within half an output
 pixel). :func:`map_bounds` gives a load's frame, resolution and extent without reading pixels.
 
-Radiometry (:mod:`satloc.radiometry`, chosen by ``radiometry=``): any integer or float sample type and any
+Radiometry (:mod:`satloc.geodata.radiometry`, chosen by ``radiometry=``): any integer or float sample type and any
 band count. Grey (1 band) becomes three equal channels; grey + alpha and RGBA are composited over black (a
 transparent pixel is black); a palette image is expanded through its colour table; more than four bands
 take the bands GDAL interprets as red, green and blue, or those of ``Radiometry(bands=...)``. Nodata,
@@ -54,11 +54,11 @@ from typing import Callable
 
 import numpy as np
 
-from .errors import ConfigError, FormatError
-from .geoframe import GeoFrame
-from .persist import atomic_path
+from ..errors import ConfigError, FormatError
+from ..geoframe import GeoFrame
+from ..persist import atomic_path
+from ..satmap import SatelliteMap
 from .radiometry import Radiometry, Samples, plan_bands, read_samples, to_rgb8
-from .satmap import SatelliteMap
 
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".tif", ".tiff")
 TILE_SUFFIXES = (".png", ".jpg", ".jpeg")
@@ -76,7 +76,7 @@ def load_map(path: str | os.PathLike, mpp: float | None = None, frame: GeoFrame 
     ``region``: ``(x_min, y_min, x_max, y_max)`` in the frame's metres to load (default: the whole image).
     ``crs``: the CRS of a file that carries none (anything pyproj reads: ``"EPSG:32632"``, WKT, PROJ).
     ``zoom``: the zoom level of a tile folder (default: the highest present).
-    ``radiometry``: the bands to read and how to stretch them to 8 bits (:class:`satloc.radiometry.Radiometry`;
+    ``radiometry``: the bands to read and how to stretch them to 8 bits (:class:`satloc.geodata.radiometry.Radiometry`;
     default ``Radiometry()``: the image's colour bands, 8-bit samples as stored, other types stretched per
     band over their 0.5-99.5 % percentiles). The map's ``radiometry`` records what was applied.
 
@@ -93,7 +93,7 @@ def load_map(path: str | os.PathLike, mpp: float | None = None, frame: GeoFrame 
     if radiometry is None:
         radiometry = Radiometry()
     elif not isinstance(radiometry, Radiometry):
-        raise ConfigError(f"radiometry: expected a satloc.radiometry.Radiometry, got {type(radiometry).__name__}")
+        raise ConfigError(f"radiometry: expected a satloc.geodata.radiometry.Radiometry, got {type(radiometry).__name__}")
     src = _open_source(Path(path), crs, zoom, radiometry)
     frame, frame_crs, mpp, src_gsd, (x0, y0, x1, y1) = _plan(src, mpp, frame, region)
     width, height = int(round((x1 - x0) / mpp)), int(round((y1 - y0) / mpp))
@@ -607,7 +607,7 @@ def _gdal_error():
 def _check_integrity(path: Path, what: str = "image") -> None:
     """Damage that GDAL's PNG and JPEG drivers let through (chunk CRCs, a truncated JPEG, content of another
     kind than the suffix says)."""
-    from .satmap import check_image_bytes
+    from ..satmap import check_image_bytes
 
     suffix = path.suffix.lower()
     if suffix not in IMAGE_SUFFIXES:

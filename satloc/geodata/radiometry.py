@@ -1,6 +1,6 @@
 """Radiometry of georeferenced imagery: which bands make the picture, which pixels are valid, and how the
 samples become the 8-bit RGB of a :class:`~satloc.satmap.SatelliteMap` (the reader behind
-:func:`satloc.georef.load_map`, and so behind image scenes, ``satloc evaluate`` and the replay environment).
+:func:`satloc.geodata.georef.load_map`, and so behind image scenes, ``satloc evaluate`` and the replay environment).
 
 **Sample types**: every integer type GDAL reads (8 bit; 11-, 12- or 16-bit data stored in 16 bits; int16;
 32 bit) and floats (NaN and infinities are invalid pixels). Complex samples are refused.
@@ -39,7 +39,7 @@ take no part in the stretch statistics or the warnings.
   grey, 3 for RGB).
 
 :func:`to_rgb8` returns what it applied as a JSON-able dict (source type, bands, alpha band, stretch,
-per-band levels, the valid fraction), which :func:`~satloc.georef.load_map` puts on the map as
+per-band levels, the valid fraction), which :func:`~satloc.geodata.georef.load_map` puts on the map as
 ``SatelliteMap.radiometry``. It warns (:class:`~satloc.errors.SatlocWarning`, naming the file) when the
 8-bit picture is nearly constant (:data:`CONSTANT_STD`) or mostly dark (:data:`DARK_MEDIAN`) over its valid
 pixels, or has none.
@@ -54,7 +54,7 @@ from typing import Any
 
 import numpy as np
 
-from .errors import ConfigError, FormatError, SatlocWarning
+from ..errors import ConfigError, FormatError, SatlocWarning
 
 STRETCHES = ("auto", "none")
 PERCENTILES = (0.5, 99.5)     #: the ``auto`` stretch's low and high, percent of the valid samples
@@ -68,7 +68,7 @@ Levels = tuple[tuple[float, float], ...]
 
 @dataclass(frozen=True)
 class Radiometry:
-    """How :func:`satloc.georef.load_map` turns an image's samples into 8-bit RGB (see the module docstring).
+    """How :func:`satloc.geodata.georef.load_map` turns an image's samples into 8-bit RGB (see the module docstring).
 
     ``bands``: ``None`` (the image's own colour bands), or 1 (grey) or 3 (red, green, blue) band numbers
     counted from 1, as GDAL counts (a single int is one band). ``stretch``: ``"auto"``, ``"none"``,
@@ -374,5 +374,5 @@ def _check_visible(rgb: np.ndarray, use: np.ndarray | None, record: dict, where)
         if not found:
             return
         problem = (f"is {' and '.join(found)} after conversion to 8 bits (grey median {median:.1f}, std "
-                   f"{std:.2f} of 255 over its valid pixels; {how}); set stretch: or bands: (see satloc.radiometry)")
+                   f"{std:.2f} of 255 over its valid pixels; {how}); set stretch: or bands: (see satloc.geodata.radiometry)")
     warnings.warn(f"{where}: {problem}", SatlocWarning, stacklevel=4)

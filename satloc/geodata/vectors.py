@@ -40,7 +40,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .errors import ConfigError, FormatError
+from ..errors import ConfigError, FormatError
 
 __all__ = ["LANE_WIDTH_M", "LEVEL_HEIGHT_M", "VECTOR_SUFFIXES", "Footprints", "RoadLines", "Trees",
            "building_height", "is_vector_file", "read_footprints", "read_road_lines", "read_trees", "road_width",

@@ -2,7 +2,7 @@
 that the localizer finds out soonest?
 
 The car starts at a seeded random place on a scene's streets with a fresh tracked belief (no prior). At each
-junction the agent picks a branch: the action is ``Discrete(3)``, the slots of :data:`satloc_env.activemap.SLOTS`
+junction the agent picks a branch: the action is ``Discrete(3)``, the slots of :data:`satloc_env.envs.active_map.SLOTS`
 (left, straight, right), with ``info["action_mask"]`` (and :meth:`ActiveLocEnv.action_masks`, which
 sb3-contrib's ``MaskablePPO`` reads) saying which exist here; the way back is never offered. Between
 junctions the autopilot drives the chosen street and the tracked localizer (:class:`satloc.track.Tracker`)
@@ -10,7 +10,7 @@ fuses a frame every ``fuse_every`` steps; a step is one recorded frame of the ma
 shipped maps, so a decision costs about a dozen steps (a 60-70 m block). A junction with one branch is
 driven through without a decision.
 
-The frames' posteriors are the method's own, computed once per scene (:mod:`satloc_env.activemap`): the full
+The frames' posteriors are the method's own, computed once per scene (:mod:`satloc_env.envs.active_map`): the full
 method (W_g, W_s, co-occurrence scores) on frames the simulator rendered at those places under another day's
 conditions. The odometry between fused frames is the true relative motion plus noise (``odometry_noise``, as
 ``SatLoc-v0``'s ``noisy_truth``).
@@ -50,12 +50,12 @@ from satloc.errors import ConfigError
 from satloc.geometry import Pose2, wrap_angle
 from satloc.track import TrackConfig, Tracker, compose_motion, relative_motion
 
-from .activemap import SLOTS, ActiveMap
-from .env import ActionError
+from .active_map import SLOTS, ActiveMap
+from .drive import ActionError
+from .ids import ACTIVE_ID
 
 __all__ = ["ActiveConfig", "ActiveLocEnv", "OBS_FIELDS", "ACTIVE_ID", "belief_entropy"]
 
-ACTIVE_ID = "satloc/ActiveLoc-v0"
 K = len(SLOTS)
 
 
@@ -89,7 +89,7 @@ class ActiveConfig:
 
 def _slot(action) -> int:
     """The action as a slot in [0, 3) (a Python or numpy integer, or an integer array of one element); anything
-    else raises :class:`satloc_env.env.ActionError` (a ValueError) and changes nothing."""
+    else raises :class:`satloc_env.envs.drive.ActionError` (a ValueError) and changes nothing."""
     try:
         a = np.asarray(action)
     except (ValueError, TypeError):

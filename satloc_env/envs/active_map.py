@@ -1,4 +1,4 @@
-"""The map of an active-localization task (:mod:`satloc_env.active`): a scene's streets as directed legs, the
+"""The map of an active-localization task (:mod:`satloc_env.envs.active`): a scene's streets as directed legs, the
 localizer's candidate poses on them, and the localizer's posterior of a frame every few metres of every leg.
 
 An agent of ``satloc/ActiveLoc-v0`` chooses at each junction which street to take; between junctions the
@@ -9,7 +9,7 @@ done once per scene, here: :func:`build_active_map`
 1. records the scene's database route (the ``tour`` of the ActiveLoc scenes: every street once in each direction, see
    :func:`both_ways_circuit`)
    twice with the simulator: a database pass (1 m spacing) and a query pass under another day's conditions
-   (:data:`satloc_env.record.QUERY_CHANGE`, occluders, appearance, the other lane offset) with a frame every
+   (:data:`satloc_env.envs.record.QUERY_CHANGE`, occluders, appearance, the other lane offset) with a frame every
    ``frame_spacing_m``;
 2. builds the method's dictionary and learns its projections on the database pass (the pipeline's stages);
 3. localizes every query frame with the full method, scoring every candidate (no vote pruning: what the
@@ -48,8 +48,7 @@ from satloc.config import to_dict
 from satloc.errors import ConfigError, FormatError
 from satloc.geometry import wrap_angle
 from satloc.persist import ArraySpec, load_npz, read_json, save_npz, write_json
-
-from .scene import SCENES_DIR
+from satloc_env.world.scene import SCENES_DIR
 
 __all__ = ["ACTIVE_FORMAT", "SLOTS", "ActiveMapConfig", "ActiveMap", "both_ways_circuit", "build_active_map",
            "active_map_path", "SHIPPED_DIR"]
@@ -376,9 +375,9 @@ def build_active_map(config: ActiveMapConfig | dict | None = None, work: str | o
     from satloc.pipeline import BuildConfig, build, load_localizer, train_projection
     from satloc.projection import ProjectionConfig
     from satloc.sequence import Sequence
+    from satloc_env.world.scene import load_scene
 
     from .record import PassConfig, RecordConfig, record_passes, scene_identity
-    from .scene import load_scene
 
     if config is None:
         cfg = ActiveMapConfig()
@@ -393,13 +392,13 @@ def build_active_map(config: ActiveMapConfig | dict | None = None, work: str | o
     if scene.spec.query_route != route:
         raise ConfigError(f"active map: scene {cfg.scene!r} must drive one route in both passes (database_route "
                           f"{route!r}, query_route {scene.spec.query_route!r}): a closed route whose waypoints are the "
-                          "junctions in driving order, every street once each way (satloc_env.activemap.both_ways_circuit)")
+                          "junctions in driving order, every street once each way (satloc_env.envs.active_map.both_ways_circuit)")
     nodes, legs = _legs_of_route(scene.routes[route])
     pairs = [(int(u), int(v)) for u, v in legs]
     if len(set(pairs)) != len(pairs) or any((v, u) not in set(pairs) for u, v in pairs):
         raise ConfigError(f"active map: scene {cfg.scene!r}: route {route!r} must drive every street once in each "
                           "direction between junctions (its waypoints the junctions in driving order; "
-                          "satloc_env.activemap.both_ways_circuit makes one)")
+                          "satloc_env.envs.active_map.both_ways_circuit makes one)")
     times: dict[str, float] = {}
     t0 = time.perf_counter()
     rec = RecordConfig(scene=cfg.scene, resolution=cfg.resolution,

@@ -21,8 +21,8 @@ that entry removes it (under the lock) and starts over.
 :func:`auto_build_dir` returns the directory (building it on a miss); the CLI and scripts can use it like a
 build directory of ``satloc build``. :func:`load_cached_localizer` loads a build directory once per process.
 
-The environment (:mod:`satloc_env.env`) imports this module; this module records the database pass with
-:mod:`satloc_env.record` in an environment made through gymnasium's registry (:func:`satloc_env.record.make_env`)
+The environment (:mod:`satloc_env.envs.drive`) imports this module; this module records the database pass with
+:mod:`satloc_env.envs.record` in an environment made through gymnasium's registry (:func:`satloc_env.envs.record.make_env`)
 and imports neither of them back.
 """
 from __future__ import annotations
@@ -46,10 +46,10 @@ from satloc import __version__ as SATLOC_VERSION
 from satloc.config import to_dict
 from satloc.errors import ConfigError
 from satloc.persist import FORMAT_VERSION, atomic_dir, header, read_json, write_json
+from satloc_env.world.scene import SCENES_DIR  # noqa: F401  (autoloc.SCENES_DIR: where the shipped scenes are)
 
 from .record import RecordConfig, make_env, record_pass
 from .record import scene_identity as _scene_identity
-from .scene import SCENES_DIR  # noqa: F401  (autoloc.SCENES_DIR: where the shipped scenes are)
 
 log = logging.getLogger(__name__)
 
@@ -211,7 +211,7 @@ def _build_entry(out: Path, key: dict, scene, aliasing, resolution, max_frames, 
         sc = env.scene
         sc.satmap.save(rec / "map")
         record_pass(env, db, db.route or sc.spec.database_route, rec / "database", "database", progress,
-                    {"source": "satloc_env.autoloc", "scene": sc.name, "aliasing": sc.spec.knobs.aliasing})
+                    {"source": "satloc_env.envs.auto_localizer", "scene": sc.name, "aliasing": sc.spec.knobs.aliasing})
     finally:
         env.close()
     stages.update(1)

@@ -33,9 +33,9 @@ from satloc.persist import read_json
 from satloc.satmap import SatelliteMap
 from satloc.sequence import Frame
 from satloc.track import compose_motion
+from satloc_env.world.scene import Scene, load_scene
 
 from .occluders import Appearance, sample_occluders
-from .scene import Scene, load_scene
 from .vehicle import DEFAULT_DT, Autopilot, VehicleParams, action_bounds, step_bicycle
 
 
@@ -59,12 +59,12 @@ class EnvConfig:
     aliasing: float | None = None           # scene knobs (None: the scene file's value)
     occlusion: float | None = None
     appearance: float | None = None
-    change: float | None = None             # revisit change of the world (satloc_env.revisit): shadows of another
+    change: float | None = None             # revisit change of the world (satloc_env.world.revisit): shadows of another
                                             # sun, road wear, parked cars moved, season; 0 none
     anisotropy: int = 1                     # >1: anisotropic texture filtering (sharper far ground, ~4x slower on llvmpipe)
     zfar_m: float = 150.0
     localizer: str | None = "auto"          # None/"none": off; "auto": cached build of the scene's database
-                                            # pass (satloc_env.autoloc); else a build directory; a Localizer
+                                            # pass (satloc_env.envs.auto_localizer); else a build directory; a Localizer
                                             # instance given as the keyword is stored here as "<instance>"
     localizer_mode: Literal["full", "np", "go"] = "full"   # for "auto" / a build directory
     localizer_refine: bool = False          # for "auto" / a build directory: bird's-eye alignment (satloc.align)
@@ -130,7 +130,7 @@ EPISODE_KEYS = frozenset({
 })
 
 
-# --- shared by SatLoc-v0 and SatLocReplay-v0 (satloc_env.replay) ----------------------------------------------
+# --- shared by SatLoc-v0 and SatLocReplay-v0 (satloc_env.envs.replay) ----------------------------------------------
 class _Shared:
     """Holds an object given to ``gym.make`` (a Localizer, a Sequence, a SatelliteMap) in ``env.spec.kwargs``;
     copies share it (see :class:`SharedSpecMixin`)."""
@@ -495,7 +495,7 @@ class SatLocEnv(SharedSpecMixin, gym.Env):
     ``step`` - all fixed-shape numpy values.
 
     Localization (``localizer`` not None / ``"none"``). ``localizer`` is ``"auto"`` (default: a localizer
-    built from the scene's database pass, cached on disk by :mod:`satloc_env.autoloc`; the first use of a
+    built from the scene's database pass, cached on disk by :mod:`satloc_env.envs.auto_localizer`; the first use of a
     scene costs minutes), a build directory of ``satloc build`` + ``satloc train-projection`` (loaded in mode
     ``localizer_mode``), or a :class:`satloc.localizer.Localizer` given as the ``localizer`` keyword (its own
     mode holds; ``config.localizer`` then reads ``"<instance>"``). At reset and at every step that is a
@@ -532,7 +532,7 @@ class SatLocEnv(SharedSpecMixin, gym.Env):
     ``posterior_*`` zeros, ``inlier`` False, ``inlier_score`` 0 and the error message is kept in
     ``env.unwrapped.localization_error``. Without a localizer these keys are absent.
 
-    Revisit change (``change`` > 0, :mod:`satloc_env.revisit`): the episode sees a world built from a changed
+    Revisit change (``change`` > 0, :mod:`satloc_env.world.revisit`): the episode sees a world built from a changed
     layout (shadows of another sun, road wear, parked cars moved, another season), seeded from the episode's
     seed (``change_seed``); the satellite map stays the scene's. The last two such worlds are kept per process.
 
@@ -588,7 +588,7 @@ class SatLocEnv(SharedSpecMixin, gym.Env):
                                               localizer_refine=instance.config.refine,
                                               localizer_track=self.config.localizer_track or instance.config.track)
         elif self.config.localizer not in (None, "auto"):
-            from .autoloc import load_cached_localizer
+            from .auto_localizer import load_cached_localizer
 
             self.localizer = load_cached_localizer(self.config.localizer, self.config.localizer_mode,
                                                    self.config.localizer_refine)
@@ -667,7 +667,7 @@ class SatLocEnv(SharedSpecMixin, gym.Env):
             scene = load_scene(cfg.scene, cfg.aliasing)
         self._preloaded = None
         if self.config.localizer == "auto":
-            from .autoloc import auto_localizer
+            from .auto_localizer import auto_localizer
 
             self.localizer = auto_localizer(cfg.scene, cfg.aliasing, cfg.resolution, cfg.localizer_mode,
                                             refine=cfg.localizer_refine)
@@ -679,14 +679,14 @@ class SatLocEnv(SharedSpecMixin, gym.Env):
         self._use_world(scene.world)
 
     def _use_world(self, world) -> None:
-        """Render ``world`` (the scene's, or a revisit's :func:`satloc_env.revisit.changed_world`) from now on."""
-        from .render import StereoRenderer
+        """Render ``world`` (the scene's, or a revisit's :func:`satloc_env.world.revisit.changed_world`) from now on."""
+        from satloc_env.render.stereo import StereoRenderer
 
         if self._renderer is not None and self._renderer.world is world:
             return
         if self._renderer is not None:
             self._renderer.close()
-        if self._batch is not None:          # a sub-environment of satloc_env.vector.SatLocVectorEnv
+        if self._batch is not None:          # a sub-environment of satloc_env.envs.vector.SatLocVectorEnv
             self._renderer = self._batch.slot(world)
         else:
             self._renderer = StereoRenderer(world, self.camera, anisotropy=self.config.anisotropy,
@@ -716,7 +716,7 @@ class SatLocEnv(SharedSpecMixin, gym.Env):
                 raise ConfigError(f"{k}: expected a value in [0, 1], got {val}")
         self.change_seed, world = None, scene.world
         if change > 0:   # seeded by a child of the episode's seed sequence: the episode's own draws stay as they are
-            from .revisit import changed_world
+            from satloc_env.world.revisit import changed_world
 
             self.change_seed = int(self.np_random.spawn(1)[0].integers(2**31 - 1))
             world = changed_world(scene, change, self.change_seed)
@@ -747,7 +747,7 @@ class SatLocEnv(SharedSpecMixin, gym.Env):
 
     def _advance(self, action) -> tuple[np.ndarray, np.ndarray]:
         """The first part of :meth:`step`, up to the rendering: move the car by ``action``; returns the odometry
-        observation (noisy) and the true motion. (:class:`satloc_env.vector.SatLocVectorEnv` renders all its
+        observation (noisy) and the true motion. (:class:`satloc_env.envs.vector.SatLocVectorEnv` renders all its
         environments' cars between the two parts.)"""
         if not self._ready:
             raise RuntimeError("call reset() first" + (" (the last reset raised an error)" if self._scene else ""))
@@ -960,7 +960,7 @@ def _text(img: np.ndarray, text: str, org: tuple[int, int]) -> None:
 
 
 def _route_lines(route) -> list[np.ndarray]:
-    """The polylines (each (n, 2) map metres) of ``route``: a :class:`satloc_env.route.Route`, an (N, 2+) array of
+    """The polylines (each (n, 2) map metres) of ``route``: a :class:`satloc_env.world.route.Route`, an (N, 2+) array of
     path points (rows with NaN split it: frames without a pose), or None."""
     if route is None:
         return []

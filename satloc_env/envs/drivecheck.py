@@ -1,7 +1,7 @@
 """Whether the autopilot can drive a route: the recorder's off-road check, run before any work.
 
 :func:`autopilot_drive` moves the vehicle exactly as the environment does when the recorder steps it with
-the autopilot's action (:meth:`satloc_env.env.SatLocEnv.step`: the action clipped to the action space, one
+the autopilot's action (:meth:`satloc_env.envs.drive.SatLocEnv.step`: the action clipped to the action space, one
 bicycle-model step of ``dt``, the autopilot's progress updated, the pose checked against the scene's
 drivable area), without rendering anything: a 1 km route takes about a tenth of a second. The poses are
 the ones a recording would have (the vehicle's motion has no noise), so a route it drives to the end is
@@ -9,7 +9,7 @@ recorded without leaving the road, and the first off-road pose it finds is where
 
 :func:`check_route` raises :class:`satloc.ConfigError` naming the route, the lane offset and that first
 point (map metres, lon/lat on a scene over georeferenced imagery, and how far along the route it lies).
-``satloc scene``, :func:`satloc_env.record.record_passes` (``satloc record``, ``satloc demo``, the
+``satloc scene``, :func:`satloc_env.envs.record.record_passes` (``satloc record``, ``satloc demo``, the
 experiments) and the experiments' multi-scene commands call it before they start.
 """
 from __future__ import annotations

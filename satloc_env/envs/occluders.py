@@ -7,9 +7,8 @@ import cv2
 import numpy as np
 
 from satloc.labels import CLASS_ID as C
-
-from .layout import Car, Obstacle, Person
-from .route import Route
+from satloc_env.world.layout import Car, Obstacle, Person
+from satloc_env.world.route import Route
 
 #: occluders per 100 m of route at occlusion = 1
 DENSITY_PER_100M = 12.0

@@ -12,7 +12,7 @@ Both sequences use the on-disk layout of :mod:`satloc.sequence`, which the datas
 
 Before any work, :func:`record_passes` checks that the autopilot can drive both passes (route and lane
 offset) on the road (:func:`check_passes`, the same off-road check as the recorder's, run without
-rendering: :mod:`satloc_env.drivecheck`); a pass that would leave the road is a :class:`satloc.ConfigError`
+rendering: :mod:`satloc_env.envs.drivecheck`); a pass that would leave the road is a :class:`satloc.ConfigError`
 naming the route and the first point off the road, as it is when a pass leaves the road while recording.
 
 Interrupted runs: each pass is written whole (a temporary directory renamed into place) and marked done in
@@ -21,7 +21,7 @@ keeps the passes marked done and records the rest (it resumes); otherwise it sta
 the recording incomplete and removing the earlier map and passes, so a recording is never a mix of two
 configurations. :func:`load_recording` loads a recording only when it is complete.
 
-This module does not import :mod:`satloc_env.env`: the environment uses :mod:`satloc_env.autoloc` for
+This module does not import :mod:`satloc_env.envs.drive`: the environment uses :mod:`satloc_env.envs.auto_localizer` for
 ``localizer="auto"``, which records the scene's database pass with this module, so the recorders make their
 environments through gymnasium's registry entry of ``satloc/SatLoc-v0`` (:func:`make_env`) and the imports
 go one way (env -> autoloc -> record).
@@ -48,22 +48,19 @@ from satloc.geometry import Pose2
 from satloc.persist import header, read_json, write_json
 from satloc.satmap import SatelliteMap
 from satloc.sequence import Frame, Sequence, SequenceWriter
+from satloc_env.world.scene import SCENES_DIR, load_scene, load_spec, scene_path
 
 from .drivecheck import check_route, off_road_message
-from .scene import SCENES_DIR, load_scene, load_spec, scene_path
-
-#: the id ``satloc_env`` registers the simulator under (``satloc_env.ENV_ID``; importing the package, which
-#: every import of this module does first, registers it)
-ENV_ID = "satloc/SatLoc-v0"
+from .ids import ENV_ID
 
 
 def make_env(**config: Any) -> gym.Env:
-    """A new, unwrapped ``satloc/SatLoc-v0`` environment (:class:`satloc_env.env.SatLocEnv`) with ``config``:
+    """A new, unwrapped ``satloc/SatLoc-v0`` environment (:class:`satloc_env.envs.drive.SatLocEnv`) with ``config``:
     the class of the registry's entry point, called without gymnasium's wrappers."""
     return load_env_creator(gym.spec(ENV_ID).entry_point)(**config)
 
 
-#: the revisit change (:mod:`satloc_env.revisit`) of the default query pass; 0.5, like its appearance: the sun
+#: the revisit change (:mod:`satloc_env.world.revisit`) of the default query pass; 0.5, like its appearance: the sun
 #: 30-50 degrees round and 0.22 rad lower to 0.1 higher, cast shadows at 75-100 % depth, a repair patch per
 #: 240 m^2 and a crack per 120 m^2 of road, markings 12-51 % faded, 22 % of the parked cars gone, up to 18 %
 #: moved and about 18 % added, grass and foliage a fifth to two fifths of the way to another season's colour:
@@ -82,7 +79,7 @@ class PassConfig:
     max_frames: int | None = None   # stop early after this many frames
     occlusion: float = 0.0
     appearance: float = 0.0
-    change: float = 0.0             # revisit change of the world (satloc_env.revisit), seeded by ``seed``
+    change: float = 0.0             # revisit change of the world (satloc_env.world.revisit), seeded by ``seed``
     seed: int = 0
     depth: bool = True              # store true depth (simulator ground truth) with each frame
     labels: bool = False
@@ -149,7 +146,7 @@ def pass_routes(scene, cfg: RecordConfig) -> list[tuple[str, PassConfig]]:
 
 def check_passes(scene, passes, speed_mps: float, where: str | None = None) -> None:
     """ConfigError naming the route and the first point where the autopilot would leave the road, for the
-    first of ``passes`` ((route, PassConfig) pairs) it cannot drive (:func:`satloc_env.drivecheck.check_route`:
+    first of ``passes`` ((route, PassConfig) pairs) it cannot drive (:func:`satloc_env.envs.drivecheck.check_route`:
     the recorder's own off-road check, without rendering)."""
     for route, p in passes:
         check_route(scene, route, p.lane_offset_m, speed_mps, where=where)
@@ -177,7 +174,7 @@ def _hash_files(h: "hashlib._Hash", files: list[tuple[str, Path]]) -> None:
 
 def scene_identity(scene: str | os.PathLike) -> tuple[str, str, str, float]:
     """(name, source, sha256 of the scene's files, the scene's own aliasing) of a scene argument as
-    :func:`satloc_env.scene.load_scene` reads it. ``source`` is the shipped name or the resolved path."""
+    :func:`satloc_env.world.scene.load_scene` reads it. ``source`` is the shipped name or the resolved path."""
     p = Path(scene).expanduser()
     h = hashlib.sha256()
     if p.is_dir() and (p / "scene.json").is_file():  # a saved scene: all its files

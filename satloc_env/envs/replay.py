@@ -1,6 +1,6 @@
 """The Gymnasium environment ``satloc/SatLocReplay-v0``: replay a recorded stereo sequence over its satellite map.
 
-Where ``satloc/SatLoc-v0`` (:mod:`satloc_env.env`) renders what a car sees as it drives, this environment steps
+Where ``satloc/SatLoc-v0`` (:mod:`satloc_env.envs.drive`) renders what a car sees as it drives, this environment steps
 through a recorded :class:`satloc.sequence.Sequence`: a directory written by ``satloc record`` or
 ``Sequence.save``, or a ``Sequence`` object (e.g. a dataset reader's lazy sequence, :meth:`Sequence.lazy`). The
 observation and ``info`` follow SatLoc-v0's contract, so an agent or a script written for one runs on the
@@ -39,9 +39,21 @@ from satloc.satmap import SatelliteMap
 from satloc.sequence import Sequence
 from satloc.track import compose_motion
 
-from .env import (LOCALIZER_INSTANCE, PANEL_M, ActionError, LocalizationState, SharedSpecMixin, _check_noise,
-                  _split_localizer, build_identity, check_localizer_camera, check_localizer_config,
-                  check_reset_options, compose_view, unshare)
+from .drive import (
+    LOCALIZER_INSTANCE,
+    PANEL_M,
+    ActionError,
+    LocalizationState,
+    SharedSpecMixin,
+    _check_noise,
+    _split_localizer,
+    build_identity,
+    check_localizer_camera,
+    check_localizer_config,
+    check_reset_options,
+    compose_view,
+    unshare,
+)
 
 #: the value of ``ReplayConfig.sequence`` / ``.map`` when an object (a Sequence, a SatelliteMap) was passed.
 INSTANCE = "<instance>"
@@ -55,7 +67,7 @@ class ReplayConfig:
     sequence: str | None = None             # sequence directory; a Sequence object given as the keyword is
                                             # stored here as "<instance>" (required: one or the other)
     map: str | None = None                  # satellite map directory (SatelliteMap.load), a GeoTIFF, an image with
-                                            # a world file or an XYZ tile folder (satloc.georef), or "<instance>" for a
+                                            # a world file or an XYZ tile folder (satloc.geodata.georef), or "<instance>" for a
                                             # SatelliteMap object; None: see SatLocReplayEnv (render only)
     start_frame: int = 0                    # first frame of an episode
     end_frame: int | None = None            # frames from this index on are not replayed (None: to the end)
@@ -99,7 +111,7 @@ class SatLocReplayEnv(SharedSpecMixin, gym.Env):
     **Data.** ``sequence``: a sequence directory (``satloc record``, ``Sequence.save``) or a
     :class:`satloc.sequence.Sequence` object given as the keyword (shared, not copied, by ``env.spec``; a
     lazy dataset sequence reads its frames as they are replayed). ``map``: a map directory
-    (:meth:`SatelliteMap.load`), georeferenced imagery that :func:`satloc.georef.load_map` reads (a GeoTIFF,
+    (:meth:`SatelliteMap.load`), georeferenced imagery that :func:`satloc.geodata.georef.load_map` reads (a GeoTIFF,
     an image with a world file, an XYZ tile folder: read into the sequence's ``meta["geo_frame"]`` around its
     path, at the image's resolution or coarser within :data:`MAX_MAP_PX` pixels a side) or a
     :class:`SatelliteMap` object. It is used for rendering only (the
@@ -118,7 +130,7 @@ class SatLocReplayEnv(SharedSpecMixin, gym.Env):
     stops at the last frame reachable in whole strides. An action must be an integer (a Python or numpy integer,
     or an integer array of one element) in [1, ``max_skip``]: anything else (0 or above ``max_skip``, a float
     such as 1.0 or NaN, inf, a bool, a string, an array of another size) raises
-    :class:`satloc_env.env.ActionError` (a ValueError) naming the range, and the step is not taken. Unlike
+    :class:`satloc_env.envs.drive.ActionError` (a ValueError) naming the range, and the step is not taken. Unlike
     SatLoc-v0's Box, a Discrete action out of range is not clipped.
 
     **Configuration errors** (:class:`satloc.ConfigError`, naming the field): unknown keys, wrong types,
@@ -143,7 +155,7 @@ class SatLocReplayEnv(SharedSpecMixin, gym.Env):
     **info** (fixed-shape numpy values): ``pose`` (x, y, yaw) of the frame in the data (NaN for a frame without
     a pose), ``odometry_true`` (the noise-free motion of the step), ``odometry_valid``, ``step``,
     ``frame_index`` (into the sequence), ``timestamp`` (the frame's, seconds). With a localizer, as SatLoc-v0
-    (see :class:`satloc_env.env.SatLocEnv`): ``estimate``, ``error_m`` (to the current frame's pose: NaN for a
+    (see :class:`satloc_env.envs.drive.SatLocEnv`): ``estimate``, ``error_m`` (to the current frame's pose: NaN for a
     frame without a pose), ``posterior_poses`` (K, 3), ``posterior_probs`` (K,), ``inlier``, ``inlier_score``
     and ``localized_step``, computed at reset and at every ``localize_every``-th step (step count, not frame
     index); ``localizer_track`` fuses them over the episode with the noisy odometry observations. A frame that
@@ -162,7 +174,7 @@ class SatLocReplayEnv(SharedSpecMixin, gym.Env):
 
     **Reward**: 0, or with ``reward="neg_error"`` minus ``error_m`` (0 while there is no finite error).
 
-    **Rendering** (``render_mode="rgb_array"``): SatLoc-v0's panels (:func:`satloc_env.env.compose_view`): the
+    **Rendering** (``render_mode="rgb_array"``): SatLoc-v0's panels (:func:`satloc_env.envs.drive.compose_view`): the
     left image, a bird's-eye crop of the map around the frame's pose and the whole map with the sequence's
     path, the posterior heatmap, the estimate (green) and the truth (red).
 
@@ -205,7 +217,7 @@ class SatLocReplayEnv(SharedSpecMixin, gym.Env):
             cfg = dataclasses.replace(cfg, localizer_mode=c.mode, localizer_refine=c.refine,
                                       localizer_track=cfg.localizer_track or c.track)
         elif cfg.localizer is not None:
-            from .autoloc import load_cached_localizer
+            from .auto_localizer import load_cached_localizer
 
             self._loc.localizer = load_cached_localizer(cfg.localizer, cfg.localizer_mode, cfg.localizer_refine)
             self._loc_identity = build_identity(cfg.localizer)
@@ -338,7 +350,7 @@ class SatLocReplayEnv(SharedSpecMixin, gym.Env):
         if frame is None:
             raise ConfigError(f"map: {str(path)!r} is georeferenced imagery, but sequence {seq.name!r} has no "
                               "meta['geo_frame'] to place it in (only real-data readers and georeferenced scenes set it)")
-        from satloc.georef import load_map, map_bounds
+        from satloc.geodata.georef import load_map, map_bounds
 
         xy = self._poses[np.all(np.isfinite(self._poses[:, :2]), axis=1), :2]
         m = PANEL_M / 2
@@ -537,7 +549,7 @@ def _in_camera(seq: Sequence, camera) -> Sequence:
 
 def _skip_count(action, max_skip: int) -> int:
     """The action as a skip count in [1, ``max_skip``] (an integer, a numpy integer or a 1-element integer
-    array); anything else raises :class:`satloc_env.env.ActionError` (a ValueError): a Discrete action out of
+    array); anything else raises :class:`satloc_env.envs.drive.ActionError` (a ValueError): a Discrete action out of
     range is not clipped."""
     try:
         a = np.asarray(action)

@@ -1,9 +1,9 @@
 """``satloc/SatLoc-v0`` as a batched vector environment: N cars, one GL context, one read-back per step.
 
 ``gym.make_vec("satloc/SatLoc-v0", num_envs=N)`` (the registered ``vector_entry_point``, the default
-vectorization mode of this id) returns a :class:`SatLocVectorEnv`. It holds N :class:`~satloc_env.env.SatLocEnv`
+vectorization mode of this id) returns a :class:`SatLocVectorEnv`. It holds N :class:`~satloc_env.envs.drive.SatLocEnv`
 sub-environments, each with its own random generator, car, occluders, appearance and localizer state, and one
-:class:`~satloc_env.render.BatchStereoRenderer` that renders the N stereo pairs of a step in one framebuffer:
+:class:`~satloc_env.render.stereo.BatchStereoRenderer` that renders the N stereo pairs of a step in one framebuffer:
 every world is uploaded once (all N cars share the scene's), every car's pair is drawn into a layer of its own
 of one layered framebuffer, exactly as the single environment draws it (same draw order, same window
 positions), and the layers are read back with one call for the colour and one for the depth.
@@ -17,10 +17,10 @@ Infos are batched as Gymnasium's vector environments batch them (an array per ke
 sub-environments that gave it). ``reset(seed=s)`` seeds sub-environment i with ``s + i``; ``options`` apply to
 every sub-environment (``options["reset_mask"]``: reset only those).
 
-Configuration: the keywords of ``SatLoc-v0`` (:class:`~satloc_env.env.EnvConfig`), the same for all
+Configuration: the keywords of ``SatLoc-v0`` (:class:`~satloc_env.envs.drive.EnvConfig`), the same for all
 sub-environments, ``batch_network``, and ``max_episode_steps`` (``gym.make_vec(..., max_episode_steps=n)``:
 each car's episodes are truncated after n steps, as ``gym.make``'s TimeLimit truncates a single environment's).
-Every action is checked before any car moves: a bad one raises :class:`~satloc_env.env.ActionError` naming its
+Every action is checked before any car moves: a bad one raises :class:`~satloc_env.envs.drive.ActionError` naming its
 sub-environment and changes nothing. With a localizer, each sub-environment localizes its own frames;
 with ``batch_network`` (the default) the network part of the features of all the frames localized in a step
 runs first as one batch (:meth:`satloc.localizer.Localizer.prefetch`; 1.5 times the throughput of 8 single
@@ -38,7 +38,7 @@ from gymnasium.vector.utils import batch_space, concatenate, create_empty_array
 
 from satloc.errors import ConfigError
 
-from .env import ActionError, SatLocEnv
+from .drive import ActionError, SatLocEnv
 
 __all__ = ["SatLocVectorEnv"]
 
@@ -50,7 +50,7 @@ class SatLocVectorEnv(VectorEnv):
 
     def __init__(self, num_envs: int = 1, render_mode: str | None = None, batch_network: bool = True,
                  **config: Any):
-        from .render import BatchStereoRenderer
+        from satloc_env.render.stereo import BatchStereoRenderer
 
         if isinstance(num_envs, bool) or not isinstance(num_envs, (int, np.integer)) or num_envs < 1:
             raise ConfigError(f"num_envs: expected an integer >= 1, got {num_envs!r}")

@@ -7,9 +7,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from satloc.geometry import Pose2
-
-from .route import Route
-
+from satloc_env.world.route import Route
 
 #: seconds per simulator step (the environment's default ``dt``, which the recorder drives at)
 DEFAULT_DT = 0.1

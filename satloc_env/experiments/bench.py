@@ -3,16 +3,15 @@ from __future__ import annotations
 
 import os
 import resource
+import time
 from pathlib import Path
 from typing import Iterator
 
 import numpy as np
-import time
 
 from satloc.errors import ConfigError
 from satloc.geometry import StereoCamera
-
-from .env import SatLocEnv
+from satloc_env.envs.drive import SatLocEnv
 
 
 def _rss_mb() -> float:
@@ -24,7 +23,7 @@ def bench_env(resolution: str = "half", steps: int = 2000, scene: str = "city", 
               num_envs: int = 1) -> dict:
     """Stereo colour + depth steps per second driven by the autopilot, memory over the run, and which GL driver
     rendered (``gl_renderer``: e.g. llvmpipe for Mesa's software rasterizer, the GPU's name on a vendor's
-    driver). ``num_envs`` > 1: the batched vector environment (:class:`satloc_env.vector.SatLocVectorEnv`) with
+    driver). ``num_envs`` > 1: the batched vector environment (:class:`satloc_env.envs.vector.SatLocVectorEnv`) with
     that many cars; ``steps`` and ``steps_per_s`` then count the steps of all cars together (``steps`` is
     rounded up to a multiple of ``num_envs``). ``peak_rss_mb``: the largest resident size sampled during this
     run (after the warm-up steps, every 16 step calls and at the end), not the process's lifetime peak, so that
@@ -42,7 +41,7 @@ def bench_env(resolution: str = "half", steps: int = 2000, scene: str = "city", 
         def renderer():
             return env._renderer
     else:
-        from .vector import SatLocVectorEnv
+        from satloc_env.envs.vector import SatLocVectorEnv
 
         env = SatLocVectorEnv(num_envs, **kw)
         reset = env.reset
@@ -93,7 +92,7 @@ def bench_recording(work, scene: str, frames: int):
     """The recording folder of ``satloc bench localize`` in ``work``: ``rec_<scene>_<database frames>``. An
     existing complete recording of the same scene with at least ``frames`` database frames is reused (its
     first frames serve every size); otherwise a new folder for ``frames`` frames. Returns ``(folder, reuse)``."""
-    from .experiment import scene_label
+    from .scene_run import scene_label
 
     label = scene_label(scene).replace("/", "_")
     done = []
@@ -130,9 +129,9 @@ def bench_localize(sizes_km=(0.25, 1.0, 4.0), work=None, scene: str = "loop", qu
     from satloc.pipeline import BuildConfig, build, load_localizer, train_projection
     from satloc.projection import ProjectionConfig
     from satloc.sequence import Sequence
+    from satloc_env.envs.record import PassConfig, RecordConfig, record_passes
 
-    from .experiment import covered_queries
-    from .record import PassConfig, RecordConfig, record_passes
+    from .scene_run import covered_queries
 
     dev = str(resolve_device(device))   # before any work: a device that is not there fails at once
     work = Path(work) if work else Path(tempfile.mkdtemp(prefix="satloc_bench_"))
@@ -188,17 +187,17 @@ def bench_localize(sizes_km=(0.25, 1.0, 4.0), work=None, scene: str = "loop", qu
 
 
 def bench_soak(steps: int = 20000, queries: int = 2000, scene: str = "city", emit=None, **kw) -> dict:
-    """The soak benchmark (:mod:`satloc_env.soak`): RSS and open file descriptors over ``steps`` env steps with
+    """The soak benchmark (:mod:`satloc_env.experiments.soak`): RSS and open file descriptors over ``steps`` env steps with
     the localizer and tracking, then over ``queries`` queries of ``localize_stream``. ``emit`` receives every
-    sample and summary as it comes (a JSON-able dict); ``kw`` are further :class:`satloc_env.soak.SoakConfig`
-    fields. Returns the summaries and samples (see :func:`satloc_env.soak.soak`)."""
+    sample and summary as it comes (a JSON-able dict); ``kw`` are further :class:`satloc_env.experiments.soak.SoakConfig`
+    fields. Returns the summaries and samples (see :func:`satloc_env.experiments.soak.soak`)."""
     from .soak import SoakConfig, soak
 
     return soak(SoakConfig(steps=steps, queries=queries, scene=scene, **kw), emit=emit)
 
 
 #: the real KITTI excerpt beside the repository (../shared/realdata, see its README): non-commercial, read in place
-KITTI_EXCERPT = (Path(__file__).resolve().parents[2] / "shared" / "realdata" / "kitti_raw_2011_09_26_drive_0023_7frames"
+KITTI_EXCERPT = (Path(__file__).resolve().parents[3] / "shared" / "realdata" / "kitti_raw_2011_09_26_drive_0023_7frames"
                  / "2011_09_26" / "2011_09_26_drive_0023_sync")
 
 
@@ -230,8 +229,7 @@ def bench_vo(scene: str = "residential", frames: int = 250, work=None, kitti=Non
     from satloc.sequence import Sequence
     from satloc.stereo import StereoDepth
     from satloc.vo import VOConfig, integrate_odometry, odometry_drift
-
-    from .record import PassConfig, make_env, record_pass
+    from satloc_env.envs.record import PassConfig, make_env, record_pass
 
     config = config or VOConfig()
     work = Path(work) if work else Path(tempfile.mkdtemp(prefix="satloc_bench_vo_"))
@@ -292,8 +290,9 @@ def bench_active(map: str = "active_grid", episodes: int = 20, agents: tuple[str
                  seed: int = 20_000) -> list[dict]:
     """ActiveLoc-v0 decisions per second with each agent (environment plus the agent's choice), over
     ``episodes`` episodes from ``reset(seed=seed + i)``; ``agent_ms`` is the agent's share per decision."""
-    from .active import ActiveLocEnv
-    from .agents import make_agent, run_episode
+    from satloc_env.agents.evaluate import run_episode
+    from satloc_env.agents.policies import make_agent
+    from satloc_env.envs.active import ActiveLocEnv
 
     env = ActiveLocEnv(map=map)
     rows = []

@@ -1,18 +1,18 @@
 """Digests of rendered frames, to compare the simulator's images between processes.
 
-``python -m satloc_env.determinism OUT.json`` renders the ground frames of the FCN's training set (the episodes
-that :func:`satloc_env.train_features.train_features` renders with ``TrainConfig()``: the scenes ``city`` and
+``python -m satloc_env.experiments.determinism OUT.json`` renders the ground frames of the FCN's training set (the episodes
+that :func:`satloc_env.experiments.train_features.train_features` renders with ``TrainConfig()``: the scenes ``city`` and
 ``residential`` at aliasing 0 and 0.5, the same episode seeds, options and frame spacing; 1,133 frames) and
 writes a SHA-256 digest of each left image and label image. ``--compare OTHER.json`` then lists the frames
 whose digests differ (exit status 1 if any). Run it in two fresh processes, e.g.::
 
-    PYTHONHASHSEED=1 python -m satloc_env.determinism a.json
-    PYTHONHASHSEED=2 python -m satloc_env.determinism b.json --compare a.json
+    PYTHONHASHSEED=1 python -m satloc_env.experiments.determinism a.json
+    PYTHONHASHSEED=2 python -m satloc_env.experiments.determinism b.json --compare a.json
 
 Measured on 2 cores (Mesa 22.3 llvmpipe): 4 of the 1,133 frames differed between two such processes (a few
 pixels each, images only) while equally near meshes were drawn in the order of pyrender's node set, which
 follows memory addresses; 0 of 1,133 once they were drawn in name order (see
-:meth:`satloc_env._gl._MultiViewRenderer.render_views`). About 75 s per run.
+:meth:`satloc_env.render.gl._MultiViewRenderer.render_views`). About 75 s per run.
 """
 from __future__ import annotations
 
@@ -34,7 +34,7 @@ __all__ = ["training_frame_digests", "compare_digests", "main"]
 
 
 def _training_seeds(cfg: TrainConfig, scenes: Sequence[str], heldout: Sequence[str]) -> dict[str, np.ndarray]:
-    """Episode seeds of the training scenes, drawn as :func:`satloc_env.train_features.train_features` draws
+    """Episode seeds of the training scenes, drawn as :func:`satloc_env.experiments.train_features.train_features` draws
     them (training seeds first, then those of the held-out episodes, from one generator)."""
     rng = np.random.default_rng(cfg.seed)
     n_train, n_eval = cfg.ground_episodes * len(cfg.aliasing), cfg.eval_episodes
@@ -74,12 +74,12 @@ def _read(path: Path) -> dict[str, str]:
         raise ConfigError(f"{path}: cannot read frame digests ({e})") from None
     if not isinstance(data, dict) or not isinstance(data.get("digests"), dict):
         raise ConfigError(f"{path}: expected a JSON object with a 'digests' object (written by "
-                          "python -m satloc_env.determinism)")
+                          "python -m satloc_env.experiments.determinism)")
     return data["digests"]
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(prog="python -m satloc_env.determinism", description=__doc__.split("\n\n")[0])
+    ap = argparse.ArgumentParser(prog="python -m satloc_env.experiments.determinism", description=__doc__.split("\n\n")[0])
     ap.add_argument("out", type=Path, help="JSON file to write the digests to")
     ap.add_argument("--compare", type=Path, help="digests of another run to compare with")
     ap.add_argument("--scenes", nargs="+", default=["city", "residential"])

@@ -2,10 +2,10 @@
 
 :func:`evaluate` reads a database drive (and optionally a query drive) with the dataset readers of
 :mod:`satloc.datasets`, all in ONE :class:`~satloc.geoframe.GeoFrame` (the database's: the query reader gets
-``frame=`` it), loads the georeferenced satellite image with :func:`satloc.georef.load_map` into that frame
+``frame=`` it), loads the georeferenced satellite image with :func:`satloc.geodata.georef.load_map` into that frame
 over the bounding box of the drive's poses (with ``queries=``: of the database's and of the query drive's
 frames within ``coverage_m`` of it, so a query drive may run on beyond the area the image covers) plus
-``margin_m``, and then runs the same stages as the synthetic experiments (:mod:`satloc_env.experiment`):
+``margin_m``, and then runs the same stages as the synthetic experiments (:mod:`satloc_env.experiments.scene_run`):
 build (dictionary + dense satellite features), learn the projections, localize the covered queries in each
 mode (GO, NP, full, +align, +track) and draw.
 
@@ -42,7 +42,7 @@ imagery: ``summary.json``'s ``map_kind`` says so, and the sequence in ``results.
 ``[lidar-mosaic self-check]``.
 
 ``satellite_bands`` and ``satellite_stretch`` choose the satellite image's bands and its conversion to 8 bits
-(:class:`satloc.radiometry.Radiometry`: by default the image's colour bands, 8-bit samples as stored and any
+(:class:`satloc.geodata.radiometry.Radiometry`: by default the image's colour bands, 8-bit samples as stored and any
 other type stretched per band from its 0.5-99.5 % percentiles); ``summary.json`` records what was applied
 (``map.radiometry``).
 
@@ -77,16 +77,25 @@ from satloc.datasets import load_kitti, load_malaga
 from satloc.datasets.kitti import CAMERAS, IMU_HEIGHT_M, MISSING
 from satloc.datasets.malaga import MalagaConfig
 from satloc.errors import ConfigError, SatlocWarning
+from satloc.geodata.radiometry import Radiometry
 from satloc.geoframe import GeoFrame
 from satloc.geometry import StereoCamera, arc_length, wrap_angle
 from satloc.persist import atomic_dir, atomic_path
 from satloc.projection import ProjectionConfig
-from satloc.radiometry import Radiometry
 from satloc.satmap import SatelliteMap
 from satloc.sequence import Sequence
 
-from .experiment import (MODES, METHOD_NAMES, _stage_done, _stamp, build_and_learn, covered_queries,
-                         is_tracked, localize_and_report, tracked_odometry)
+from .scene_run import (
+    METHOD_NAMES,
+    MODES,
+    _stage_done,
+    _stamp,
+    build_and_learn,
+    covered_queries,
+    is_tracked,
+    localize_and_report,
+    tracked_odometry,
+)
 
 RESOLUTIONS = ("half", "full")
 LIDAR_MOSAIC = "lidar-mosaic"   # the satellite= value that makes the map from the database drive itself
@@ -112,7 +121,7 @@ class EvaluateConfig:
     satellite_zoom: int | None = None        # zoom level of an XYZ tile folder (default: the highest)
     satellite_bands: Any = None              # bands of the satellite image: [r, g, b] or [grey], from 1 (GDAL's)
     satellite_stretch: Any = "auto"          # to 8 bits: auto, none, [low, high], [[low, high], ...]
-                                             # (satloc.radiometry; auto: 8 bit as stored, else 0.5-99.5 %)
+                                             # (satloc.geodata.radiometry; auto: 8 bit as stored, else 0.5-99.5 %)
     split: str = "random:0.4"                # without queries=: "random:F" (F = database fraction) or "passes"
     split_seed: int = 0
     passes_near_m: float = 5.0               # passes: a frame this close to an earlier one has come back ...
@@ -164,7 +173,7 @@ class EvaluateConfig:
 
     @property
     def satellite_radiometry(self) -> Radiometry:
-        """The :class:`satloc.radiometry.Radiometry` of ``satellite_bands`` and ``satellite_stretch``."""
+        """The :class:`satloc.geodata.radiometry.Radiometry` of ``satellite_bands`` and ``satellite_stretch``."""
         try:
             return Radiometry(self.satellite_bands, self.satellite_stretch)
         except ConfigError as e:
@@ -259,7 +268,7 @@ def _read(path, reader: str, cfg: EvaluateConfig, frame: GeoFrame | None) -> Seq
 def _files_stamp(path: Path, zoom: int | None) -> dict:
     """Size and modification time of every file a load of ``path`` reads (the image and its world file,
     ``.prj`` and ``.aux.xml`` sidecars; every tile of a tile folder's zoom level), as a count and a digest."""
-    from satloc.georef import input_files
+    from satloc.geodata.georef import input_files
 
     base = path if path.is_dir() else path.parent
     h = hashlib.sha1()
@@ -280,8 +289,8 @@ def load_satellite(path: str | Path, cfg: EvaluateConfig, frame: GeoFrame, poses
                    log=print) -> tuple[SatelliteMap, dict, float]:
     """The satellite map over the bounding box of ``poses`` plus ``cfg.margin_m`` in ``frame`` at ``cfg.mpp``,
     from ``out/map`` when an earlier run saved it for the same inputs, else loaded with
-    :func:`satloc.georef.load_map` and saved there. Returns the map, its stage stamp and the seconds taken."""
-    from satloc.georef import load_map
+    :func:`satloc.geodata.georef.load_map` and saved there. Returns the map, its stage stamp and the seconds taken."""
+    from satloc.geodata.georef import load_map
 
     t = time.perf_counter()
     path = Path(path)

@@ -2,8 +2,8 @@
 
 Ray is optional (``pip install -e '.[ray]'``) and imported only here, when it is asked for.
 
-**Units.** :func:`satloc_env.compare.table1`, :func:`~satloc_env.compare.table2` and
-:func:`~satloc_env.compare.sweep` cut their work into :class:`Unit` s (a module-level function and its
+**Units.** :func:`satloc_env.experiments.tables.table1`, :func:`~satloc_env.experiments.tables.table2` and
+:func:`~satloc_env.experiments.tables.sweep` cut their work into :class:`Unit` s (a module-level function and its
 arguments, called as ``fn(*args, progress=..., log=...)``) that write disjoint files of the output folder, and
 hand lists of them to a :class:`Runner`:
 
@@ -13,7 +13,7 @@ hand lists of them to a :class:`Runner`:
   cluster, e.g. ``auto`` after ``ray start --head``) and returns their results in the order of the list.
 
 A task runs in a Ray worker process, which raylet starts fresh (not a ``fork`` of the driver), so it may
-render (:mod:`satloc_env._gl`). It asks for ``cpus`` = the cluster's CPUs shared over the units (at least one)
+render (:mod:`satloc_env.render.gl`). It asks for ``cpus`` = the cluster's CPUs shared over the units (at least one)
 and runs OpenCV and the GL rasterizer (llvmpipe) on as many threads (:func:`set_threads`). torch and the BLAS
 libraries keep the thread counts of the driver (a serial run) by default, because their sums depend on the
 thread count (measured: the projections learned with torch or BLAS on 1 thread instead of 2 differ by up to
@@ -30,7 +30,7 @@ paths); on several machines the output folder must be one shared file system at 
 ``gym.make_vec`` one) in a Ray actor, for a runner that steps many environments on many cores or machines::
 
     import ray
-    from satloc_env.scale import env_actor
+    from satloc_env.experiments.scale import env_actor
 
     ray.init()
     cars = [env_actor(scene="city", localizer=None) for _ in range(4)]       # one process, one CPU each
@@ -232,7 +232,7 @@ class EnvActor:
     def __init__(self, num_envs: int | None = None, threads: int = 1, **kwargs):
         import gymnasium as gym
 
-        from . import ENV_ID
+        from satloc_env.envs import ENV_ID
 
         set_threads(threads)
         self.env = (gym.make(ENV_ID, **kwargs) if num_envs is None else

@@ -4,11 +4,11 @@
 lane, with other appearance and occluders), builds the dictionary, learns the projections, localizes the
 queries with the ablations GO, NP and full (single images, refined by bird's-eye alignment, and tracked
 over the query sequence with simulated odometry), and writes per-mode results and pictures. :func:`table1` runs
-every method (the modes and the baselines FAB-MAP and EFM, :mod:`satloc_env.compare`) on several scenes under
+every method (the modes and the baselines FAB-MAP and EFM, :mod:`satloc_env.experiments.tables`) on several scenes under
 the protocols ``revisit`` (the above), ``city`` (a seeded random 40 % of the database pass is the database, the
 rest the queries) and ``residential`` (the database pass and a second pass, both at one frame per second), each
 protocol's dictionary and projections learned on its own database frames only, and writes ``table1.csv``
-(:data:`satloc_env.compare.TABLE1_COLUMNS`). Every table row follows one rule (:func:`table_stats`): a query
+(:data:`satloc_env.experiments.tables.TABLE1_COLUMNS`). Every table row follows one rule (:func:`table_stats`): a query
 a method does not answer is a gross failure, counted with the worst answer on the map.
 ``satloc demo`` and ``satloc experiment table1`` call these. :func:`aliasing` (``satloc experiment aliasing``) measures, on the same
 folders, how often each single-image cue scores a place more than 10 m away above the truth.
@@ -16,7 +16,7 @@ folders, how often each single-image cue scores a place more than 10 m away abov
 Every stage's output is kept in the experiment folder and reused when the folder is run again with the same
 configuration (delete the folder to start over).
 
-The two halves are shared with ``satloc evaluate`` (:mod:`satloc_env.evaluate`, real data): :func:`build_and_learn`
+The two halves are shared with ``satloc evaluate`` (:mod:`satloc_env.experiments.evaluate`, real data): :func:`build_and_learn`
 (build + projections, with stage stamps) and :func:`localize_and_report` (every mode on any database/query pair
 and satellite map: ``localization_<mode>.*``, ``summary.json`` and the pictures).
 """
@@ -36,16 +36,15 @@ from satloc.context import ContextConfig
 from satloc.errors import ConfigError
 from satloc.geometry import Pose2, wrap_angle
 from satloc.localizer import Localization, LocalizerConfig
+from satloc.metrics import bootstrap_ci, error_stats, worst_case_errors
 from satloc.persist import atomic_path, read_json, write_json
 from satloc.pipeline import BuildConfig, build, load_localizer, localize, train_projection
 from satloc.projection import ProjectionConfig
 from satloc.satmap import SatelliteMap
-from satloc.metrics import bootstrap_ci, error_stats, worst_case_errors
 from satloc.sequence import Sequence
 from satloc.track import compose_motion, noisy_odometry
-
-from .record import QUERY_CHANGE, PassConfig, RecordConfig, check_passes, pass_routes, record_passes
-from .scene import load_scene
+from satloc_env.envs.record import QUERY_CHANGE, PassConfig, RecordConfig, check_passes, pass_routes, record_passes
+from satloc_env.world.scene import load_scene
 
 # "<mode>[+track][+align]": tracked over the query sequence with odometry (satloc.track), refined by bird's-eye
 # alignment (satloc.align)
@@ -62,7 +61,7 @@ BASELINE_NAMES = {"fabmap": "FAB-MAP", "fabmap+seq": "FAB-MAP + seq", "efm": "EF
 
 @dataclass
 class CompareConfig:
-    """The baselines' part of a comparison (:mod:`satloc_env.compare`; the method's part is an
+    """The baselines' part of a comparison (:mod:`satloc_env.experiments.tables`; the method's part is an
     :class:`ExperimentConfig`)."""
 
     baselines: tuple[str, ...] = BASELINES
@@ -116,7 +115,7 @@ class ExperimentConfig:
     query_lane_m: float = -0.75             # revisit mode: another lane than the database's -1.75 m ...
     occlusion: float = 0.3                  # ... with occluders and another appearance ...
     appearance: float = 0.5
-    change: float = QUERY_CHANGE            # ... and the world changed as on another day (satloc_env.revisit)
+    change: float = QUERY_CHANGE            # ... and the world changed as on another day (satloc_env.world.revisit)
     coverage_m: float = 5.0                 # evaluate queries whose true pose is this close to the database path
     features: str = "default"
     context: ContextConfig = field(default_factory=ContextConfig)
@@ -290,7 +289,7 @@ def vo_steps(seq: Sequence, cache: Path | None = None) -> np.ndarray:
 
 def check_recordings(recs, second_pass: bool = False) -> None:
     """Before any work: every pass of every recording (:class:`RecordConfig`) drivable by the autopilot
-    (:func:`satloc_env.record.check_passes`), and with ``second_pass`` the database route at the query
+    (:func:`satloc_env.envs.record.check_passes`), and with ``second_pass`` the database route at the query
     pass's lane too (Table I's residential protocol); ConfigError naming the scene, the route and the first
     point where it leaves the road."""
     for rec in recs:
@@ -308,7 +307,7 @@ def _stages(cfg: ExperimentConfig, out: Path, progress: bool, log) -> tuple[Sequ
     rec = record_config(cfg)
     times: dict[str, float] = {}
     t = time.perf_counter()
-    from .autoloc import cache_key
+    from satloc_env.envs.auto_localizer import cache_key
 
     # the scene files' content too (YAML, image, road mask): an edited scene is recorded again
     rc = dict(to_dict(rec), scene_sha256=cache_key(cfg.scene, cfg.aliasing)["scene_sha256"])
@@ -329,7 +328,7 @@ def build_and_learn(cfg, label: str, database: Sequence, satmap: str | Path, out
     directory ``satmap`` into ``out/build``, then learn the projections if a mode of ``cfg.modes`` needs them.
 
     ``cfg`` gives ``features``, ``context``, ``projection`` and ``modes`` (an :class:`ExperimentConfig` or a
-    :class:`satloc_env.evaluate.EvaluateConfig`). Each stage is skipped when ``out`` holds its stamp
+    :class:`satloc_env.experiments.evaluate.EvaluateConfig`). Each stage is skipped when ``out`` holds its stamp
     (``build_stage.json``, ``projection_stage.json``) for the same configuration and ``source`` (a dict that
     identifies the data, e.g. ``{"record": <record config>}``). Returns the build folder and the stage times."""
     bc = BuildConfig(features=cfg.features, context=cfg.context)
@@ -384,7 +383,7 @@ def localize_and_report(cfg, label: str, db: Sequence, q: Sequence, sel: np.ndar
     ``cfg`` gives ``modes``, ``localizer`` (LocalizerConfig fields other than the mode) and ``odometry`` (with
     its noise settings): the tracked modes move their belief by ``odometry`` (N, 3) when given, else by
     :func:`tracked_odometry` of the query pass between the evaluated queries. Works on any database/query pair: a simulated recording
-    (:func:`run_scene`) or replayed real data (:mod:`satloc_env.evaluate`)."""
+    (:func:`run_scene`) or replayed real data (:mod:`satloc_env.experiments.evaluate`)."""
     # tracked modes: the odometry between consecutive evaluated queries (given, or of the query pass itself)
     odo = odometry
     if odo is None and is_tracked(cfg):
@@ -440,7 +439,7 @@ def run_scene(cfg: ExperimentConfig, out: str | Path, progress: bool = True, log
 def scene_label(scene: str) -> str:
     """The name a scene's results are filed under: its ``name`` (a shipped name, or the name inside a scene
     file given by path, so ``scenes/suburb_utm.yaml`` is filed as ``suburb_utm``)."""
-    from .scene import load_spec, scene_path
+    from satloc_env.world.scene import load_spec, scene_path
 
     p = scene_path(scene)
     return load_spec(p)[0].name if p.suffix in (".yaml", ".yml") else Path(scene).name

@@ -17,7 +17,7 @@ over the samples after ``warmup`` steps (queries), and steps (queries) per secon
 as one JSON file (written atomically).
 
 The localizer: by default (``--localizer small``) a small build of the scene's first ``small_frames`` database
-frames with the default feature set, built once into the auto localizer's cache (:mod:`satloc_env.autoloc`)
+frames with the default feature set, built once into the auto localizer's cache (:mod:`satloc_env.envs.auto_localizer`)
 beside, not in place of, the full ``"auto"`` entry; ``--localizer auto`` uses the env's default (the whole
 database pass; its first build takes many minutes) and a directory a build of ``satloc build``.
 
@@ -26,7 +26,7 @@ and prints the 10 largest growths (slow: use it to locate a leak, not to measure
 
 Usage::
 
-    python -m satloc_env.soak --steps 20000 --queries 2000 --scene city --out soak.json
+    python -m satloc_env.experiments.soak --steps 20000 --queries 2000 --scene city --out soak.json
 """
 from __future__ import annotations
 
@@ -202,8 +202,7 @@ def _localizer_arg(cfg: SoakConfig, progress: bool, build_config=None, projectio
     if cfg.localizer != "small":
         return cfg.localizer, f"build directory {cfg.localizer}"
     from satloc.pipeline import BuildConfig
-
-    from .autoloc import auto_build_dir
+    from satloc_env.envs.auto_localizer import auto_build_dir
 
     bc = build_config if build_config is not None else BuildConfig(features=cfg.small_features)
     b = auto_build_dir(cfg.scene, None, cfg.resolution, progress, max_frames=cfg.small_frames, build_config=bc,
@@ -221,8 +220,7 @@ def soak(cfg: SoakConfig = SoakConfig(), emit: Callable[[dict], None] | None = N
 
     from satloc.sequence import Frame, Sequence
     from satloc.track import relative_motion
-
-    from . import ENV_ID
+    from satloc_env.envs import ENV_ID
 
     emit = emit or (lambda d: None)
     if tracemalloc_on:
@@ -316,7 +314,7 @@ def _pose(p):
 
 def main(argv: list[str] | None = None) -> int:
     d = SoakConfig()
-    ap = argparse.ArgumentParser(prog="python -m satloc_env.soak", description=__doc__.split("\n\n")[0])
+    ap = argparse.ArgumentParser(prog="python -m satloc_env.experiments.soak", description=__doc__.split("\n\n")[0])
     ap.add_argument("--steps", type=int, default=d.steps, help="env steps (default %(default)s)")
     ap.add_argument("--queries", type=int, default=d.queries, help="localize_stream queries (default %(default)s)")
     ap.add_argument("--scene", default=d.scene, help="scene name, YAML or saved scene (default %(default)s)")

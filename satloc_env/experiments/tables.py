@@ -4,7 +4,7 @@ Every method reads the same database and query :class:`satloc.sequence.Sequence`
 same query frames in the same process, one method after the other:
 
 * the method's modes (Ours-GO, Ours-NP, Ours-full, + BEV align, + track, ...) through
-  :func:`satloc_env.experiment.localize_and_report` (``localization_<mode>.npz``);
+  :func:`satloc_env.experiments.scene_run.localize_and_report` (``localization_<mode>.npz``);
 * FAB-MAP (:class:`satloc.baselines.FabMap`) and EFM (:class:`satloc.baselines.Efm`), single image, each
   query's left image: ``baseline_<name>.npz`` with the same arrays (frames, estimates, truth, errors,
   inlier_score, inlier);
@@ -41,23 +41,41 @@ from satloc.baselines import Efm, FabMap
 from satloc.config import from_dict, to_dict
 from satloc.errors import ConfigError
 from satloc.metrics import pr_curve, precision_recall, precision_recall_ci, select_threshold
-from satloc.persist import atomic_path, load_npz, save_npz, write_json
+from satloc.persist import atomic_path, load_npz, read_json, save_npz, write_json
 from satloc.satmap import SatelliteMap
 from satloc.sequence import Sequence
+from satloc_env.envs.record import PassConfig, RecordConfig, check_passes, make_env, pass_routes, record_pass
+from satloc_env.world.scene import load_scene
 
-from satloc.persist import read_json
-
-from .experiment import (BASELINE_NAMES, METHOD_NAMES, CompareConfig, ExperimentConfig,  # noqa: F401
-                         _covered, _stage_done, _stages, _stamp, build_and_learn, covered_queries,
-                         check_recordings, dense_pass, is_tracked, localize_and_report, markdown_table,
-                         mode_config, record_config, scene_label, scene_labels, spaced_frames, table_stats,
-                         tracked_odometry)
-from .record import PassConfig, RecordConfig, check_passes, make_env, pass_routes, record_pass
 from .scale import Runner, Unit
-from .scene import load_scene
+from .scene_run import (  # noqa: F401
+    BASELINE_NAMES,
+    METHOD_NAMES,
+    CompareConfig,
+    ExperimentConfig,
+    _covered,
+    _stage_done,
+    _stages,
+    _stamp,
+    build_and_learn,
+    check_recordings,
+    covered_queries,
+    dense_pass,
+    is_tracked,
+    localize_and_report,
+    markdown_table,
+    mode_config,
+    record_config,
+    scene_label,
+    scene_labels,
+    spaced_frames,
+    table_stats,
+    tracked_odometry,
+)
+
 
 def method_name(method: str) -> str:
-    """Display name of a mode of :data:`satloc_env.experiment.METHOD_NAMES` or a baseline."""
+    """Display name of a mode of :data:`satloc_env.experiments.scene_run.METHOD_NAMES` or a baseline."""
     return BASELINE_NAMES.get(method) or METHOD_NAMES[method]
 
 
@@ -69,7 +87,7 @@ def trained_fabmap(cc: CompareConfig, test_scene: str, out: Path, progress: bool
         raise ConfigError(f"fabmap_train_scene: {train_scene!r} is the test scene; FAB-MAP's training images "
                           "must be disjoint from the test images (give another scene)")
     d = Path(out) / "fabmap"
-    from .autoloc import cache_key
+    from satloc_env.envs.auto_localizer import cache_key
 
     stamp = {"train_scene": train_scene, "frames": cc.fabmap_train_frames, "spacing_m": cc.fabmap_train_spacing_m,
              "fabmap": to_dict(cc.fabmap), "scene_sha256": cache_key(train_scene, None)["scene_sha256"]}
@@ -103,7 +121,7 @@ def _fabmap_unit(cc: CompareConfig, test_scene: str, out: Path, progress: bool =
 
 
 def _stages_unit(cfg: ExperimentConfig, out: Path, progress: bool = True, log=print) -> dict:
-    """An experiment folder's recording, build and projections (:func:`satloc_env.experiment._stages`, each
+    """An experiment folder's recording, build and projections (:func:`satloc_env.experiments.scene_run._stages`, each
     skipped when done) as a unit; returns the stage times."""
     return _stages(cfg, out, progress, log)[3]
 
@@ -177,7 +195,7 @@ def compare(cfg: ExperimentConfig, cc: CompareConfig, label: str, db: Sequence, 
     has ``mean_m, std_m, median_m, within_1m, within_10m, s_per_query``, and ``errors`` and ``inlier_score``
     (arrays over ``sel``). FAB-MAP's trained model is a stage of ``fabmap_dir`` (default ``out``). Also
     writes ``compare.json`` (the summaries without the arrays). ``odometry``: the tracked modes' (default: of
-    ``q`` itself, :func:`satloc_env.experiment.tracked_odometry`)."""
+    ``q`` itself, :func:`satloc_env.experiments.scene_run.tracked_odometry`)."""
     out = Path(out)
     s = localize_and_report(cfg, label, db, q, sel, bdir, satmap, out, head, times, progress, log, odometry)
     res: dict[str, dict] = {}
@@ -268,7 +286,7 @@ def _table2_recording(t2: Table2Config) -> tuple[RecordConfig, dict[str, PassCon
     scene = load_scene(t2.scene, e.aliasing)   # before any work: every pass drivable by the autopilot
     check_passes(scene, pass_routes(scene, rec) + [(p.route, p) for p in more.values()], rec.speed_mps,
                  f"scene {t2.scene!r}")
-    from .autoloc import cache_key
+    from satloc_env.envs.auto_localizer import cache_key
 
     rc = dict(to_dict(rec), scene_sha256=cache_key(t2.scene, e.aliasing)["scene_sha256"],
               **{name: to_dict(p) for name, p in more.items()})
@@ -278,7 +296,7 @@ def _table2_recording(t2: Table2Config) -> tuple[RecordConfig, dict[str, PassCon
 def _record_table2_pass(rec: RecordConfig, name: str, p: PassConfig | None, out: Path, rc: dict,
                         progress: bool = True, log=print) -> None:
     """One recording of Table II into ``out/rec``: with ``p`` None the database and query passes of ``rec``
-    (:func:`satloc_env.record.record_passes`), else the pass ``p`` into ``out/rec/<name>`` with an environment
+    (:func:`satloc_env.envs.record.record_passes`), else the pass ``p`` into ``out/rec/<name>`` with an environment
     of its own (the same frames as one environment reset with each pass's seed). Each finished recording is
     stamped (``out/record_<name>.json``, for Table II's recording configuration ``rc``), so that a rerun after
     a failure elsewhere in its batch (another recording, FAB-MAP's training) skips it."""
@@ -287,7 +305,7 @@ def _record_table2_pass(rec: RecordConfig, name: str, p: PassConfig | None, out:
         log(f"[table2] the {name} recording of an earlier run is reused")
         return
     if p is None:
-        from .record import record_passes
+        from satloc_env.envs.record import record_passes
 
         record_passes(rec, out / "rec", progress)
     else:
@@ -355,7 +373,7 @@ def table2(out: str | Path, config: dict | None = None, progress: bool = True, l
     ``table2.md``, ``table2.json`` and ``pr_curves.png`` (the test curves, the frozen operating points) into
     ``out``; returns the rows.
 
-    Units (``runner``, :mod:`satloc_env.scale`): the recordings (:func:`_record_table2_pass`: the database and
+    Units (``runner``, :mod:`satloc_env.experiments.scale`): the recordings (:func:`_record_table2_pass`: the database and
     revisit passes, and each other pass) beside FAB-MAP's training, then the build (:func:`_table2_build`),
     then the four passes (:data:`TABLE2_PARTS`), each compared in its own folder."""
     out = Path(out)
@@ -513,7 +531,7 @@ class SweepConfig:
     """``satloc experiment sweep``: every method of ``experiment`` (modes and ``compare.baselines``, revisit
     protocol) on ``scene`` at every combination of the knobs. Each combination is its own experiment folder
     ``a<aliasing>_o<occlusion>_p<appearance>`` (recorded and built there, reused on rerun). Seeds are fixed:
-    database pass 0, query pass 1 (the revisit recording of :mod:`satloc_env.experiment`),
+    database pass 0, query pass 1 (the revisit recording of :mod:`satloc_env.experiments.scene_run`),
     ``experiment.odometry_seed`` and ``experiment.compare.fabmap.seed``."""
 
     scene: str = "city"
@@ -567,7 +585,7 @@ def sweep(out: str | Path, config: dict | None = None, progress: bool = True, lo
     appearance. Writes ``sweep.csv`` (:data:`SWEEP_COLUMNS`), ``sweep.md``, ``sweep.json`` (with
     the seeds) and ``sweep.png`` into ``out``; returns the rows.
 
-    Units (``runner``, :mod:`satloc_env.scale`): FAB-MAP's training (shared by every combination) beside each
+    Units (``runner``, :mod:`satloc_env.experiments.scale`): FAB-MAP's training (shared by every combination) beside each
     combination's recording and build (:func:`_stages_unit`), then each combination's methods
     (:func:`_sweep_unit`)."""
     out = Path(out)
@@ -656,7 +674,7 @@ def _protocol(cfg: ExperimentConfig, protocol: str, label: str, sdir: Path, db_f
               progress: bool, log) -> dict:
     """Table I's ``city`` or ``residential`` protocol on the scene folder ``sdir`` (its recorded database pass
     and its map), in ``sdir/protocol_<protocol>``: the dictionary and the projections of the protocol's database
-    frames alone; returns :func:`satloc_env.compare.compare`."""
+    frames alone; returns :func:`satloc_env.experiments.tables.compare`."""
     pdir = sdir / f"protocol_{protocol}"
     pdir.mkdir(exist_ok=True)
     speed = float(rc.get("speed_mps", RecordConfig().speed_mps))
@@ -734,7 +752,7 @@ def table1(out: str | Path, scenes: tuple[str, ...] = ("city", "residential"), c
     ``out/<scene>/protocol_<name>`` (see :func:`protocol_split`). Writes ``table1.csv``
     (method,scene,mean_m,std_m,protocol), ``table1.md`` and ``table1.json`` into ``out``; returns the rows.
 
-    Units (``runner``, :mod:`satloc_env.scale`): each scene's shared stages (recording, build:
+    Units (``runner``, :mod:`satloc_env.experiments.scale`): each scene's shared stages (recording, build:
     :func:`_stages_unit`) and FAB-MAP's training, then each scene x protocol (:func:`_table1_unit`)."""
     out = Path(out)
     rows = []

@@ -1,6 +1,6 @@
 """Train the project's FCN (:mod:`satloc.fcn`) on images rendered by the simulator, whose labels are exact.
 
-``train_features(out_dir)`` (or ``python -m satloc_env.train_features --out DIR``) writes ``DIR/fcn.pt``
+``train_features(out_dir)`` (or ``python -m satloc_env.experiments.train_features --out DIR``) writes ``DIR/fcn.pt``
 (the weights, both views) and ``DIR/fcn_report.json`` (configuration, timings, losses, held-out metrics).
 
 Data:
@@ -59,15 +59,15 @@ import torch.nn.functional as F
 from tqdm import tqdm
 
 from satloc.config import from_dict, to_dict
-from satloc.device import HELP as DEVICE_HELP, device_field, resolve_device
+from satloc.device import HELP as DEVICE_HELP
+from satloc.device import device_field, resolve_device
 from satloc.errors import ConfigError, SatlocError
 from satloc.fcn import FCNPredictor, SegEdgeNet, ViewNet, save_fcn, torch_threads
 from satloc.labels import CLASSES, NUM_CLASSES
 from satloc.persist import header, write_json
 from satloc.satmap import SatelliteMap
-
-from . import ENV_ID
-from .scene import SceneSpec, build_scene, load_scene
+from satloc_env.envs import ENV_ID
+from satloc_env.world.scene import SceneSpec, build_scene, load_scene
 
 IGNORE = 255
 WEIGHTS_NAME = "fcn.pt"
@@ -388,7 +388,7 @@ def training_scenes() -> list[str]:
     """The shipped weights' training scenes: :data:`TRAINING_SCENES` of ``scenes/fcn_train/``, generated scenes
     disjoint from every scene the method is evaluated on (other seeds, block sizes, pitches, road widths,
     light)."""
-    from .scene import SCENES_DIR
+    from satloc_env.world.scene import SCENES_DIR
 
     return [str(SCENES_DIR / "fcn_train" / f"{name}.yaml") for name in TRAINING_SCENES]
 

@@ -17,7 +17,7 @@ Table I, Table II and the sweep never test on (they test on ``city``, ``resident
 two of the scenes the shipped FCN was trained on, so its features are at their best there; the choices are
 relative (one setting against another on the same features), which that does not favour.
 
-Every figure counts a query the method does not answer as a gross failure (:func:`satloc_env.experiment.
+Every figure counts a query the method does not answer as a gross failure (:func:`satloc_env.experiments.scene_run.
 table_stats`). Writes ``tune.json`` (every grid point and the choices), ``tune.md`` and, per grid point, the
 localization outputs under ``out/<setting>_<value>``; the recording, build and FAB-MAP trainings are stages
 reused by a rerun.
@@ -36,7 +36,7 @@ from satloc.persist import write_json
 from satloc.satmap import SatelliteMap
 from satloc.track import TrackConfig
 
-from .experiment import (
+from .scene_run import (
     MODES,
     CompareConfig,
     ExperimentConfig,
@@ -127,7 +127,7 @@ def _row(setting: str, value, s: dict) -> dict:
 def tune(out: str | Path, config: dict | None = None, progress: bool = True, log=print) -> dict:
     """Run the grids of :class:`TuneConfig` (from ``config``) on its calibration run into ``out``; returns
     ``{"rows": [...], "chosen": {setting: value}, "calibrated_on": ...}`` (also ``tune.json``, ``tune.md``)."""
-    from .compare import run_baseline
+    from .tables import run_baseline
 
     out = Path(out)
     config = dict(config or {})

@@ -1,6 +1,6 @@
 """The one entry point to pyrender / OpenGL for the simulator.
 
-Import pyrender only through this module (``from satloc_env._gl import pyrender``), and only lazily, inside the
+Import pyrender only through this module (``from satloc_env.render.gl import pyrender``), and only lazily, inside the
 function or class that needs it: importing this module selects the OpenGL platform and patches pyrender, and
 ``import satloc_env`` must stay cheap and create no GL context (a process that has created one cannot safely
 ``fork``).
@@ -16,7 +16,7 @@ What importing it does:
   When the platform is ``egl`` or ``osmesa`` and pyrender has not been imported yet, this module registers a
   placeholder for ``pyrender.viewer`` before importing pyrender, so the offscreen path never imports pyglet. The
   placeholder's ``Viewer`` raises :class:`ViewerUnavailableError` saying what to do instead (import pyrender
-  before ``satloc_env._gl``, with a display, to get the real viewer). If pyrender was already imported, it is
+  before ``satloc_env.render.gl``, with a display, to get the real viewer). If pyrender was already imported, it is
   used as it is.
 * **Triton before Mesa.** Mesa's llvmpipe links its own LLVM (libLLVM-15 on Debian 12). Triton, which the
   CUDA builds of torch install from the package index (the CPU wheel does not), carries another LLVM; when
@@ -51,10 +51,12 @@ block). A process that forked before its first render is unaffected.
 """
 from __future__ import annotations
 
+import atexit
 import importlib
 import importlib.util
 import os
 import sys
+import weakref
 from collections.abc import Iterable, Sequence
 from types import ModuleType
 from typing import NamedTuple
@@ -351,7 +353,7 @@ class _MultiViewRenderer(pyrender.Renderer):
         Front to back (nearest bounding box first, from the group's first camera) so that the depth test
         rejects hidden fragments before they are shaded. Ties (several boxes around the camera: gap 0) are drawn
         in the order of the nodes' names (up to a ``#``: a suffix that tells apart copies of one mesh in a
-        batch, see :class:`satloc_env.render.BatchStereoRenderer`), then of the primitives in their mesh. The
+        batch, see :class:`satloc_env.render.stereo.BatchStereoRenderer`), then of the primitives in their mesh. The
         order decides which of two fragments at exactly the same depth is kept (GL_LESS keeps the first drawn),
         and faces of different meshes at the same depth occur (seen: the episode's occluders and the world chunk
         around the camera, both at gap 0, giving a car's outline one way or the other). pyrender's
@@ -473,6 +475,22 @@ class ViewGroup(NamedTuple):
     hidden: tuple | None = None     # per camera: ids of nodes of ``meshes`` it skips (they cannot be in its view)
 
 
+#: the renderers not yet deleted; :func:`_delete_live_renderers` frees them at interpreter exit
+_LIVE: "weakref.WeakSet[MultiViewOffscreenRenderer]" = weakref.WeakSet()
+
+
+@atexit.register
+def _delete_live_renderers() -> None:
+    """Free the GL contexts that a script left open (an environment never closed). Without this, their
+    finalizers run while the interpreter tears its modules down, and PyOpenGL prints "Unable to import
+    OpenGL.arrays... Python is likely shutting down" and a dict of ctypes classes on the way out."""
+    for r in list(_LIVE):
+        try:
+            r.delete()
+        except Exception:   # noqa: BLE001  (at exit nothing can be done about a failing driver)
+            pass
+
+
 class MultiViewOffscreenRenderer(pyrender.OffscreenRenderer):
     """A ``pyrender.OffscreenRenderer`` (GL context of its own) whose :meth:`render_views` draws several
     cameras at once without multisampling (see :class:`_MultiViewRenderer`); newly uploaded mipmapped
@@ -485,6 +503,7 @@ class MultiViewOffscreenRenderer(pyrender.OffscreenRenderer):
         self._filtering = (float(anisotropy), float(lod_bias), bool(mipmaps))
         self.gl_info: dict[str, str] = {}
         super().__init__(viewport_width, viewport_height)
+        _LIVE.add(self)
 
     def _create(self):
         check_process()

@@ -1,12 +1,12 @@
-"""Offscreen stereo rendering of a :class:`~satloc_env.world.World` (colour, metric depth, class labels).
+"""Offscreen stereo rendering of a :class:`~satloc_env.world.meshes.World` (colour, metric depth, class labels).
 
 One persistent pyrender scene holds, per world chunk, a colour mesh (texture with mipmaps, baked face shading
 as vertex colours) and a label mesh (the same geometry with the label texture, nearest sampling), plus the
 episode's occluders as one more such pair. A frame moves the two camera nodes, hides the chunks that cannot
 be within ``zfar`` of the camera and draws with flat (unlit) shading into a single-sample framebuffer, so
 depth is exact at pixel centres. The GL context is created on the first render, not before: a process that
-holds one cannot safely ``fork`` (rendering in such a child raises :class:`satloc_env._gl.GLForkError` at once
-instead of hanging; see :mod:`satloc_env._gl`).
+holds one cannot safely ``fork`` (rendering in such a child raises :class:`satloc_env.render.gl.GLForkError` at once
+instead of hanging; see :mod:`satloc_env.render.gl`).
 """
 from __future__ import annotations
 
@@ -18,9 +18,8 @@ import numpy as np
 
 from satloc.errors import ConfigError
 from satloc.geometry import Pose2, StereoCamera
-
-from .layout import Car, Obstacle, Person
-from .world import TexturedMesh, World, build_occluders
+from satloc_env.world.layout import Car, Obstacle, Person
+from satloc_env.world.meshes import TexturedMesh, World, build_occluders
 
 __all__ = ["BatchStereoRenderer", "StereoRenderer", "StereoSlot"]
 
@@ -35,7 +34,7 @@ class BatchStereoRenderer:
 
     Each vehicle is a *slot* (:meth:`slot`: a :class:`StereoRenderer`-like view with its world, its episode's
     occluders and its two camera nodes). :meth:`render_many` draws the slots' pairs as groups of
-    :meth:`satloc_env._gl._MultiViewRenderer.render_groups`: every pair is drawn exactly as the slot alone
+    :meth:`satloc_env.render.gl._MultiViewRenderer.render_groups`: every pair is drawn exactly as the slot alone
     would draw it (its world's chunks within reach, its occluders, the same draw order), only in another band of
     the framebuffer. A world's meshes are uploaded once for all the slots that use it, and dropped when the
     last of them leaves it. Filtering and depth range as in :class:`StereoRenderer`."""
@@ -128,7 +127,7 @@ class BatchStereoRenderer:
     # --- scene management ---------------------------------------------------------------------------------
     def _context(self) -> Any:
         """The offscreen renderer, creating the scene and the GL context on first use."""
-        from satloc_env._gl import MultiViewOffscreenRenderer, check_process, pyrender
+        from satloc_env.render.gl import MultiViewOffscreenRenderer, check_process, pyrender
 
         check_process()   # a fork of a process that has rendered: fail now, rendering would hang
         if self._scene is None:
@@ -217,7 +216,7 @@ class StereoSlot:
 
     def _attach(self) -> None:
         """Add this slot's world (if new), camera nodes and occluders to the batch's scene."""
-        from satloc_env._gl import pyrender
+        from satloc_env.render.gl import pyrender
 
         b, cam = self.batch, self.camera
         b._world_nodes(self.world).users.add(self.index)
@@ -266,7 +265,7 @@ class StereoSlot:
     def _draw_group(self, label_pass: bool, bg_color=None):
         """The slot's two views as a ``ViewGroup``: its chunks within reach, colour (or label) meshes, and its
         occluders', each view skipping the chunks wholly outside its own view volume."""
-        from satloc_env._gl import ViewGroup
+        from satloc_env.render.gl import ViewGroup
 
         k = 1 if label_pass else 0
         pairs = self.batch._world_nodes(self.world).nodes
@@ -362,7 +361,7 @@ class StereoRenderer:
 
 def _meshes(tm: TexturedMesh) -> tuple[Any, Any]:
     """pyrender meshes of a :class:`TexturedMesh`: (colour mesh, label mesh), one primitive each."""
-    from satloc_env._gl import pyrender
+    from satloc_env.render.gl import pyrender
 
     wrap = pyrender.GLTF.REPEAT if tm.repeat else pyrender.GLTF.CLAMP_TO_EDGE
     clamp = dict(wrapS=wrap, wrapT=wrap)

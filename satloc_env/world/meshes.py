@@ -1,4 +1,4 @@
-"""Renderable 3-D geometry of a scene :class:`~satloc_env.layout.Layout` (pure numpy: no GL, picklable).
+"""Renderable 3-D geometry of a scene :class:`~satloc_env.world.layout.Layout` (pure numpy: no GL, picklable).
 
 The ground plane (z = 0) is cut into square chunks of about ``chunk_m`` metres. Each chunk is one
 :class:`TexturedMesh` (one draw call): its ground quad plus every building, tree and parked car whose centre

@@ -1,11 +1,11 @@
 """Revisits that change: a per-pass change of what lies in a scene, for query passes.
 
 A revisit of a place on another day differs from the database pass by more than its colours
-(:class:`satloc_env.occluders.Appearance`, a global lookup table, to which SIFT is nearly invariant): the sun
+(:class:`satloc_env.envs.occluders.Appearance`, a global lookup table, to which SIFT is nearly invariant): the sun
 stands elsewhere, so shadows fall elsewhere; the road has been worn and patched; parked cars have come and
 gone; grass and trees are in another season. :func:`changed_layout` makes such a revisit of a scene
-:class:`~satloc_env.layout.Layout`: a new layout (the original is not touched) from which
-:func:`satloc_env.world.build_world` builds the world the ground camera sees. :func:`changed_world` builds that
+:class:`~satloc_env.world.layout.Layout`: a new layout (the original is not touched) from which
+:func:`satloc_env.world.meshes.build_world` builds the world the ground camera sees. :func:`changed_world` builds that
 world, changes its tree foliage (:func:`change_foliage`: foliage lives in the world's object textures, not in
 the layout) and keeps the last two worlds it built. The satellite tile is never changed: it is the map, the
 scene's ``satmap``, painted once from the original layout.
@@ -46,7 +46,7 @@ The parts (:data:`PARTS`), in the order they are applied:
     The sun moves: its azimuth by ``strength`` x 60-100 degrees either way (:data:`SUN_AZIMUTH_MAX_DEG`), its
     elevation by ``strength`` x -0.45 to +0.2 rad, kept in [0.3, 1.3] rad (lower sun, longer shadows). The
     new sun is the layout's ``sun_azimuth`` / ``sun_elevation``, so the world's baked facade and object
-    shading follow it (:func:`satloc_env.world.build_world`). Buildings, tree canopies and trunks and the
+    shading follow it (:func:`satloc_env.world.meshes.build_world`). Buildings, tree canopies and trunks and the
     revisit's parked cars cast shadows away from that sun onto the ground texture ``ground_rgb``: each
     object's outline swept along the shadow direction over its height (buildings: footprint and each wall;
     trees: the canopy disc from its bottom to its top height, 85 % as dark; cars: their box), edges blurred
@@ -93,7 +93,7 @@ SEASONS = (
     ("spring", (66, 128, 44), (60, 126, 42)),
     ("winter", (112, 112, 88), (92, 94, 66)),
 )
-#: mean foliage colour of the world's tree textures (satloc_env.world), the reference of the foliage gain
+#: mean foliage colour of the world's tree textures (satloc_env.world.meshes), the reference of the foliage gain
 _FOLIAGE_REF = np.array([62.0, 102.0, 53.0])
 _PART_SEED = {"vegetation": 4, "road": 2, "cars": 3, "shadows": 1}
 
@@ -372,15 +372,15 @@ def _cast_shadows(lay: Layout, depth: float) -> None:
 # --- the world ---------------------------------------------------------------------------------------------
 @functools.lru_cache(maxsize=2)
 def changed_world(scene, strength: float, seed: int):
-    """The :class:`satloc_env.world.World` a revisit of ``scene`` (a :class:`satloc_env.scene.Scene`) at
+    """The :class:`satloc_env.world.meshes.World` a revisit of ``scene`` (a :class:`satloc_env.world.scene.Scene`) at
     (``strength``, ``seed``) shows the ground camera: built from :func:`changed_layout` of the scene's layout
     with the scene's ground padding, its foliage changed (:func:`change_foliage`). ``scene.world`` for
     strength 0. The last two are kept (per process), so episodes of one revisit build it once."""
     strength, seed, _ = _check(strength, seed, ())
     if strength == 0.0:
         return scene.world
+    from .meshes import build_world
     from .scene import DEFAULT_GROUND_PAD_M
-    from .world import build_world
 
     pad = scene.spec.ground_pad_m
     layout = changed_layout(scene.layout, strength, seed)

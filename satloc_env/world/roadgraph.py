@@ -2,8 +2,8 @@
 given waypoints snapped to the roads.
 
 **The graph** (:class:`RoadGraph`, a :class:`networkx.MultiGraph`) is built once per scene, from road centre
-lines in map metres (:func:`graph_from_lines`: a vector file read by :mod:`satloc.vectors`) or from the
-skeleton of a road mask (:func:`graph_from_mask`: cleaned, thinned and pruned as :mod:`satloc_env.roadtrace`
+lines in map metres (:func:`graph_from_lines`: a vector file read by :mod:`satloc.geodata.vectors`) or from the
+skeleton of a road mask (:func:`graph_from_mask`: cleaned, thinned and pruned as :mod:`satloc_env.world.roadtrace`
 does, then cut into chains between junctions and dead ends). The lines are clipped to the tile, kept
 ``edge_margin_m`` inside it; a line end within ``snap_m`` of another line is joined to it; crossing lines
 are cut at their crossing (shapely's noding: one node per intersection); dead-end stubs and edges shorter
@@ -24,7 +24,7 @@ else it cannot be turned in: up to two such ends are where the tour starts and e
 roads leading to any others are left out (the coverage says how much). The walk's polyline is smoothed
 (Gaussian, ``smooth_m``) and resampled every ``spacing_m``. Its ``widths`` (the road width at each waypoint,
 smoothed and taken as the narrowest within 20 m, so the car moves over before a narrower street) let the
-lane offset follow the road (:class:`satloc_env.route.Route`).
+lane offset follow the road (:class:`satloc_env.world.route.Route`).
 
 **The revisit** is the same walk driven the other way round (its loops again counter-clockwise): the other
 direction, so the other lane, of every road.
@@ -143,7 +143,6 @@ def graph_from_lines(lines, widths, width_m: float, height_m: float, params: Gra
     """The road graph of centre lines in map metres (see the module docstring). ``widths``: per line, a road
     width (metres) or an array of one per vertex."""
     import networkx as nx
-
     import shapely
     from shapely.strtree import STRtree
 
@@ -236,7 +235,7 @@ def rasterize_area(area, shape: tuple[int, int], mpp: float) -> np.ndarray:
 
 def graph_from_mask(mask: np.ndarray, mpp: float, params: GraphParams = GraphParams()) -> RoadGraph:
     """The road graph of a road mask (north-up raster, ``mpp`` metres per pixel, as
-    :func:`satloc_env.roadtrace.trace_route` reads it): the pruned skeleton cut into chains between
+    :func:`satloc_env.world.roadtrace.trace_route` reads it): the pruned skeleton cut into chains between
     junctions and dead ends, the road width from the distance to the mask's edge. A mask finer than
     :data:`GRAPH_MPP` is thinned at that resolution (the graph needs no finer detail)."""
     import cv2

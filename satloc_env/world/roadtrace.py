@@ -1,7 +1,7 @@
 """Trace a drivable route from a road mask: the centre line of the longest road through the mask.
 
 A road mask (a boolean raster, north-up, ``mpp`` metres per pixel; pixel (u, v) centred at
-``((u + 0.5) * mpp, height_m - (v + 0.5) * mpp)`` as in :mod:`satloc_env.layout`) is cleaned (holes and
+``((u + 0.5) * mpp, height_m - (v + 0.5) * mpp)`` as in :mod:`satloc_env.world.layout`) is cleaned (holes and
 specks below ``min_blob_m2`` removed, the outline smoothed over about a metre), thinned to its skeleton
 (:func:`skimage.morphology.skeletonize`) and read as a graph: one node per skeleton pixel, edges to its
 8 neighbours weighted by their distance. Dead-end branches shorter than ``prune_m`` (the twigs that the

@@ -7,7 +7,6 @@ import numpy as np
 
 from satloc.geometry import Pose2, wrap_angle
 
-
 #: the road width lateral offsets are given for: two lanes of 3.5 m (-1.75 m is the right lane's centre)
 REFERENCE_ROAD_M = 7.0
 
@@ -19,7 +18,7 @@ class Route:
     displaced ``offset`` metres to the left of the centre line (negative: to the right).
 
     A route that knows the road's width at its waypoints (``widths``, metres: routes over a road graph,
-    :mod:`satloc_env.roadgraph`) narrows every lateral offset with the road: an offset is meant for a
+    :mod:`satloc_env.world.roadgraph`) narrows every lateral offset with the road: an offset is meant for a
     :data:`REFERENCE_ROAD_M` road and is scaled by ``min(1, width / 7 m)`` where the road is narrower, so
     the lane offset -1.75 m is the centre of the right lane (-width / 4) on any road up to 7 m wide.
     """

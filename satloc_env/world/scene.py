@@ -13,7 +13,7 @@ A scene file (see ``scenes/*.yaml``)::
       main: {waypoints: [[x, y], ...], closed: true, laps: 1}
       # or {lonlat: [[lon, lat], ...]} (an image scene with a georeference)
       # or {trace: true} / {trace: {smooth_m: 2, spacing_m: 2, min_length_m: 50, prune_m: 8, reverse: false}}
-      #    (traced from the image scene's road mask or label image: satloc_env.roadtrace)
+      #    (traced from the image scene's road mask or label image: satloc_env.world.roadtrace)
       # waypoints / lonlat with snap: true: moved onto the roads and joined along them
     database_route: main
     query_route: main              # derived routes: main (the other lane) or revisit (the other direction)
@@ -29,7 +29,7 @@ is the same image. ``image`` is
 
 * a georeferenced image: a GeoTIFF in any CRS, or an image with a world file (``.pgw/.jgw/.tfw/.wld``)
   whose CRS comes from a ``.prj`` beside it or the ``crs`` field. It is loaded through
-  :func:`satloc.georef.load_map` at ``meters_per_pixel``, north up, into a
+  :func:`satloc.geodata.georef.load_map` at ``meters_per_pixel``, north up, into a
   :class:`~satloc.geoframe.GeoFrame` whose origin (lon0, lat0) is the loaded area's south-west corner, so
   the scene keeps the simulator's local frame (x in [0, width_m], y in [0, height_m]) and the scene's
   ``satmap.frame`` still converts to and from lon/lat. Without ``region`` the area is the largest north-up
@@ -38,7 +38,7 @@ is the same image. ``image`` is
 * or a plain image (no georeference), taken as it is: north up, ``meters_per_pixel`` per pixel, its
   south-west corner at the origin.
 
-A georeferenced image may be of any bit depth and band count (:mod:`satloc.radiometry`): ``bands: [r, g, b]``
+A georeferenced image may be of any bit depth and band count (:mod:`satloc.geodata.radiometry`): ``bands: [r, g, b]``
 (or ``[grey]``; numbered from 1, as GDAL counts) picks the bands, and ``stretch`` says how samples become 8
 bits: ``auto`` (the default: 8-bit images as stored, any other type stretched per band from its 0.5-99.5 %
 percentiles to 0..255), ``none`` (the type's full range), ``[low, high]`` or ``[[low, high], ...]`` (one per
@@ -49,16 +49,16 @@ the same size as ``image``, pixel for pixel, and follow it through the reproject
 mask bilinear, then halved). The drivable area and the ground classes come from them: with ``roads``,
 road inside the mask and, outside it, the label image's class or else ``void`` (not drivable); with only
 ``labels``, the label image; with neither, road everywhere. A ``trace`` route follows the mask (or the
-label image's road and lane-marking classes): see :func:`satloc_env.roadtrace.trace_route`. Occluders and
+label image's road and lane-marking classes): see :func:`satloc_env.world.roadtrace.trace_route`. Occluders and
 appearance changes work on image scenes as on generated ones.
 
 **Roads as vectors.** ``roads`` may instead be a vector file of road centre lines (GeoJSON, GeoPackage or
-Shapefile, as OpenStreetMap extracts and public benchmark labels come; read by :mod:`satloc.vectors` in the
+Shapefile, as OpenStreetMap extracts and public benchmark labels come; read by :mod:`satloc.geodata.vectors` in the
 CRS the file declares, CRS84 for a GeoJSON file without one). The lines are taken to the scene's frame
 through pyproj and buffered by their width (``width`` / ``lanes`` / ``lane_number`` attributes, else
 ``generator.road_width_m``, 7 m) into the road mask, which then serves as a raster mask does.
 
-**The road graph and derived routes** (:mod:`satloc_env.roadgraph`, parameters ``road_graph:``). The road
+**The road graph and derived routes** (:mod:`satloc_env.world.roadgraph`, parameters ``road_graph:``). The road
 graph is built from the vector centre lines, else from the skeleton of the road mask (or of the road classes
 of the label image, or of a generated scene's ground). Without ``routes:``, two routes are derived from it:
 ``main`` (the ``database_route``), a tour that drives every road of the graph's largest connected part,
@@ -70,11 +70,11 @@ each place from one direction only: on ``suburb_utm``, full + track + BEV align 
 on the other lane and 43 m the other way). ``waypoints`` or ``lonlat`` with ``snap: true`` are moved onto the roads (from
 up to ``road_graph.snap_route_m`` away, even from beyond the loaded area's edge) and joined by the shortest
 way along them. Routes over the graph carry the road's width at each waypoint (``widths``): lane offsets
-follow it (:class:`satloc_env.route.Route`: -1.75 m is the centre of the right lane on roads up to 7 m
+follow it (:class:`satloc_env.world.route.Route`: -1.75 m is the centre of the right lane on roads up to 7 m
 wide, -width / 4 on narrower ones).
 
 **The tile's edge.** The ground goes on ``ground_pad_m`` metres (default 250, more than the renderer's view
-distance, 150 m) beyond the tile on every side, in a neutral texture (:func:`satloc_env.world.pad_texture`),
+distance, 150 m) beyond the tile on every side, in a neutral texture (:func:`satloc_env.world.meshes.pad_texture`),
 so no view shows the tile's edge and sky below the horizon. The alternative, keeping routes the view distance
 inside the tile, would leave nothing of a 377 m x 277 m image such as ``suburb_utm``. Derived routes keep
 ``road_graph.edge_margin_m`` (2 m) inside the tile. Pixels of a georeferenced image that hold no imagery
@@ -101,8 +101,17 @@ import yaml
 from satloc.config import from_dict, to_dict
 from satloc.errors import ConfigError, FormatError
 from satloc.labels import CLASS_ID, DRIVABLE, NUM_CLASSES
-from satloc.persist import (ArraySpec, atomic_dir, header, header_number, load_npz, nonfinite_path, read_json,
-                            save_npz, write_json)
+from satloc.persist import (
+    ArraySpec,
+    atomic_dir,
+    header,
+    header_number,
+    load_npz,
+    nonfinite_path,
+    read_json,
+    save_npz,
+    write_json,
+)
 from satloc.satmap import SatelliteMap, read_image
 
 from .generator import GridParams, generate_grid
@@ -112,9 +121,9 @@ from .route import Route
 from .tile import paint_tile
 
 # the repository's scenes/ (source checkout, editable install) or its installed copy (satloc_env/scenes)
-SCENES_DIR = next((d for d in (Path(__file__).resolve().parent.parent / "scenes",
-                               Path(__file__).resolve().parent / "scenes") if d.is_dir()),
-                  Path(__file__).resolve().parent.parent / "scenes")
+_PACKAGE = Path(__file__).resolve().parents[1]          # satloc_env/
+SCENES_DIR = next((d for d in (_PACKAGE.parent / "scenes", _PACKAGE / "scenes") if d.is_dir()),
+                  _PACKAGE.parent / "scenes")
 
 
 @dataclass
@@ -136,10 +145,10 @@ class ImageGeneratorSpec:
     roads: str | None = None     #: road mask (non-zero: road), same size as ``image``
     crs: str | None = None       #: CRS of an image with a world file and no ``.prj`` (e.g. "EPSG:32632")
     region: tuple[float, float, float, float] | None = None   #: lon_min, lat_min, lon_max, lat_max (degrees)
-    bands: Any = None            #: [r, g, b] or [grey], numbered from 1 (satloc.radiometry.Radiometry.bands)
+    bands: Any = None            #: [r, g, b] or [grey], numbered from 1 (satloc.geodata.radiometry.Radiometry.bands)
     stretch: Any = "auto"        #: auto, none, [low, high] or [[low, high], ...] (Radiometry.stretch)
     road_width_m: float = 7.0    #: width of vector roads whose attributes give none (width, lanes, lane_number)
-    buildings: str | None = None  #: building footprints (vector file), extruded (satloc_env.scenebuildings)
+    buildings: str | None = None  #: building footprints (vector file), extruded (satloc_env.world.scene_buildings)
     trees: str | None = None      #: trees: points or canopy polygons (vector file)
     building_height_m: tuple[float, float] = (5.0, 9.0)   #: height range of footprints whose attributes give none
 
@@ -152,21 +161,21 @@ class ImageGeneratorSpec:
 
     @property
     def radiometry(self):
-        """The :class:`satloc.radiometry.Radiometry` of ``bands`` and ``stretch``."""
-        from satloc.radiometry import Radiometry
+        """The :class:`satloc.geodata.radiometry.Radiometry` of ``bands`` and ``stretch``."""
+        from satloc.geodata.radiometry import Radiometry
 
         return Radiometry(self.bands, self.stretch)
 
     def files(self, base: Path) -> list[tuple[str, Path]]:
         """(field, path) of every existing file the generator reads: the image, its world file and ``.prj``
         sidecars, the label image and the road mask (what a cache of the scene must depend on)."""
-        from satloc.georef import input_files
+        from satloc.geodata.georef import input_files
 
         img = base / self.image
         out = [("image", img)]
         out += [("image_sidecar", p) for p in input_files(img)[1:]]
         out += [(k, base / getattr(self, k)) for k in ("labels", "roads", "buildings", "trees") if getattr(self, k)]
-        from satloc.vectors import vector_files
+        from satloc.geodata.vectors import vector_files
 
         for k in ("roads", "buildings", "trees"):
             if getattr(self, k):
@@ -176,7 +185,7 @@ class ImageGeneratorSpec:
 
 @dataclass(frozen=True)
 class TraceSpec:
-    """How a route is traced from an image scene's road mask (see :mod:`satloc_env.roadtrace`)."""
+    """How a route is traced from an image scene's road mask (see :mod:`satloc_env.world.roadtrace`)."""
 
     smooth_m: float = 2.0       #: Gaussian smoothing along the traced centre line, metres
     spacing_m: float = 2.0      #: waypoint spacing, metres
@@ -257,7 +266,7 @@ class Knobs:
     aliasing: fraction of blocks that are exact copies of other blocks (layout and texture).
     occlusion: density of objects the ground camera sees but the tile does not (cars, people, obstacles).
     appearance: strength of the lighting / colour / exposure change of an episode (another time of day).
-    change: strength of an episode's revisit change of the world (:mod:`satloc_env.revisit`: shadows of another
+    change: strength of an episode's revisit change of the world (:mod:`satloc_env.world.revisit`: shadows of another
         sun, road wear and patches, parked cars moved, another season); the satellite tile never changes.
     """
 
@@ -293,7 +302,7 @@ class SceneSpec:
     @property
     def route_names(self) -> list[str]:
         """The routes the scene has: those given, else the derived ones."""
-        from .sceneroads import DERIVED_ROUTES
+        from .scene_roads import DERIVED_ROUTES
 
         return sorted(self.routes) if self.routes else list(DERIVED_ROUTES)
 
@@ -306,7 +315,7 @@ class SceneSpec:
         raise ConfigError(f"{where}: generator.type: expected 'grid' or 'image', got {kind!r}")
 
 
-MAX_GROUND_PX = 20000 * 20000  # the largest ground raster a scene may ask for (as satloc.georef's maps)
+MAX_GROUND_PX = 20000 * 20000  # the largest ground raster a scene may ask for (as satloc.geodata.georef's maps)
 MAX_LAPS = 1000
 #: neutral ground around the tile (metres): beyond the renderer's default view distance (150 m) along the
 #: camera's corner rays, so no view from the tile reaches the padding's edge
@@ -434,7 +443,7 @@ class Scene:
 
     def summary(self) -> dict:
         """What ``satloc scene`` prints: name, size, tile pixels, route lengths, object counts and, for a scene
-        over imagery, how the image got its 8-bit colours (``radiometry``: :func:`satloc.radiometry.to_rgb8`)."""
+        over imagery, how the image got its 8-bit colours (``radiometry``: :func:`satloc.geodata.radiometry.to_rgb8`)."""
         out = {"scene": self.name, "size_m": [self.layout.width_m, self.layout.height_m],
                "tile_px": list(self.satmap.image.shape[1::-1]),
                "routes_m": {k: round(r.length, 1) for k, r in self.routes.items()},
@@ -446,17 +455,17 @@ class Scene:
 
     @functools.cached_property
     def road_graph(self):
-        """The scene's road graph (:class:`satloc_env.roadgraph.RoadGraph`): the one its routes were made
+        """The scene's road graph (:class:`satloc_env.world.roadgraph.RoadGraph`): the one its routes were made
         from, else the skeleton's of the road classes of its ground labels."""
-        from .sceneroads import road_graph
+        from .scene_roads import road_graph
 
         return road_graph(self.spec.road_graph, None, self.layout.ground_labels, self.layout.ground_mpp,
                           f"scene {self.name!r}")
 
     @functools.cached_property
     def world(self):
-        """Renderable geometry of the scene (:class:`satloc_env.world.World`), built once per scene."""
-        from .world import build_world
+        """Renderable geometry of the scene (:class:`satloc_env.world.meshes.World`), built once per scene."""
+        from .meshes import build_world
 
         pad = self.spec.ground_pad_m
         return build_world(self.layout, pad_m=DEFAULT_GROUND_PAD_M if pad is None else pad)
@@ -592,7 +601,7 @@ class _ImageGround:
     frame: Any                      # satloc.geoframe.GeoFrame | None
     roads: np.ndarray | None        # (H, W) bool road mask on the layout's raster, if any
     radiometry: dict | None = None  # how a georeferenced image became 8-bit RGB (SatelliteMap.radiometry)
-    road_graph: Any = None          # the road graph of vector roads (satloc_env.roadgraph.RoadGraph), if any
+    road_graph: Any = None          # the road graph of vector roads (satloc_env.world.roadgraph.RoadGraph), if any
 
 
 def _image_layout(g: ImageGeneratorSpec, spec: SceneSpec, base: Path, where: str) -> _ImageGround:
@@ -604,7 +613,7 @@ def _image_layout(g: ImageGeneratorSpec, spec: SceneSpec, base: Path, where: str
                           f"meters_per_pixel ({spec.meters_per_pixel})")
     mpp = spec.meters_per_pixel
     geo = None   # the map read from a georeferenced image
-    from satloc.georef import is_georeferenced
+    from satloc.geodata.georef import is_georeferenced
 
     if is_georeferenced(img_path, g.crs):
         geo = _load_georeferenced(img_path, g, mpp, where)
@@ -646,7 +655,7 @@ def _image_layout(g: ImageGeneratorSpec, spec: SceneSpec, base: Path, where: str
                                   f"the image {img_path.name} is {rgb.shape[1]}x{rgb.shape[0]} px; it must be "
                                   f"aligned with the image pixel for pixel")
             return a, a
-        from satloc.georef import reproject_band
+        from satloc.geodata.georef import reproject_band
 
         try:
             return a, reproject_band(a, img_path, geo, g.crs, resampling, what=str(path))
@@ -658,10 +667,10 @@ def _image_layout(g: ImageGeneratorSpec, spec: SceneSpec, base: Path, where: str
         raw, labels = aligned("labels", "label image", "nearest")
         if raw.max() >= NUM_CLASSES:
             raise ConfigError(f"{where}: generator.labels: class id {raw.max()} >= {NUM_CLASSES}")
-    from satloc.vectors import is_vector_file
+    from satloc.geodata.vectors import is_vector_file
 
     if g.roads and is_vector_file(g.roads):
-        from .sceneroads import vector_roads
+        from .scene_roads import vector_roads
 
         road_graph, roads = vector_roads(base / g.roads, frame, rgb.shape[:2], mpp, g.road_width_m, spec.road_graph,
                                          where)
@@ -683,7 +692,7 @@ def _image_layout(g: ImageGeneratorSpec, spec: SceneSpec, base: Path, where: str
     h, w = labels.shape
     buildings, trees = [], []
     if g.buildings or g.trees:
-        from .scenebuildings import vector_buildings, vector_trees
+        from .scene_buildings import vector_buildings, vector_trees
 
         drivable = np.isin(labels, DRIVABLE)
         if g.trees:
@@ -699,8 +708,8 @@ def _image_layout(g: ImageGeneratorSpec, spec: SceneSpec, base: Path, where: str
 
 def _load_georeferenced(path: Path, g: ImageGeneratorSpec, mpp: float, where: str):
     """The image as a :class:`SatelliteMap` in a GeoFrame whose origin is the loaded area's south-west corner."""
+    from satloc.geodata.georef import load_map, map_bounds
     from satloc.geoframe import GeoFrame
-    from satloc.georef import load_map, map_bounds
 
     def call(fn, *args, **kw):
         try:
@@ -741,9 +750,9 @@ def _resolve_routes(spec: SceneSpec, ground: _ImageGround | None, lay: Layout, g
                     where: str, graph_out: list | None = None) -> dict[str, RouteSpec]:
     """Every route as waypoints in map metres: ``lonlat`` converted through the geo frame, ``trace`` traced
     from the road mask (or the label image's roads), ``snap`` routes snapped to the road graph; without
-    routes, the derived ones (:mod:`satloc_env.sceneroads`)."""
+    routes, the derived ones (:mod:`satloc_env.world.scene_roads`)."""
     from .roadtrace import RoadTraceError, TraceParams, trace_route
-    from .sceneroads import DERIVED_ROUTES, derived_routes, mask_widths, road_graph, snap_waypoints
+    from .scene_roads import DERIVED_ROUTES, derived_routes, mask_widths, road_graph, snap_waypoints
 
     out: dict[str, RouteSpec] = {}
     traced: dict[TraceSpec, Any] = {}

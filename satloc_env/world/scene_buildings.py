@@ -1,13 +1,13 @@
 """A scene's 3-D objects from map vectors: building footprints extruded, trees from points or canopy areas.
 
-The glue between an image scene (:mod:`satloc_env.scene`) and :mod:`satloc.vectors`: footprints and trees
+The glue between an image scene (:mod:`satloc_env.world.scene`) and :mod:`satloc.geodata.vectors`: footprints and trees
 are read in the CRS their file declares, taken to the scene's frame through pyproj and clipped to the tile.
 
 * **Buildings** (``generator.buildings``): each footprint (its exterior ring; courtyards are filled) is
   clipped to the tile and simplified to 5 cm, and extruded to its height: ``height`` / ``building:height``,
   else ``building:levels`` x 3 m, else drawn from ``generator.building_height_m`` (seeded by the scene's
   seed and the footprint's index, so a scene is the same on every load). The roof shows the imagery under
-  the footprint (:attr:`satloc_env.layout.Building.roof_from_ground`); the walls come from the facade
+  the footprint (:attr:`satloc_env.world.layout.Building.roof_from_ground`); the walls come from the facade
   painters (a style drawn per building). A footprint that covers road (1 m\\ :sup:`2` or more of the road
   mask) would stand in the car's way: it is left out, with a :class:`satloc.SatlocWarning` naming the file
   and the features.
@@ -31,7 +31,7 @@ import numpy as np
 from satloc.errors import ConfigError, SatlocWarning
 
 from .layout import Building, Tree
-from .sceneroads import read_vectors
+from .scene_roads import read_vectors
 
 __all__ = ["CANOPY_SPACING_M", "MAX_TREES", "vector_buildings", "vector_trees"]
 
@@ -39,7 +39,7 @@ __all__ = ["CANOPY_SPACING_M", "MAX_TREES", "vector_buildings", "vector_trees"]
 CANOPY_SPACING_M = 6.0
 #: the most trees a scene's tree file may make (each is a mesh of a few hundred triangles)
 MAX_TREES = 20000
-#: number of facade styles drawn from (satloc_env.world's painters)
+#: number of facade styles drawn from (satloc_env.world.meshes's painters)
 _FACADES = 8
 #: a footprint covering this much road (m^2) is left out
 _ROAD_OVERLAP_M2 = 1.0
@@ -73,7 +73,7 @@ def vector_buildings(path: Path, frame, shape: tuple[int, int], mpp: float, driv
     import shapely
     from shapely.geometry import Polygon, box
 
-    from satloc.vectors import read_footprints
+    from satloc.geodata.vectors import read_footprints
 
     fps = read_vectors("buildings", read_footprints, path, frame, where)
     h, w = shape
@@ -119,7 +119,7 @@ def vector_trees(path: Path, frame, shape: tuple[int, int], mpp: float, drivable
     from shapely import contains_xy
     from shapely.geometry import Polygon, box
 
-    from satloc.vectors import read_trees
+    from satloc.geodata.vectors import read_trees
 
     tr = read_vectors("trees", read_trees, path, frame, where)
     h, w = shape

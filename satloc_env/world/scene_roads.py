@@ -1,6 +1,6 @@
 """A scene's roads: vector roads on an image scene's tile, its road graph, derived and snapped routes.
 
-The glue between a scene (:mod:`satloc_env.scene`) and :mod:`satloc.vectors` / :mod:`satloc_env.roadgraph`:
+The glue between a scene (:mod:`satloc_env.world.scene`) and :mod:`satloc.geodata.vectors` / :mod:`satloc_env.world.roadgraph`:
 every failure is a :class:`satloc.ConfigError` naming the scene and the field. The functions return plain
 arrays; the scene makes its specs from them.
 """
@@ -13,8 +13,19 @@ import numpy as np
 from satloc.errors import ConfigError, FormatError
 from satloc.labels import CLASS_ID
 
-from .roadgraph import (GraphParams, RoadGraph, RoadGraphError, Tour, covering_tour, graph_from_lines,
-                        graph_from_mask, lane_widths, rasterize_area, road_area, snapped_route)
+from .roadgraph import (
+    GraphParams,
+    RoadGraph,
+    RoadGraphError,
+    Tour,
+    covering_tour,
+    graph_from_lines,
+    graph_from_mask,
+    lane_widths,
+    rasterize_area,
+    road_area,
+    snapped_route,
+)
 
 __all__ = ["DERIVED_ROUTES", "read_vectors", "vector_roads", "road_graph", "derived_routes", "snap_waypoints", "mask_widths"]
 
@@ -23,9 +34,9 @@ DERIVED_ROUTES = ("main", "revisit")
 
 
 def read_vectors(field: str, reader, path: Path, frame, where: str):
-    """``reader(path)`` (a reader of :mod:`satloc.vectors`) taken to the metres of ``frame``, the scene's
+    """``reader(path)`` (a reader of :mod:`satloc.geodata.vectors`) taken to the metres of ``frame``, the scene's
     GeoFrame; ConfigError naming ``generator.<field>`` and the file."""
-    from satloc.vectors import VECTOR_SUFFIXES, is_vector_file
+    from satloc.geodata.vectors import VECTOR_SUFFIXES, is_vector_file
 
     if not is_vector_file(path):
         raise ConfigError(f"{where}: generator.{field}: {path} is not a vector file (expected one of "
@@ -47,7 +58,7 @@ def vector_roads(path: Path, frame, shape: tuple[int, int], mpp: float, default_
     """The road graph of the vector file ``path``'s centre lines (in the metres of ``frame``, the scene's
     GeoFrame) and the road mask they make on the scene's raster (``shape``, ``mpp``): the lines buffered by
     their widths, the corners at junctions rounded (``params.curb_radius_m``)."""
-    from satloc.vectors import read_road_lines
+    from satloc.geodata.vectors import read_road_lines
 
     lines = read_vectors("roads", lambda p: read_road_lines(p, default_width_m), path, frame, where)
     h, w = shape
@@ -93,7 +104,7 @@ def snap_waypoints(graph: RoadGraph, xy: np.ndarray, closed: bool, params: Graph
 def mask_widths(mask: np.ndarray, mpp: float, xy: np.ndarray, spacing_m: float, closed: bool) -> np.ndarray:
     """The road's width at waypoints ``xy`` (map metres, ``spacing_m`` apart) of a route traced through
     ``mask``: twice the distance to the mask's edge (the tile's border is none: the road goes on beyond it),
-    as lane offsets should follow it (:func:`satloc_env.roadgraph.lane_widths`)."""
+    as lane offsets should follow it (:func:`satloc_env.world.roadgraph.lane_widths`)."""
     from scipy import ndimage
 
     m = np.asarray(mask, bool)
