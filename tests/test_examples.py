@@ -29,10 +29,37 @@ def test_example_stress_runs_and_writes_its_table_and_curve(tmp_path):
     assert meta["pass_config"]["occlusion"] == 0.5
 
 
-def test_example_replay_evaluates_a_recorded_sequence(tmp_path):
+@pytest.fixture(scope="module")
+def small_city_build(tmp_path_factory):
+    """A small localizer build of city's database pass (its first 25 m, RGB features)."""
     from satloc.pipeline import BuildConfig
     from satloc.projection import ProjectionConfig
     from satloc_env.envs import auto_localizer as autoloc
+
+    return autoloc.auto_build_dir("city", None, "half", progress=False, cache_dir=tmp_path_factory.mktemp("cache"),
+                                  max_frames=25, build_config=BuildConfig(features="rgb"),
+                                  projection_config=ProjectionConfig(max_anchors=2000, max_epochs=2))
+
+
+def test_readme_environment_example_runs(tmp_path, small_city_build):
+    """The README's ten-line example, with the small build for ``localizer="auto"`` and 3 steps for 100."""
+    text = (ROOT / "README.md").read_text()
+    block = text.split("## The environment in ten lines", 1)[1].split("```python\n", 1)[1].split("```", 1)[0]
+    assert len(block.strip().splitlines()) <= 10
+    assert 'localizer="auto"' in block and "range(100)" in block
+    script = tmp_path / "readme_example.py"
+    script.write_text(block.replace('localizer="auto"', f"localizer={str(small_city_build)!r}")
+                      .replace("range(100)", "range(3)"))
+    r = subprocess.run([sys.executable, str(script)], capture_output=True, text=True, timeout=600)
+    assert r.returncode == 0, r.stderr
+    rows = [ln.split() for ln in r.stdout.splitlines()]
+    assert len(rows) == 3
+    errors = np.array([float(row[-1]) for row in rows])
+    assert np.all(np.isfinite(errors)) and errors.max() < 5.0, r.stdout
+    assert r.stderr == ""
+
+
+def test_example_replay_evaluates_a_recorded_sequence(tmp_path, small_city_build):
     from satloc_env.envs.drive import SatLocEnv
     from satloc_env.envs.record import PassConfig, record_pass
 
@@ -45,9 +72,7 @@ def test_example_replay_evaluates_a_recorded_sequence(tmp_path):
                     "main", tmp_path / "rec" / "query", "query", progress=False)
     finally:
         env.close()
-    build = autoloc.auto_build_dir("city", None, "half", progress=False, cache_dir=tmp_path / "cache",
-                                   max_frames=25, build_config=BuildConfig(features="rgb"),
-                                   projection_config=ProjectionConfig(max_anchors=2000, max_epochs=2))
+    build = small_city_build
     out = tmp_path / "out"
     r = subprocess.run([sys.executable, str(ROOT / "examples" / "replay.py"), "--sequence", str(tmp_path / "rec" / "query"),
                         "--localizer", str(build), "--track", "--localize-every", "2", "--views", "2",
