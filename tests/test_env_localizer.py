@@ -199,6 +199,17 @@ def test_localizer_of_another_map_is_refused(loc):
     env.close()
 
 
+def test_localizer_of_the_copied_map_is_refused_on_a_captured_one(build_dir, cache):
+    """A build made on the ground's copy (satellite_gap 0) does not localize on the same scene's captured map:
+    the map check compares content, and the auto localizer's cache keeps the two apart."""
+    with pytest.raises(ConfigError, match="is not the map of scene 'city'"):
+        gym.make(ID, scene="city", localizer=str(build_dir), satellite_gap=0.5)
+    a = autoloc.build_path("city", None, "half", cache_dir=cache, **SMALL)
+    b = autoloc.build_path("city", None, "half", satellite_gap=0.5, cache_dir=cache, **SMALL)
+    assert a == build_dir and b != a and "gap0.5" in b.name
+    assert autoloc.build_path("city", None, "half", satellite_gap=0.0, cache_dir=cache, **SMALL) == a   # as before
+
+
 def test_build_dir_path_and_auto(build_dir, tmp_path, monkeypatch):
     env = gym.make(ID, scene="city", localizer=str(build_dir), localizer_mode="go")
     _, info = env.reset(seed=0)

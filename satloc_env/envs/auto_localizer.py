@@ -46,7 +46,10 @@ from satloc import __version__ as SATLOC_VERSION
 from satloc.config import to_dict
 from satloc.errors import ConfigError
 from satloc.persist import FORMAT_VERSION, atomic_dir, header, read_json, write_json
-from satloc_env.world.scene import SCENES_DIR  # noqa: F401  (autoloc.SCENES_DIR: where the shipped scenes are)
+from satloc_env.world.scene import (
+    SCENES_DIR,  # noqa: F401  (autoloc.SCENES_DIR: where the shipped scenes are)
+    load_spec,
+)
 
 from .record import RecordConfig, make_env, record_pass
 from .record import scene_identity as _scene_identity
@@ -81,33 +84,50 @@ def _configs(max_frames, build_config, projection_config):
 
 
 def cache_key(scene: str | os.PathLike, aliasing: float | None = None, resolution: str = "half", *,
-              max_frames: int | None = None, build_config=None, projection_config=None) -> dict:
-    """Everything a cache entry depends on, as a plain dict (written to its ``autoloc.json``)."""
+              max_frames: int | None = None, build_config=None, projection_config=None,
+              satellite_gap: float | None = None) -> dict:
+    """Everything a cache entry depends on, as a plain dict (written to its ``autoloc.json``). A satellite map
+    captured with a gap (``satellite_gap``, None: the scene's) adds the key ``satellite_gap``; gap 0 keeps the
+    keys (and so the entries) of the versions before it."""
     if resolution not in ("half", "full"):
         raise ConfigError(f"resolution: expected 'half' or 'full', got {resolution!r}")
     if max_frames is not None and max_frames < 2:
         raise ConfigError(f"max_frames: expected None or >= 2, got {max_frames}")
     name, source, sha, own_aliasing = _scene_identity(scene)
     speed, db, bc, pc = _configs(max_frames, build_config, projection_config)
-    return {"scene": name, "source": source, "scene_sha256": sha,
+    key = {"scene": name, "source": source, "scene_sha256": sha,
             "aliasing": float(own_aliasing if aliasing is None else aliasing), "resolution": resolution,
             "format_version": FORMAT_VERSION, "satloc_version": SATLOC_VERSION, "key_version": _KEY_VERSION,
             "speed_mps": speed, "database_pass": to_dict(db), "build": to_dict(bc, runtime=False),
             "projection": to_dict(pc, runtime=False)}   # not the device: how an entry is made, not what it holds
+    gap = _own_gap(scene) if satellite_gap is None else float(satellite_gap)
+    if gap != 0.0:
+        key["satellite_gap"] = gap
+    return key
+
+
+def _own_gap(scene: str | os.PathLike) -> float:
+    """The satellite gap a scene argument's own file (or saved scene) gives."""
+    p = Path(scene).expanduser()
+    if p.is_dir() and (p / "scene.json").is_file():
+        spec = read_json(p / "scene.json", "scene").get("spec") or {}
+        return float((spec.get("knobs") or {}).get("satellite_gap", 0.0))
+    return float(load_spec(scene)[0].knobs.satellite_gap)
 
 
 def _entry_name(key: dict) -> str:
     digest = hashlib.sha256(json.dumps(key, sort_keys=True).encode()).hexdigest()[:16]
     slug = re.sub(r"[^A-Za-z0-9_.-]+", "_", key["scene"]).strip("._") or "scene"
-    return f"{slug}-alias{key['aliasing']:g}-{key['resolution']}-{digest}"
+    gap = f"-gap{key['satellite_gap']:g}" if "satellite_gap" in key else ""
+    return f"{slug}-alias{key['aliasing']:g}{gap}-{key['resolution']}-{digest}"
 
 
 def build_path(scene: str | os.PathLike, aliasing: float | None = None, resolution: str = "half", *,
                max_frames: int | None = None, build_config=None, projection_config=None,
-               cache_dir: str | os.PathLike | None = None) -> Path:
+               cache_dir: str | os.PathLike | None = None, satellite_gap: float | None = None) -> Path:
     """Where :func:`auto_build_dir` keeps the entry for these arguments (whether or not it exists yet)."""
     key = cache_key(scene, aliasing, resolution, max_frames=max_frames, build_config=build_config,
-                    projection_config=projection_config)
+                    projection_config=projection_config, satellite_gap=satellite_gap)
     return cache_root(cache_dir) / _entry_name(key)
 
 
@@ -154,7 +174,8 @@ def _announce(msg: str, progress: bool) -> None:
 
 def auto_build_dir(scene: str | os.PathLike, aliasing: float | None = None, resolution: str = "half",
                    progress: bool = True, *, max_frames: int | None = None, build_config=None,
-                   projection_config=None, cache_dir: str | os.PathLike | None = None) -> Path:
+                   projection_config=None, cache_dir: str | os.PathLike | None = None,
+                   satellite_gap: float | None = None) -> Path:
     """The cached build directory of ``scene``'s database pass; records and builds it on a miss.
 
     ``max_frames`` (stop the database pass early), ``build_config`` (:class:`satloc.pipeline.BuildConfig`) and
@@ -162,7 +183,7 @@ def auto_build_dir(scene: str | os.PathLike, aliasing: float | None = None, reso
     part of the cache key. ``cache_dir`` overrides the cache root (see :func:`cache_root`).
     """
     key = cache_key(scene, aliasing, resolution, max_frames=max_frames, build_config=build_config,
-                    projection_config=projection_config)
+                    projection_config=projection_config, satellite_gap=satellite_gap)
     root = cache_root(cache_dir)
     entry = root / _entry_name(key)
     if is_complete(entry):
@@ -205,6 +226,7 @@ def _build_entry(out: Path, key: dict, scene, aliasing, resolution, max_frames, 
     stages = tqdm(total=3, desc="auto localizer", unit="stage", disable=not progress, leave=False)
     # localizer=None: the recorder's env must not itself ask for an auto localizer (infinite recursion)
     env = make_env(scene=os.fspath(scene), resolution=resolution, aliasing=aliasing, speed_mps=speed,
+                   satellite_gap=key.get("satellite_gap", 0.0),
                    depth=db.depth, labels=db.labels, localizer=None)
     try:
         env.reset(seed=db.seed)
@@ -245,9 +267,11 @@ def load_cached_localizer(build_dir: str | os.PathLike, mode: str = "full", refi
 
 
 def auto_localizer(scene: str | os.PathLike, aliasing: float | None = None, resolution: str = "half",
-                   mode: str = "full", progress: bool = True, refine: bool = False):
+                   mode: str = "full", progress: bool = True, refine: bool = False,
+                   satellite_gap: float | None = None):
     """The localizer of ``localizer="auto"``: :func:`auto_build_dir` loaded in ``mode``."""
-    return load_cached_localizer(auto_build_dir(scene, aliasing, resolution, progress), mode, refine)
+    return load_cached_localizer(auto_build_dir(scene, aliasing, resolution, progress, satellite_gap=satellite_gap),
+                                 mode, refine)
 
 
 #: the fields of a cache key (:func:`cache_key`) and their types
@@ -264,7 +288,7 @@ def describe_entry(entry: str | os.PathLike) -> dict[str, Any]:
 
     path = Path(entry) / "autoloc.json"
     key = read_json(path, "autoloc_cache").get("key")
-    if not isinstance(key, dict) or set(key) != set(_KEY_FIELDS):
+    if not isinstance(key, dict) or set(key) - {"satellite_gap"} != set(_KEY_FIELDS):
         got = sorted(key) if isinstance(key, dict) else type(key).__name__
         raise FormatError(f"{path}: field 'key': expected a mapping of {sorted(_KEY_FIELDS)}, got {got}")
     for k, tp in _KEY_FIELDS.items():
@@ -275,6 +299,9 @@ def describe_entry(entry: str | os.PathLike) -> dict[str, Any]:
     bad = nonfinite_path(key)
     if bad is not None:
         raise FormatError(f"{path}: key.{bad}: expected a finite number")
+    gap = key.get("satellite_gap")
+    if gap is not None and (isinstance(gap, bool) or not isinstance(gap, (int, float)) or not 0 < gap <= 1):
+        raise FormatError(f"{path}: key.satellite_gap: expected a number in (0, 1], got {str(gap)[:60]!r}")
     if not (0 <= key["aliasing"] <= 1 and key["speed_mps"] > 0 and key["resolution"] in ("half", "full")):
         raise FormatError(f"{path}: key: expected aliasing in [0, 1], speed_mps > 0 and resolution half or full, got "
                           f"{key['aliasing']!r}, {key['speed_mps']!r}, {key['resolution'][:20]!r}")

@@ -61,6 +61,8 @@ class EnvConfig:
     appearance: float | None = None
     change: float | None = None             # revisit change of the world (satloc_env.world.revisit): shadows of another
                                             # sun, road wear, parked cars moved, season; 0 none
+    satellite_gap: float | None = None      # how far the satellite map is a capture of the world, not the rendered
+                                            # ground (satloc_env.world.capture); None: the scene's; fixed when made
     anisotropy: int = 1                     # >1: anisotropic texture filtering (sharper far ground, ~4x slower on llvmpipe)
     zfar_m: float = 150.0
     localizer: str | None = "auto"          # None/"none": off; "auto": cached build of the scene's database
@@ -83,7 +85,7 @@ class EnvConfig:
         _check_finite(self, "dt", lo=0.0, lo_open=True)
         _check_finite(self, "zfar_m", lo=1.0)
         _check_noise(self.odometry_noise)
-        for k in ("aliasing", "occlusion", "appearance", "change"):
+        for k in ("aliasing", "occlusion", "appearance", "change", "satellite_gap"):
             v = getattr(self, k)
             if v is not None and not 0.0 <= v <= 1.0:   # False for NaN
                 raise ConfigError(f"{k}: expected a value in [0, 1] (or None: the scene's), got {v}")
@@ -596,7 +598,7 @@ class SatLocEnv(SharedSpecMixin, gym.Env):
         if self.localizer is not None:
             self._check_localizer_camera()
             # a localizer of another scene fails here, when the env is made, not at the first reset
-            key = (self.config.scene, self.config.aliasing)
+            key = (self.config.scene, self.config.aliasing, self.config.satellite_gap)
             scene = load_scene(*key)
             self._check_localizer_map(scene)
             self._preloaded = (key, scene)
@@ -658,19 +660,19 @@ class SatLocEnv(SharedSpecMixin, gym.Env):
         return self._scene
 
     def _ensure_scene(self, cfg: EnvConfig) -> None:
-        key = (cfg.scene, cfg.aliasing)
+        key = (cfg.scene, cfg.aliasing, cfg.satellite_gap)
         if key == self._scene_key:
             return
         if self._preloaded is not None and self._preloaded[0] == key:
             scene = self._preloaded[1]       # loaded and checked by __init__
         else:
-            scene = load_scene(cfg.scene, cfg.aliasing)
+            scene = load_scene(*key)
         self._preloaded = None
         if self.config.localizer == "auto":
             from .auto_localizer import auto_localizer
 
             self.localizer = auto_localizer(cfg.scene, cfg.aliasing, cfg.resolution, cfg.localizer_mode,
-                                            refine=cfg.localizer_refine)
+                                            refine=cfg.localizer_refine, satellite_gap=cfg.satellite_gap)
             self._loc_identity = {"source": f"the auto localizer of scene {scene.name!r}"}
             self._check_localizer_camera()
         elif self.localizer is not None:

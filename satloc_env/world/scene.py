@@ -21,7 +21,7 @@ A scene file (see ``scenes/*.yaml``)::
     ground_pad_m: 250              # neutral ground around the tile, so no view shows its edge
     objects: {buildings: [...], trees: [...], cars: [...]}   # extra hand-placed objects
     lighting: {sun_azimuth_deg: 135, sun_elevation_deg: 50}
-    knobs: {aliasing: 0.0, occlusion: 0.0, appearance: 0.0}
+    knobs: {aliasing: 0.0, occlusion: 0.0, appearance: 0.0, satellite_gap: 0.0}
 
 **Image scenes** (``generator: {type: image, ...}``) drape an image over the ground plane: the camera sees
 the image as the textured ground (``ground_mpp`` must equal ``meters_per_pixel``) and the satellite tile
@@ -114,11 +114,11 @@ from satloc.persist import (
 )
 from satloc.satmap import SatelliteMap, read_image
 
+from .capture import capture_tile
 from .generator import GridParams, generate_grid
 from .layout import Building, Car, Layout, Tree
 from .roadgraph import GraphParams
 from .route import Route
-from .tile import paint_tile
 
 # the repository's scenes/ (source checkout, editable install) or its installed copy (satloc_env/scenes)
 _PACKAGE = Path(__file__).resolve().parents[1]          # satloc_env/
@@ -268,15 +268,19 @@ class Knobs:
     appearance: strength of the lighting / colour / exposure change of an episode (another time of day).
     change: strength of an episode's revisit change of the world (:mod:`satloc_env.world.revisit`: shadows of another
         sun, road wear and patches, parked cars moved, another season); the satellite tile never changes.
+    satellite_gap: how far the satellite map is a capture of the world rather than a copy of the rendered
+        ground (:mod:`satloc_env.world.capture`: its own sub-resolution texture, capture time, off-nadir view,
+        sensor blur, registration error, compression); 0 is the ground texture itself. Generated scenes only.
     """
 
     aliasing: float = 0.0
     occlusion: float = 0.0
     appearance: float = 0.0
     change: float = 0.0
+    satellite_gap: float = 0.0
 
     def __post_init__(self):
-        for k in ("aliasing", "occlusion", "appearance", "change"):
+        for k in ("aliasing", "occlusion", "appearance", "change", "satellite_gap"):
             v = getattr(self, k)
             if not 0.0 <= v <= 1.0:
                 raise ConfigError(f"{k}: expected a value in [0, 1], got {v}")
@@ -836,13 +840,15 @@ def _lonlat_box(frame, lay: Layout) -> str:
 
 
 def build_scene(spec: SceneSpec, base_dir: Path | None = None, aliasing: float | None = None,
-                where: str | None = None) -> Scene:
+                where: str | None = None, satellite_gap: float | None = None) -> Scene:
     """Generate the scene described by ``spec`` (deterministic from ``spec.seed``). The returned scene's spec
-    has every route as waypoints in metres (lon/lat converted, traced routes traced)."""
+    has every route as waypoints in metres (lon/lat converted, traced routes traced). ``aliasing`` and
+    ``satellite_gap`` (None: the spec's knobs) override the spec's knobs, and the returned spec records them."""
     where = where or f"scene {spec.name!r}"
     base_dir = base_dir or SCENES_DIR
     aliasing = spec.knobs.aliasing if aliasing is None else aliasing
-    Knobs(aliasing=aliasing)
+    satellite_gap = spec.knobs.satellite_gap if satellite_gap is None else satellite_gap
+    Knobs(aliasing=aliasing, satellite_gap=satellite_gap)
     g = spec.generator_spec(where)
     src = None
     ground = None
@@ -873,15 +879,18 @@ def build_scene(spec: SceneSpec, base_dir: Path | None = None, aliasing: float |
     lay.sun_elevation = math.radians(spec.lighting.sun_elevation_deg)
     if g.type == "grid":
         try:
-            tile, tile_labels = paint_tile(lay, spec.meters_per_pixel, spec.seed)
+            tile, tile_labels = capture_tile(lay, spec.meters_per_pixel, spec.seed, satellite_gap)
         except ValueError as e:
             raise ConfigError(f"{where}: {e}") from e
+    elif satellite_gap > 0:
+        raise ConfigError(f"{where}: knobs.satellite_gap: a satellite capture of an image scene is not built yet "
+                          f"(its map is its image); use 0, got {satellite_gap:g}")
     else:
         tile, tile_labels = lay.ground_rgb, lay.ground_labels
     frame = ground.frame if ground is not None else None
     satmap = SatelliteMap(tile, spec.meters_per_pixel, (0.0, lay.height_m), tile_labels, frame,
                           radiometry=ground.radiometry if ground is not None else None)
-    spec = replace(spec, routes=routes, knobs=replace(spec.knobs, aliasing=aliasing))
+    spec = replace(spec, routes=routes, knobs=replace(spec.knobs, aliasing=aliasing, satellite_gap=satellite_gap))
     scene = Scene(spec, lay, satmap, src, where=where)
     if graphs:
         scene.__dict__["road_graph"] = graphs[0]
@@ -889,14 +898,21 @@ def build_scene(spec: SceneSpec, base_dir: Path | None = None, aliasing: float |
 
 
 @functools.lru_cache(maxsize=4)
-def _cached_scene(path: str, aliasing: float | None) -> Scene:
+def _cached_scene(path: str, aliasing: float | None, satellite_gap: float | None = None) -> Scene:
     spec, base = load_spec(path)
-    return build_scene(spec, base, aliasing, where=path)
+    return build_scene(spec, base, aliasing, where=path, satellite_gap=satellite_gap)
 
 
-def load_scene(name_or_path: str | os.PathLike, aliasing: float | None = None) -> Scene:
-    """Load a scene by shipped name, YAML path, or saved-scene directory (cached per process)."""
+def load_scene(name_or_path: str | os.PathLike, aliasing: float | None = None,
+               satellite_gap: float | None = None) -> Scene:
+    """Load a scene by shipped name, YAML path, or saved-scene directory (cached per process). ``aliasing``
+    and ``satellite_gap`` (None: the scene file's knobs) override its knobs; a saved scene keeps its own (a
+    value other than the saved one is a :class:`satloc.ConfigError`)."""
     p = Path(name_or_path)
     if p.is_dir() and (p / "scene.json").is_file():
-        return Scene.load(p)
-    return _cached_scene(str(scene_path(name_or_path).resolve()), aliasing)
+        scene = Scene.load(p)
+        if satellite_gap is not None and not math.isclose(satellite_gap, scene.spec.knobs.satellite_gap):
+            raise ConfigError(f"{p}: a saved scene's satellite map is fixed (satellite_gap "
+                              f"{scene.spec.knobs.satellite_gap:g}); got satellite_gap {satellite_gap:g}")
+        return scene
+    return _cached_scene(str(scene_path(name_or_path).resolve()), aliasing, satellite_gap)

@@ -1,5 +1,9 @@
 """Paint the satellite tile (overhead view) from a layout: ground downsampled to the tile resolution, then
-shadows, roofs, tree canopies and cars drawn from above. Also returns the tile's semantic labels."""
+shadows, roofs, tree canopies and cars drawn from above. Also returns the tile's semantic labels.
+
+``lean`` (metres east and north per metre of height, default none) draws the view of a sensor off nadir:
+roofs and canopies displaced from their footprints by their height times ``lean``, with the facades in
+between (see :mod:`satloc_env.world.capture`)."""
 from __future__ import annotations
 
 import math
@@ -30,7 +34,8 @@ def _local_mask(px: np.ndarray, h: int, w: int):
     return (slice(y0, y1), slice(x0, x1)), m > 0
 
 
-def paint_tile(lay: Layout, mpp: float, seed: int) -> tuple[np.ndarray, np.ndarray]:
+def paint_tile(lay: Layout, mpp: float, seed: int, lean: tuple[float, float] = (0.0, 0.0)
+               ) -> tuple[np.ndarray, np.ndarray]:
     k = mpp / lay.ground_mpp
     if abs(k - round(k)) > 1e-6 or round(k) < 1:
         raise ValueError(f"tile meters_per_pixel={mpp} must be an integer multiple of ground_mpp={lay.ground_mpp}")
@@ -64,9 +69,17 @@ def paint_tile(lay: Layout, mpp: float, seed: int) -> tuple[np.ndarray, np.ndarr
         fill_poly(shadow, _poly_px(lay, rect_poly(c[0], c[1], car.length, car.width, car.yaw), mpp), 1)
     img[shadow > 0] *= 0.55
 
-    # roofs: base colour, texture, a darker outline and a ridge
+    # roofs: base colour, texture, a darker outline and a ridge; off nadir, the roof moves by its height x lean
+    # and the facades facing the sensor fill the gap between footprint and roof
+    lean_v = np.asarray(lean, np.float64)
+    leaning = bool(np.any(lean_v != 0.0))
     for b in lay.buildings:
-        px = _poly_px(lay, b.footprint, mpp)
+        fp = b.footprint + lean_v * b.height if leaning else b.footprint
+        if leaning:
+            hull = cv2.convexHull(np.vstack([b.footprint, fp]).astype(np.float32)).reshape(-1, 2)
+            fill_poly(img, _poly_px(lay, hull, mpp), tuple(float(v) * 0.55 + 30.0 for v in b.roof_rgb))
+            fill_poly(labels, _poly_px(lay, hull, mpp), C["building"])
+        px = _poly_px(lay, fp, mpp)
         box, sel = _local_mask(px, h, w)
         if box is None:
             continue
@@ -75,19 +88,20 @@ def paint_tile(lay: Layout, mpp: float, seed: int) -> tuple[np.ndarray, np.ndarr
         labels[box][sel] = C["building"]
         cv2.polylines(img, [np.round(px).astype(np.int32).reshape(-1, 1, 2)], True,
                       tuple(float(v) * 0.6 for v in b.roof_rgb), 1)
-        if len(b.footprint) == 4:  # ridge along the long side (houses) or a rooftop unit (tall blocks)
-            e = b.footprint[1] - b.footprint[0]
-            f = b.footprint[3] - b.footprint[0]
+        if len(fp) == 4:  # ridge along the long side (houses) or a rooftop unit (tall blocks)
+            e = fp[1] - fp[0]
+            f = fp[3] - fp[0]
             if np.linalg.norm(e) < np.linalg.norm(f):
                 e, f = f, e
-            c0 = b.footprint[0] + f / 2
+            c0 = fp[0] + f / 2
             ridge = _poly_px(lay, np.array([c0 + 0.1 * e, c0 + 0.9 * e]), mpp)
             cv2.line(img, tuple(np.round(ridge[0]).astype(int)), tuple(np.round(ridge[1]).astype(int)),
                      tuple(float(v) * 0.75 for v in b.roof_rgb), max(1, int(round(0.4 / mpp))))
     # tree canopies: leafy noise, darker towards the shadow side
     leaf = [(52, 92, 40), (44, 80, 34), (70, 104, 46), (60, 84, 38)]
     for t in lay.trees:
-        cu, cv_ = _poly_px(lay, np.array(t.center), mpp)
+        centre = np.array(t.center) + lean_v * (t.canopy_bottom + t.canopy_top) / 2
+        cu, cv_ = _poly_px(lay, centre, mpp)
         r = t.canopy_radius / mpp
         y0, y1 = max(0, int(cv_ - r - 1)), min(h, int(cv_ + r + 2))
         x0, x1 = max(0, int(cu - r - 1)), min(w, int(cu + r + 2))

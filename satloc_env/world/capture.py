@@ -1,0 +1,232 @@
+"""The satellite map as a capture of the world: taken at another time, by another sensor, registered with an
+error; never the ground texture the camera renders.
+
+A generated scene's tile used to be its ground texture downsampled, with roofs, canopies, shadows and cars
+drawn on top: the asphalt, grass and pavement texture below a metre was the same pattern in both views, a
+fingerprint no real satellite image offers. :func:`capture_tile` paints the tile of a
+:class:`~satloc_env.world.layout.Layout` as a sensor would capture it. One knob, ``gap`` in [0, 1], sets every
+part (:func:`capture_params`); 0 gives :func:`satloc_env.world.tile.paint_tile`'s tile byte for byte. The
+parts (:data:`PARTS`), in the order they are applied, each drawn from its own generator seeded by (seed,
+part), so leaving one out changes none of the others:
+
+``time``
+    Another capture time: the layout changed by :func:`satloc_env.world.revisit.changed_layout` at strength
+    ``gap`` (another season's grass, road wear and patches, parked cars moved, removed and added) and another
+    sun (azimuth moved by ``gap`` x 60-100 degrees either way, elevation by ``gap`` x -0.3 to +0.2 rad, kept
+    in [0.35, 1.3]): the tile's shadows fall where that sun casts them.
+``lean``
+    The sensor off nadir by ``gap`` x :data:`MAX_OFF_NADIR_DEG` towards a random azimuth: roofs and
+    canopies displaced from their footprints by height x tan(off-nadir), facades in between.
+``texture``
+    Texture below the sensor's resolution of the capture's own. In the ground texture the tile is painted
+    from, each class's fine residual (the texture minus its Gaussian blur of ``2 gsd_m`` taken within the class,
+    so that the edges between classes, lane markings included, stay where they are) becomes
+    ``cos(a) residual + sin(a) noise``, ``a = min(1, 2 gap) pi / 2``, where the noise is band-limited like the
+    residual and scaled to the residual's standard deviation per class and channel (same statistics,
+    independent pattern). From ``gap`` 0.5 on, no sub-resolution texture of the ground survives.
+``blur``
+    The sensor's point spread: a Gaussian of ``gsd_m / 2`` (``gsd_m = mpp (1 + gap)``, 0.3 m on a 0.2 m tile
+    at 0.5).
+``registration``
+    A georegistration error: a smooth random warp (displacements drawn every :data:`WARP_SPACING_M` and
+    interpolated) of RMS ``gap`` x :data:`MAX_REGISTRATION_RMS_M`; the labels move with the image. Truth stays
+    in the world frame: the warp is part of what a localizer must live with.
+``jpeg``
+    Compression: JPEG at quality ``100 - 40 gap`` (80 at 0.5).
+
+:data:`DEFAULT_GAP` (0.5) is a tile captured by a 0.3 m sensor 15 degrees off nadir, registered to 0.3 m
+RMS, at JPEG quality 80, in another season with another sun and other parked cars. What that rests on
+(orders of magnitude, not a survey): the sharpest commercial satellite imagery is delivered at 0.3-0.5 m,
+collected up to a few tens of degrees off nadir; orthoimagery registered with ground control is good to a
+few decimetres, while a satellite's own geolocation without control is metres (WorldView-3's specification:
+under 3.5 m CE90), which ``gap`` towards 1 only begins to cover; imagery is usually distributed compressed.
+"""
+from __future__ import annotations
+
+import dataclasses
+import math
+from collections.abc import Iterable
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+from satloc.errors import ConfigError
+
+from .layout import Layout
+from .revisit import changed_layout
+from .tile import paint_tile
+
+__all__ = ["PARTS", "DEFAULT_GAP", "Capture", "capture_params", "capture_tile", "class_lowpass", "fine_residual"]
+
+#: the parts of a capture, in the order they are applied
+PARTS = ("time", "lean", "texture", "blur", "registration", "jpeg")
+#: a realistic gap (see the module docstring)
+DEFAULT_GAP = 0.5
+#: off-nadir angle (degrees) at gap 1
+MAX_OFF_NADIR_DEG = 30.0
+#: RMS of the registration error (metres) at gap 1
+MAX_REGISTRATION_RMS_M = 0.6
+#: spacing (metres) of the registration warp's random displacements
+WARP_SPACING_M = 40.0
+#: the capture's own texture replaces what lies below this many GSDs (a Gaussian of that sigma): sub-metre
+#: texture entirely, and most of it up to a couple of metres
+TEXTURE_SCALE = 2.0
+_PART_SEED = {"time": 21, "lean": 22, "texture": 23, "blur": 24, "registration": 25, "jpeg": 26}
+
+
+@dataclass(frozen=True)
+class Capture:
+    """The settings of one capture (:func:`capture_params`)."""
+
+    gap: float
+    gsd_m: float                 # the sensor's ground sample distance
+    time: float                  # strength of the capture time's change of the world
+    off_nadir_deg: float
+    texture: float               # fraction of a right angle: 0 the ground's texture, 1 the capture's own
+    registration_rms_m: float
+    jpeg_quality: int | None     # None: no compression
+
+
+def capture_params(gap: float, mpp: float) -> Capture:
+    """The capture of knob value ``gap`` for a tile of ``mpp`` metres per pixel."""
+    gap = float(gap)
+    if not 0.0 <= gap <= 1.0:   # False for NaN
+        raise ConfigError(f"satellite_gap: expected a value in [0, 1], got {gap}")
+    return Capture(gap=gap, gsd_m=mpp * (1.0 + gap), time=gap, off_nadir_deg=MAX_OFF_NADIR_DEG * gap,
+                   texture=min(1.0, 2.0 * gap), registration_rms_m=MAX_REGISTRATION_RMS_M * gap,
+                   jpeg_quality=None if gap == 0.0 else int(round(100 - 40 * gap)))
+
+
+def _rng(seed: int, part: str) -> np.random.Generator:
+    return np.random.default_rng([int(seed), _PART_SEED[part]])
+
+
+def capture_tile(lay: Layout, mpp: float, seed: int, gap: float, parts: Iterable[str] = PARTS
+                 ) -> tuple[np.ndarray, np.ndarray]:
+    """(image (h, w, 3) uint8, labels (h, w) uint8) of the tile of ``lay`` at ``mpp`` captured with knob
+    ``gap`` (see the module docstring); ``gap`` 0, or no ``parts``, is :func:`paint_tile`'s tile. Deterministic
+    for (``lay``, ``mpp``, ``seed``, ``gap``, ``parts``)."""
+    cap = capture_params(gap, mpp)
+    parts = tuple(parts)
+    unknown = sorted(set(parts) - set(PARTS))
+    if unknown:
+        raise ConfigError(f"satellite capture parts: unknown {unknown}; the parts are {list(PARTS)}")
+    if cap.gap == 0.0 or not parts:
+        return paint_tile(lay, mpp, seed)
+    if "time" in parts:
+        lay = _capture_time(lay, cap.time, seed)
+    if "texture" in parts:
+        lay = dataclasses.replace(lay, ground_rgb=_own_texture(
+            lay.ground_rgb, lay.ground_labels, TEXTURE_SCALE * cap.gsd_m / lay.ground_mpp, cap.texture,
+            _rng(seed, "texture")))
+    lean = (0.0, 0.0)
+    if "lean" in parts:
+        r = _rng(seed, "lean")
+        az = r.uniform(0.0, 2 * math.pi)
+        t = math.tan(math.radians(cap.off_nadir_deg))
+        lean = (t * math.cos(az), t * math.sin(az))
+    img, labels = paint_tile(lay, mpp, seed, lean=lean)
+    img = img.astype(np.float32)
+    if "blur" in parts:
+        s = 0.5 * cap.gsd_m / mpp
+        img = cv2.GaussianBlur(img, (0, 0), s, borderType=cv2.BORDER_REFLECT)
+    out = np.clip(np.round(img), 0, 255).astype(np.uint8)
+    if "registration" in parts and cap.registration_rms_m > 0:
+        out, labels = _warp(out, labels, cap.registration_rms_m / mpp, WARP_SPACING_M / mpp,
+                            _rng(seed, "registration"))
+    if "jpeg" in parts and cap.jpeg_quality is not None:
+        ok, buf = cv2.imencode(".jpg", out[..., ::-1], [cv2.IMWRITE_JPEG_QUALITY, cap.jpeg_quality])
+        out = np.ascontiguousarray(cv2.imdecode(buf, cv2.IMREAD_COLOR)[..., ::-1])
+    return out, labels
+
+
+def _capture_time(lay: Layout, strength: float, seed: int) -> Layout:
+    """The world at the capture's time: another season, road wear, parked cars, and another sun (the tile's
+    shadows are drawn at it; none are cast onto the ground texture)."""
+    r = _rng(seed, "time")
+    out = changed_layout(lay, strength, int(r.integers(0, 2**31)), parts=("vegetation", "road", "cars"))
+    if out is lay:
+        out = dataclasses.replace(lay)
+    d_az = math.radians(100.0) * strength * r.uniform(0.6, 1.0) * r.choice([-1.0, 1.0])
+    out.sun_azimuth = float((lay.sun_azimuth + d_az) % (2 * math.pi))
+    out.sun_elevation = float(np.clip(lay.sun_elevation + strength * r.uniform(-0.3, 0.2), 0.35, 1.3))
+    return out
+
+
+def fine_residual(img: np.ndarray, sigma_px: float) -> np.ndarray:
+    """The texture below a scale: ``img`` (float) minus its Gaussian blur of ``sigma_px`` pixels, per channel."""
+    img = np.asarray(img, np.float32)
+    return img - cv2.GaussianBlur(img, (0, 0), sigma_px, borderType=cv2.BORDER_REFLECT)
+
+
+def class_lowpass(img: np.ndarray, labels: np.ndarray, sigma_px: float) -> np.ndarray:
+    """``img`` (float) blurred by a Gaussian of ``sigma_px`` within each class of ``labels`` (normalised
+    convolution: no class's colour leaks across an edge). Computed at 1/f of the resolution (f = sigma_px / 2,
+    at least 1) and interpolated back: it is a low-pass."""
+    img = np.asarray(img, np.float32)
+    h, w = labels.shape
+    f = max(1, int(sigma_px // 2))
+    small = (max(1, w // f), max(1, h // f))
+    low = np.zeros_like(img)
+    for c in np.unique(labels):
+        m = (labels == c).astype(np.float32)
+        num = img * m[..., None]
+        if f > 1:
+            num, m_s = cv2.resize(num, small, interpolation=cv2.INTER_AREA), cv2.resize(m, small, interpolation=cv2.INTER_AREA)
+        else:
+            m_s = m
+        num = cv2.GaussianBlur(num, (0, 0), sigma_px / f, borderType=cv2.BORDER_REFLECT)
+        den = cv2.GaussianBlur(m_s, (0, 0), sigma_px / f, borderType=cv2.BORDER_REFLECT)
+        mean = num / np.maximum(den, 1e-6)[..., None]
+        if f > 1:
+            mean = cv2.resize(mean, (w, h), interpolation=cv2.INTER_LINEAR)
+        low += mean * m[..., None]
+    return low
+
+
+def _own_texture(img: np.ndarray, labels: np.ndarray, sigma_px: float, amount: float,
+                 r: np.random.Generator) -> np.ndarray:
+    """(uint8) ``img`` with the fraction ``amount`` (as an angle) of each class's texture below ``sigma_px``
+    replaced by noise of the same band and of the same standard deviation per class and channel."""
+    img = np.asarray(img, np.float32)
+    low = class_lowpass(img, labels, sigma_px)
+    res = img - low
+    n = fine_residual(r.standard_normal(labels.shape).astype(np.float32), sigma_px)
+    new = (n / _class_std(n, labels)[labels])[..., None] * _class_std(res, labels)[labels]
+    a = amount * math.pi / 2
+    return np.clip(np.round(low + math.cos(a) * res + math.sin(a) * new), 0, 255).astype(np.uint8)
+
+
+def _class_std(x: np.ndarray, labels: np.ndarray) -> np.ndarray:
+    """Standard deviation of ``x`` (h, w) or (h, w, k) within each class id of ``labels``: (256,) or (256, k),
+    1 where a class is absent or constant."""
+    lab = labels.ravel().astype(np.intp)
+    flat = x.reshape(lab.size, -1).astype(np.float64)
+    n = np.bincount(lab, minlength=256).astype(np.float64)[:, None]
+    s1 = np.stack([np.bincount(lab, flat[:, k], minlength=256) for k in range(flat.shape[1])], 1)
+    s2 = np.stack([np.bincount(lab, flat[:, k] ** 2, minlength=256) for k in range(flat.shape[1])], 1)
+    var = s2 / np.maximum(n, 1) - (s1 / np.maximum(n, 1)) ** 2
+    sd = np.sqrt(np.maximum(var, 0.0))
+    sd[sd == 0] = 1.0
+    sd = sd.astype(np.float32)
+    return sd[:, 0] if x.ndim == 2 else sd
+
+
+def _warp(img: np.ndarray, labels: np.ndarray, rms_px: float, spacing_px: float,
+          r: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+    """A smooth random displacement field of RMS ``rms_px`` (both axes together), correlated over about
+    ``spacing_px``; the image resampled bilinearly, the labels by nearest neighbour."""
+    h, w = labels.shape
+    gh, gw = int(math.ceil(h / spacing_px)) + 3, int(math.ceil(w / spacing_px)) + 3
+    d = r.standard_normal((2, gh, gw)).astype(np.float32)
+    field = np.stack([cv2.resize(d[k], (int(gw * spacing_px), int(gh * spacing_px)),
+                                 interpolation=cv2.INTER_CUBIC)[:h, :w] for k in range(2)])
+    rms = float(np.sqrt((field ** 2).sum(axis=0).mean())) or 1.0
+    field *= rms_px / rms
+    yy, xx = np.mgrid[0:h, 0:w].astype(np.float32)
+    mx, my = xx + field[0], yy + field[1]
+    out = cv2.remap(img, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REFLECT)
+    lab = cv2.remap(labels, mx, my, cv2.INTER_NEAREST, borderMode=cv2.BORDER_REFLECT)
+    return out, lab
+

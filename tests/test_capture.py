@@ -1,0 +1,135 @@
+"""The satellite map as a capture of the world (satloc_env.world.capture): at satellite_gap 0 the tile is the
+ground's copy, at the default it shares no texture below the sensor's resolution with the rendered ground."""
+import cv2
+import numpy as np
+import pytest
+
+from satloc import ConfigError
+from satloc.labels import CLASS_ID as C
+from satloc_env.world.capture import DEFAULT_GAP, PARTS, capture_params, capture_tile, class_lowpass
+from satloc_env.world.scene import load_scene
+from satloc_env.world.tile import paint_tile
+
+GROUND = [C[k] for k in ("road", "sidewalk", "grass", "parking", "soil")]
+
+
+SMALL = """
+name: small_city
+seed: 3
+generator: {type: grid, style: city, blocks: [2, 2], pitch_m: 80, road_width_m: 12, sidewalk_m: 3, margin_m: 20}
+meters_per_pixel: 0.2
+ground_mpp: 0.1
+routes:
+  main: {waypoints: [[20, 20], [180, 20], [180, 180]]}
+"""
+
+
+@pytest.fixture(scope="module")
+def city(tmp_path_factory):
+    """A 2 x 2 block city (200 m x 200 m): the capture's cost grows with the ground's pixels."""
+    p = tmp_path_factory.mktemp("scene") / "small_city.yaml"
+    p.write_text(SMALL)
+    sc = load_scene(p)
+    return sc.layout, sc.spec.meters_per_pixel, sc.spec.seed, sc.satmap
+
+
+def _interior(labels):
+    out = np.zeros(labels.shape, bool)
+    for c in GROUND:
+        out |= cv2.erode((labels == c).astype(np.uint8), np.ones((5, 5), np.uint8)).astype(bool)
+    return out
+
+
+def fine_texture_correlation(ground_tile, ground_labels, tile, labels, sigma_px):
+    """Correlation of the texture below ``sigma_px`` (within each class, away from class edges) of the
+    ground as rendered (its copy at the tile's resolution) and of a tile, over ground pixels both agree on."""
+    m = _interior(ground_labels) & _interior(labels) & (ground_labels == labels)
+    a = (ground_tile.astype(np.float32) - class_lowpass(ground_tile, ground_labels, sigma_px)).mean(axis=2)[m]
+    b = (tile.astype(np.float32) - class_lowpass(tile, ground_labels, sigma_px)).mean(axis=2)[m]
+    return float(np.corrcoef(a, b)[0, 1]), int(m.sum())
+
+
+def test_gap_zero_is_the_copy_and_the_default_shares_no_fine_texture(city):
+    lay, mpp, seed, satmap = city
+    copy, copy_labels = paint_tile(lay, mpp, seed)
+    assert np.array_equal(copy, satmap.image)            # today's scenes: gap 0 in every shipped scene file
+    t0, l0 = capture_tile(lay, mpp, seed, 0.0)
+    assert np.array_equal(t0, copy) and np.array_equal(l0, copy_labels)
+    sigma = capture_params(DEFAULT_GAP, mpp).gsd_m / mpp   # the sensor's resolution, in tile pixels
+    r0, n0 = fine_texture_correlation(copy, copy_labels, t0, l0, sigma)
+    assert r0 == pytest.approx(1.0) and n0 > 100_000
+    t, lab = capture_tile(lay, mpp, seed, DEFAULT_GAP)
+    r, n = fine_texture_correlation(copy, copy_labels, t, lab, sigma)
+    assert n > 100_000
+    assert abs(r) < 0.1, r
+    # in between, some of it survives
+    tq, lq = capture_tile(lay, mpp, seed, 0.25)
+    rq, _ = fine_texture_correlation(copy, copy_labels, tq, lq, sigma)
+    assert 0.2 < rq < 0.8
+
+
+def test_capture_is_deterministic_and_its_parts_are_independent(city):
+    lay, mpp, seed, _ = city
+    a = capture_tile(lay, mpp, seed, 0.5)
+    b = capture_tile(lay, mpp, seed, 0.5)
+    assert np.array_equal(a[0], b[0]) and np.array_equal(a[1], b[1])
+    other = capture_tile(lay, mpp, seed + 1, 0.5)
+    assert not np.array_equal(a[0], other[0])
+    # leaving the registration warp out changes nothing before it: without it and without the JPEG, the image
+    # is the same as with only the earlier parts
+    early = ("time", "lean", "texture", "blur")
+    x = capture_tile(lay, mpp, seed, 0.5, parts=early)
+    y = capture_tile(lay, mpp, seed, 0.5, parts=early + ("jpeg",))
+    assert np.abs(x[0].astype(int) - y[0].astype(int)).mean() < 3    # JPEG at quality 80 moves little
+    assert np.array_equal(x[1], y[1])
+
+
+def test_each_part_does_what_it_says(city):
+    lay, mpp, seed, _ = city
+    copy, copy_labels = paint_tile(lay, mpp, seed)
+    # lean: roofs displaced, so building labels move off their footprints
+    _, lean_labels = capture_tile(lay, mpp, seed, 0.5, parts=("lean",))
+    moved = (lean_labels == C["building"]) != (copy_labels == C["building"])
+    assert moved.mean() > 0.005
+    # registration: a smooth warp of the requested RMS (0.3 m at 0.5): labels move at edges only
+    _, warped = capture_tile(lay, mpp, seed, 0.5, parts=("registration",))
+    diff = (warped != copy_labels).mean()
+    assert 0.005 < diff < 0.2
+    # time: other parked cars, another sun (shadows elsewhere)
+    timed, timed_labels = capture_tile(lay, mpp, seed, 0.5, parts=("time",))
+    assert ((timed_labels == C["car"]) != (copy_labels == C["car"])).sum() > 200
+    # blur: less energy at the finest scale
+    blurred, _ = capture_tile(lay, mpp, seed, 0.5, parts=("blur",))
+    lap = lambda im: float(np.abs(cv2.Laplacian(im.mean(axis=2).astype(np.float32), cv2.CV_32F)).mean())  # noqa: E731
+    assert lap(blurred) < 0.7 * lap(copy)
+
+
+def test_bad_gap_and_parts_are_refused(city):
+    lay, mpp, seed, _ = city
+    for bad in (-0.1, 1.5, float("nan")):
+        with pytest.raises(ConfigError, match="satellite_gap"):
+            capture_tile(lay, mpp, seed, bad)
+    with pytest.raises(ConfigError, match="unknown"):
+        capture_tile(lay, mpp, seed, 0.5, parts=("sharpen",))
+    assert set(PARTS) == {"time", "lean", "texture", "blur", "registration", "jpeg"}
+
+
+def test_scene_knob_and_override(tmp_path, city):
+    _, _, _, base_map = city
+    base = tmp_path / "base.yaml"
+    base.write_text(SMALL)
+    captured = tmp_path / "captured.yaml"
+    captured.write_text(SMALL + "knobs: {satellite_gap: 0.5}\n")
+    sc = load_scene(captured)
+    assert sc.spec.knobs.satellite_gap == 0.5
+    assert sc.satmap.image.shape == base_map.image.shape and not np.array_equal(sc.satmap.image, base_map.image)
+    over = load_scene(base, satellite_gap=0.5)
+    assert over.spec.knobs.satellite_gap == 0.5 and np.array_equal(over.satmap.image, sc.satmap.image)
+    # the ground the camera renders is the same world
+    assert np.array_equal(sc.layout.ground_rgb, load_scene(base).layout.ground_rgb)
+    bad = tmp_path / "bad.yaml"
+    bad.write_text(SMALL + "knobs: {satellite_gap: 2.0}\n")
+    with pytest.raises(ConfigError, match="satellite_gap"):
+        load_scene(bad)
+    with pytest.raises(ConfigError, match="satellite_gap"):
+        load_scene(base, satellite_gap=-1)
