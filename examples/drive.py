@@ -22,7 +22,7 @@ def main(argv=None):
     ap.add_argument("--appearance", type=float, default=None, help="appearance change (default: the scene's)")
     ap.add_argument("--lane", type=float, default=-1.75, help="lateral offset from the route centre, metres")
     ap.add_argument("--out", default="drive_out")
-    ap.add_argument("--localizer", default="none", help="none, auto or a build directory (see the README)")
+    ap.add_argument("--localizer", default="none", help="none, auto or a build directory (see docs/environment.md)")
     ap.add_argument("--localize-every", type=int, default=10)
     ap.add_argument("--track", action="store_true", help="fuse localizations over time with the odometry")
     ap.add_argument("--refine", action="store_true", help="refine each estimate by bird's-eye alignment")

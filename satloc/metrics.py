@@ -11,8 +11,14 @@ worst answer a method could have given), takes that error in the mean, std, medi
 answers).
 
 **Confidence intervals.** :func:`bootstrap_ci` gives a percentile bootstrap interval of any statistic over
-the queries (resampled with replacement, seeded); :func:`precision_recall_ci` of precision and recall at a
-fixed threshold.
+the queries (seeded); :func:`precision_recall_ci` of precision and recall at a fixed threshold;
+:func:`paired_bootstrap_ci` of the difference of a statistic between two methods on the same queries. With
+``method="iid"`` the queries are resampled one by one, which assumes they are independent. Queries along a
+sequence are not: a tracked error persists for tens of frames and single-image failures cluster on
+look-alike blocks. ``method="stationary"`` resamples blocks (Politis and Romano's stationary bootstrap,
+from ``arch``) of random length with mean ``block_length``, by default chosen from the data
+(:func:`stationary_block_length`: Politis and White 2004, with Patton, Politis and White's 2009 correction);
+:func:`ci_method` names what an interval is, for the tables' ``ci_method`` column.
 
 Outside-the-map detection (the paper's Table II). Every method gives each query an inlier score (higher: more
 sure the query lies inside the mapped area). With a threshold ``t``:
@@ -40,6 +46,7 @@ as this project's choice, stated with every table.
 """
 from __future__ import annotations
 
+import warnings
 from dataclasses import dataclass
 from typing import Literal
 
@@ -111,20 +118,90 @@ def error_stats(errors, gross_m=None) -> dict:
     }
 
 
-def bootstrap_ci(values, statistic=np.mean, n_boot: int = 2000, level: float = 0.95, seed: int = 0
-                 ) -> tuple[float, float]:
+CIMethod = Literal["iid", "stationary"]
+
+
+def stationary_block_length(values) -> float:
+    """The stationary bootstrap's mean block length for ``values`` (a sequence in its order), chosen from its
+    autocorrelation by Politis and White's rule (``arch.bootstrap.optimal_block_length``); at least 1 and at
+    most the series' length; 1 for a series too short or too constant to estimate it."""
+    from arch.bootstrap import optimal_block_length
+
+    v = _vector(values, "values")
+    v = v[np.isfinite(v)]
+    if v.size < 8 or float(np.std(v)) == 0.0:
+        return 1.0
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)
+        b = float(optimal_block_length(v)["stationary"].iloc[0])
+    return float(min(max(b, 1.0), v.size)) if np.isfinite(b) else 1.0
+
+
+def ci_method(method: CIMethod, block_length: float | None = None, level: float = 0.95) -> str:
+    """How an interval was made, as the tables' ``ci_method`` column says it (no comma: a plain CSV cell)."""
+    if method == "iid":
+        return f"percentile bootstrap {level:.0%}; queries resampled one by one"
+    if block_length is None:
+        return f"stationary block bootstrap {level:.0%}; no query"
+    return f"stationary block bootstrap {level:.0%}; mean block {block_length:.1f} queries (Politis-White)"
+
+
+def bootstrap_indices(n: int, n_boot: int, seed: int, method: CIMethod = "iid",
+                      block_length: float | None = None) -> np.ndarray:
+    """(n_boot, n) resampled indices of ``n`` queries: one by one (``"iid"``) or in stationary-bootstrap
+    blocks of mean length ``block_length`` (``"stationary"``; wrapping around the end)."""
+    if method not in ("iid", "stationary"):
+        raise ConfigError(f"bootstrap: method: expected 'iid' or 'stationary', got {method!r}")
+    rng = np.random.default_rng(seed)
+    if method == "iid" or n < 2:
+        return rng.integers(0, n, (n_boot, n))
+    from arch.bootstrap import StationaryBootstrap
+
+    if block_length is None or not (np.isfinite(block_length) and block_length >= 1):
+        raise ConfigError(f"bootstrap: block_length: expected a number >= 1, got {block_length!r}")
+    bs = StationaryBootstrap(float(block_length), np.arange(n), seed=rng)
+    return np.stack([pos[0] for pos, _ in bs.bootstrap(n_boot)])
+
+
+def bootstrap_ci(values, statistic=np.mean, n_boot: int = 2000, level: float = 0.95, seed: int = 0,
+                 method: CIMethod = "iid", block_length: float | None = None) -> tuple[float, float]:
     """Percentile bootstrap interval (low, high) at ``level`` of ``statistic`` over ``values`` (one per query,
-    resampled with replacement ``n_boot`` times, seeded); (NaN, NaN) for no value. ``statistic`` takes a
-    (n_boot, n) array and an ``axis=1`` keyword (numpy's mean, median, ...)."""
+    in sequence order; resampled ``n_boot`` times, seeded); (NaN, NaN) for no value. ``statistic`` takes a
+    (n_boot, n) array and an ``axis=1`` keyword (numpy's mean, median, ...). ``method``: ``"iid"`` resamples
+    queries one by one, ``"stationary"`` in blocks of mean ``block_length`` (None: from the data,
+    :func:`stationary_block_length`)."""
     v = _vector(values, "values")
     if not 0 < level < 1 or n_boot < 1:
         raise ConfigError(f"bootstrap: expected 0 < level < 1 and n_boot >= 1, got {level}, {n_boot}")
     if v.size == 0:
         return float("nan"), float("nan")
-    idx = np.random.default_rng(seed).integers(0, v.size, (n_boot, v.size))
+    if method == "stationary" and block_length is None:
+        block_length = stationary_block_length(v)
+    idx = bootstrap_indices(v.size, n_boot, seed, method, block_length)
     stats = statistic(v[idx], axis=1)
     a = (1 - level) / 2
     return float(np.quantile(stats, a)), float(np.quantile(stats, 1 - a))
+
+
+def paired_bootstrap_ci(a, b, statistic=np.mean, n_boot: int = 2000, level: float = 0.95, seed: int = 0,
+                        method: CIMethod = "stationary", block_length: float | None = None
+                        ) -> tuple[float, float]:
+    """Interval of ``statistic(a) - statistic(b)`` for two methods on the same queries (``a[i]`` and ``b[i]``
+    of query i, in sequence order): both resampled with the same indices, so what the queries share cancels.
+    ``block_length`` None: from the per-query differences."""
+    x, y = _vector(a, "a"), _vector(b, "b")
+    if x.shape != y.shape:
+        raise ConfigError(f"paired bootstrap: a and b must have one value per query each, got {x.size} and {y.size}")
+    if not 0 < level < 1 or n_boot < 1:
+        raise ConfigError(f"bootstrap: expected 0 < level < 1 and n_boot >= 1, got {level}, {n_boot}")
+    if x.size == 0:
+        return float("nan"), float("nan")
+    if method == "stationary" and block_length is None:
+        block_length = stationary_block_length(x - y)
+    idx = bootstrap_indices(x.size, n_boot, seed, method, block_length)
+    d = statistic(x[idx], axis=1) - statistic(y[idx], axis=1)
+    q = (1 - level) / 2
+    return float(np.quantile(d, q)), float(np.quantile(d, 1 - q))
 
 
 def _inputs(errors, scores, inside) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -167,17 +244,22 @@ def precision_recall(errors, scores, threshold: float, inside=None, radius_m: fl
 
 
 def precision_recall_ci(errors, scores, threshold: float, inside=None, radius_m: float = 10.0,
-                        n_boot: int = 2000, level: float = 0.95, seed: int = 0) -> dict:
-    """Percentile bootstrap intervals of precision and recall at a fixed ``threshold`` (queries resampled
-    with replacement, seeded; a resample where one is undefined is left out of its interval):
-    ``precision_ci`` and ``recall_ci``, each (low, high)."""
+                        n_boot: int = 2000, level: float = 0.95, seed: int = 0, method: CIMethod = "iid",
+                        block_length: float | None = None) -> dict:
+    """Percentile bootstrap intervals of precision and recall at a fixed ``threshold`` (queries resampled,
+    seeded; a resample where one is undefined is left out of its interval): ``precision_ci`` and
+    ``recall_ci``, each (low, high), and ``block_length`` (None for ``"iid"``). ``method="stationary"``
+    resamples blocks of queries; ``block_length`` None: the longest that :func:`stationary_block_length`
+    gives for the declared, truly-inside and true-positive indicators."""
     e, s, ins = _inputs(errors, scores, inside)
     with np.errstate(invalid="ignore"):
         declared = s >= threshold
         good = declared & ins & (e <= radius_m)
     if e.size == 0:
-        return {"precision_ci": (float("nan"),) * 2, "recall_ci": (float("nan"),) * 2}
-    idx = np.random.default_rng(seed).integers(0, e.size, (n_boot, e.size))
+        return {"precision_ci": (float("nan"),) * 2, "recall_ci": (float("nan"),) * 2, "block_length": None}
+    if method == "stationary" and block_length is None:
+        block_length = max(stationary_block_length(x.astype(np.float64)) for x in (declared, ins, good))
+    idx = bootstrap_indices(e.size, n_boot, seed, method, block_length)
     tp, nd, npos = good[idx].sum(1), declared[idx].sum(1), ins[idx].sum(1)
     a = (1 - level) / 2
 
@@ -188,7 +270,8 @@ def precision_recall_ci(errors, scores, threshold: float, inside=None, radius_m:
         r = num[ok] / den[ok]
         return float(np.quantile(r, a)), float(np.quantile(r, 1 - a))
 
-    return {"precision_ci": ci(tp, nd), "recall_ci": ci(tp, npos)}
+    return {"precision_ci": ci(tp, nd), "recall_ci": ci(tp, npos),
+            "block_length": block_length if method == "stationary" else None}
 
 
 @dataclass

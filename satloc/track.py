@@ -22,7 +22,7 @@ image. :class:`Tracker` keeps a belief over the candidate poses of a :class:`sat
   and the truth can only come back through ``revive``. So while the tracker is not :meth:`Tracker.locked`
   (no belief yet, or less than ``lock_mass`` of it within ``lock_m`` of its mode) the localizer scores
   every candidate; once locked, the pruned regions plus the belief's support. Measured on Table II's 3 km
-  loop ring (README, Table II): with pruning, full + track followed the ring's point-symmetric twin (a
+  loop ring (documentation: Results, Table II): with pruning, full + track followed the ring's point-symmetric twin (a
   rectangle looks the same to odometry after a half turn) for the first 43 frames (860 m) of the
   revisit; with the global search only the first frame, a single image, is off;
 * **off the map** (``off_map``, the default): probability that the odometry moves more than 3 sigma from every
@@ -40,7 +40,7 @@ The first frame's belief is its own posterior. The localizer's estimate (top-3 a
 refinement's peaks are then taken from the fused posterior: ``Localizer.localize(frame, tracker=...)`` and
 ``Localizer.localize_stream(frames, tracker=..., odometry=...)``.
 
-Measured on the Table 1 queries (README, "The method", tracking): tracking removes the gross failures of
+Measured on the Table 1 queries (documentation: Results, Table 1 on synthetic revisit queries): tracking removes the gross failures of
 single images.
 
 The spread grows with the straight-line distance of the odometry, not with the distance driven: across a

@@ -55,8 +55,8 @@ def test_table2_files_and_headers(tmp_path):
     _write_table2(tmp_path, rows, {"A": curve}, Table2Config())
     lines = (tmp_path / "table2.csv").read_text().splitlines()
     assert lines[0] == ("method,precision,recall,threshold,precision_ci95_low,precision_ci95_high,recall_ci95_low,"
-                        "recall_ci95_high,oracle_precision,oracle_recall,calibrated_on,odometry")
-    assert lines[1] == "A,1.000,0.500,3,,,,,,,,"
+                        "recall_ci95_high,oracle_precision,oracle_recall,calibrated_on,odometry,ci_method")
+    assert lines[1] == "A,1.000,0.500,3,,,,,,,,,"
     assert "| A | 100.0 % |  | 50.0 % |" in (tmp_path / "table2.md").read_text()
     assert (tmp_path / "pr_curves.png").stat().st_size > 5000
 
@@ -96,7 +96,7 @@ def test_table1_protocols_on_a_tiny_section(tmp_path):
              "modes": ["go", "np"], "compare": TINY_BASELINES, "pictures": False}
     rows = table1(tmp_path, ("city",), small, progress=False, log=lambda m: None)
     lines = (tmp_path / "table1.csv").read_text().splitlines()
-    assert lines[0] == "method,scene,mean_m,std_m,protocol,ci95_low,ci95_high,median_m,within_1m,within_10m,failure_rate,queries,odometry"
+    assert lines[0] == "method,scene,mean_m,std_m,protocol,ci95_low,ci95_high,median_m,within_1m,within_10m,failure_rate,queries,odometry,ci_method"
     assert [(r["protocol"], r["method"]) for r in rows] == [(p, m) for p in ("revisit", "city", "residential")
                                                            for m in ("Ours-GO", "Ours-NP", "FAB-MAP", "FAB-MAP + seq", "EFM")]
     assert all(np.isfinite(r["mean_m"]) and r["s_per_query"] > 0 for r in rows)

@@ -47,7 +47,7 @@ def test_depth_is_bounded_by_the_far_plane_and_only_odometry_is_unbounded():
 
 def test_normalised_actions_for_rl_libraries():
     """RL libraries expect a symmetric, normalised action Box; gymnasium's RescaleAction maps [-1, 1]^2 onto
-    SatLoc-v0's [0, 20] m/s x [-1, 1] rad/s (the README's recipe). check_env's warning about the action space
+    SatLoc-v0's [0, 20] m/s x [-1, 1] rad/s (docs/environment.md's recipe). check_env's warning about the action space
     is gone on the wrapped env, and -1 is standstill, 0 half speed."""
     import warnings
 

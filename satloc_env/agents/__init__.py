@@ -14,3 +14,8 @@ from .train import train_agent
 
 __all__ = ["RandomAgent", "RouteAgent", "EntropyAgent", "LearnedAgent", "make_agent", "AGENTS", "POLICY_PATH",
            "run_episode", "evaluate_agents", "train_agent", "plot_episode", "CSV_COLUMNS", "EvalConfig"]
+
+from satloc._moved import forward_names as _forward_names  # noqa: E402
+
+# the former module's other names (satloc_env.agents.<name>), with a FutureWarning naming their home
+__getattr__ = _forward_names(__name__, ("satloc_env.agents.policies", "satloc_env.agents.evaluate", "satloc_env.agents.train"))

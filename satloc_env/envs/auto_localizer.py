@@ -47,7 +47,7 @@ from satloc.config import to_dict
 from satloc.errors import ConfigError
 from satloc.persist import FORMAT_VERSION, atomic_dir, header, read_json, write_json
 from satloc_env.world.scene import (
-    SCENES_DIR,  # noqa: F401  (autoloc.SCENES_DIR: where the shipped scenes are)
+    SCENES_DIR,  # noqa: F401  (auto_localizer.SCENES_DIR: where the shipped scenes are)
     load_spec,
 )
 

@@ -24,7 +24,7 @@ configurations. :func:`load_recording` loads a recording only when it is complet
 This module does not import :mod:`satloc_env.envs.drive`: the environment uses :mod:`satloc_env.envs.auto_localizer` for
 ``localizer="auto"``, which records the scene's database pass with this module, so the recorders make their
 environments through gymnasium's registry entry of ``satloc/SatLoc-v0`` (:func:`make_env`) and the imports
-go one way (env -> autoloc -> record).
+go one way (envs.drive -> envs.auto_localizer -> envs.record).
 """
 from __future__ import annotations
 

@@ -36,7 +36,7 @@ from satloc.context import ContextConfig
 from satloc.errors import ConfigError
 from satloc.geometry import Pose2, wrap_angle
 from satloc.localizer import Localization, LocalizerConfig
-from satloc.metrics import bootstrap_ci, error_stats, worst_case_errors
+from satloc.metrics import bootstrap_ci, ci_method, error_stats, stationary_block_length, worst_case_errors
 from satloc.persist import atomic_path, read_json, write_json
 from satloc.pipeline import BuildConfig, build, load_localizer, localize, train_projection
 from satloc.projection import ProjectionConfig
@@ -159,13 +159,17 @@ def table_stats(errors, truth, db_poses, seed: int = 0) -> dict:
     """The error columns of every table row, one rule for every method (:mod:`satloc.metrics`): a query not
     answered is a gross failure, counted with the worst answer on the map (the farthest database pose from its
     truth); ``mean_m, std_m, median_m, within_1m, within_10m`` (error <= 1 m, 10 m), ``failure_rate`` and the
-    95 % bootstrap interval of the mean (``ci95_low, ci95_high``, over the queries, seeded)."""
+    95 % bootstrap interval of the mean (``ci95_low, ci95_high``, seeded) over the queries in their order along
+    the pass: a stationary block bootstrap (errors persist from query to query), named by ``ci_method``."""
     e = np.asarray(errors, np.float64)
     gross = worst_case_errors(np.asarray(truth, np.float64)[:, :2], np.asarray(db_poses, np.float64)[:, :2])
     st = error_stats(e, gross)
-    lo, hi = bootstrap_ci(np.where(np.isfinite(e), e, gross), seed=seed)
+    counted = np.where(np.isfinite(e), e, gross)
+    block = stationary_block_length(counted)
+    lo, hi = bootstrap_ci(counted, seed=seed, method="stationary", block_length=block)
     return {"mean_m": st["mean"], "std_m": st["std"], "median_m": st["median"], "within_1m": st["within_1m"],
-            "within_10m": st["within_10m"], "failure_rate": st["failure_rate"], "ci95_low": lo, "ci95_high": hi}
+            "within_10m": st["within_10m"], "failure_rate": st["failure_rate"], "ci95_low": lo, "ci95_high": hi,
+            "ci_method": ci_method("stationary", block)}
 
 
 def _stage_done(path: Path, config: dict) -> bool:

@@ -40,7 +40,7 @@ import numpy as np
 from satloc.baselines import Efm, FabMap
 from satloc.config import from_dict, to_dict
 from satloc.errors import ConfigError
-from satloc.metrics import pr_curve, precision_recall, precision_recall_ci, select_threshold
+from satloc.metrics import ci_method, pr_curve, precision_recall, precision_recall_ci, select_threshold
 from satloc.persist import atomic_path, load_npz, read_json, save_npz, write_json
 from satloc.satmap import SatelliteMap
 from satloc.sequence import Sequence
@@ -417,7 +417,7 @@ def table2(out: str | Path, config: dict | None = None, progress: bool = True, l
                               t2.rule, t2.min_precision, t2.radius_m)
         cal.pop("curve")
         pr = precision_recall(err, sc, cal["threshold"], inside_t, t2.radius_m)
-        ci = precision_recall_ci(err, sc, cal["threshold"], inside_t, t2.radius_m)
+        ci = precision_recall_ci(err, sc, cal["threshold"], inside_t, t2.radius_m, method="stationary")
         oracle = operating_point(err, sc, inside_t, t2.rule, t2.min_precision, t2.radius_m)
         curves[method_name(method)] = oracle.pop("curve")
         spq = np.mean([res[p][1][method]["s_per_query"] for p in test])
@@ -430,7 +430,8 @@ def table2(out: str | Path, config: dict | None = None, progress: bool = True, l
                      "oracle_threshold": oracle["threshold"], "calibration_precision": cal["precision"],
                      "calibration_recall": cal["recall"], "calibrated_on": calibrated_on,
                      "odometry": odometry_label(e, method), "queries": int(len(err)),
-                     "inside_queries": int(inside_t.sum()), "s_per_query": float(spq)})
+                     "inside_queries": int(inside_t.sum()), "s_per_query": float(spq),
+                     "ci_method": ci_method("stationary", ci["block_length"])})
         log(f"[table2] {method_name(method):22s} precision {pr['precision']:.3f} recall {pr['recall']:.3f} at the "
             f"calibrated threshold {cal['threshold']:.4g} (oracle {oracle['precision']:.3f} / {oracle['recall']:.3f})")
     _write_table2(out, rows, curves, t2)
@@ -442,7 +443,7 @@ def table2(out: str | Path, config: dict | None = None, progress: bool = True, l
 #: the tracked rows' odometry
 TABLE2_COLUMNS = ("method", "precision", "recall", "threshold", "precision_ci95_low", "precision_ci95_high",
                   "recall_ci95_low", "recall_ci95_high", "oracle_precision", "oracle_recall", "calibrated_on",
-                  "odometry")
+                  "odometry", "ci_method")
 
 
 def _fmt(v: float, f: str = ".3f") -> str:
@@ -552,7 +553,7 @@ class SweepConfig:
 
 
 SWEEP_COLUMNS = ("scene", "aliasing", "occlusion", "appearance", "method", "mean_m", "ci95_low", "ci95_high",
-                 "recall_10m", "failure_rate", "queries", "odometry")
+                 "recall_10m", "failure_rate", "queries", "odometry", "ci_method")
 
 
 def _sweep_config(sc: SweepConfig, a: float, o: float, p: float) -> ExperimentConfig:
@@ -575,7 +576,7 @@ def _sweep_unit(sc: SweepConfig, a: float, o: float, p: float, out: Path, times:
              "mean_m": round(float(r["mean_m"]), 3), "ci95_low": round(float(r["ci95_low"]), 3),
              "ci95_high": round(float(r["ci95_high"]), 3), "recall_10m": round(float(r["within_10m"]), 3),
              "failure_rate": round(float(r["failure_rate"]), 3), "queries": int(r["queries"]),
-             "odometry": odometry_label(cfg, m)} for m, r in res.items()]
+             "odometry": odometry_label(cfg, m), "ci_method": r.get("ci_method", "")} for m, r in res.items()]
 
 
 def sweep(out: str | Path, config: dict | None = None, progress: bool = True, log=print,
@@ -721,9 +722,10 @@ def _protocol(cfg: ExperimentConfig, protocol: str, label: str, sdir: Path, db_f
 
 
 #: table1.csv's columns (failure_rate: queries not answered, counted as gross failures in the mean; ci95_*: the
-#: bootstrap interval of the mean; odometry: what moved the tracked rows' belief, empty for single images)
+#: bootstrap interval of the mean, made as ci_method says; odometry: what moved the tracked rows' belief, empty
+#: for single images)
 TABLE1_COLUMNS = ("method", "scene", "mean_m", "std_m", "protocol", "ci95_low", "ci95_high", "median_m", "within_1m",
-                  "within_10m", "failure_rate", "queries", "odometry")
+                  "within_10m", "failure_rate", "queries", "odometry", "ci_method")
 
 
 def odometry_label(cfg: ExperimentConfig, method: str) -> str:
@@ -776,7 +778,7 @@ def table1(out: str | Path, scenes: tuple[str, ...] = ("city", "residential"), c
                          **{k: round(m[k], 3) for k in ("mean_m", "std_m", "median_m", "within_1m",
                                                         "within_10m", "failure_rate", "ci95_low", "ci95_high")},
                          "queries": m["queries"], "s_per_query": round(m["s_per_query"], 4),
-                         "odometry": odometry_label(cfgs[i], method)})
+                         "odometry": odometry_label(cfgs[i], method), "ci_method": m.get("ci_method", "")})
     with atomic_path(out / "table1.csv", suffix=".csv") as tmp:
         with open(tmp, "w", newline="") as f:
             w = csv.writer(f)

@@ -13,3 +13,8 @@ It may import :mod:`satloc` and :mod:`satloc_env.world`; never the environments 
 from .stereo import BatchStereoRenderer, StereoRenderer, StereoSlot
 
 __all__ = ["BatchStereoRenderer", "StereoRenderer", "StereoSlot"]
+
+from satloc._moved import forward_names as _forward_names  # noqa: E402
+
+# the former module's other names (satloc_env.render.<name>), with a FutureWarning naming their home
+__getattr__ = _forward_names(__name__, ("satloc_env.render.stereo",))

@@ -18,3 +18,8 @@ It may import :mod:`satloc` and nothing else of :mod:`satloc_env` (an import-lin
 from .meshes import PAD, SKY_RGB, TexturedMesh, World, build_occluders, build_world, sun_direction
 
 __all__ = ["TexturedMesh", "World", "build_world", "build_occluders", "sun_direction", "SKY_RGB", "PAD"]
+
+from satloc._moved import forward_names as _forward_names  # noqa: E402
+
+# the former module's other names (satloc_env.world.<name>), with a FutureWarning naming their home
+__getattr__ = _forward_names(__name__, ("satloc_env.world.meshes",))
