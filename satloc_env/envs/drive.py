@@ -36,7 +36,7 @@ from satloc.track import compose_motion
 from satloc_env.world.scene import Scene, load_scene
 
 from .occluders import Appearance, sample_occluders
-from .vehicle import DEFAULT_DT, Autopilot, VehicleParams, action_bounds, step_bicycle
+from .vehicle import DEFAULT_DT, Autopilot, VehicleParams, Wander, action_bounds, step_bicycle, wander_profile
 
 
 @dataclass
@@ -45,6 +45,10 @@ class EnvConfig:
     resolution: Literal["half", "full"] = "half"   # 620x188 or 1242x375 (KITTI rig)
     route: str | None = None                # route name; default: the scene's database route
     lane_offset_m: float = -1.75            # lateral offset from the route centre line (left positive)
+    wander_m: float = 0.0                   # the autopilot's lateral drift around the lane offset: std, metres
+                                            # (a smooth random process along the route; satloc_env.envs.vehicle)
+    speed_wander: float = 0.0               # the autopilot's speed drift: relative std
+    wander_seed: int | None = None          # the drift's seed (None: drawn from the episode's seed)
     start_s_m: float = 0.0                  # start position along the route
     random_start: bool = False              # start at a random place on the route (from the episode seed)
     speed_mps: float = 8.0                  # autopilot cruising speed
@@ -80,6 +84,10 @@ class EnvConfig:
         # value fails when the env is made or reset, naming the field, instead of giving NaN poses later
         limits = VehicleParams()
         _check_finite(self, "lane_offset_m")
+        _check_finite(self, "wander_m", lo=0.0, hi=1.0)
+        _check_finite(self, "speed_wander", lo=0.0, hi=0.5)
+        if self.wander_seed is not None and self.wander_seed < 0:
+            raise ConfigError(f"wander_seed: expected an integer >= 0 or None, got {self.wander_seed}")
         _check_finite(self, "start_s_m", lo=0.0)   # its upper bound (the route's length) is checked at reset
         _check_finite(self, "speed_mps", lo=0.0, hi=limits.max_speed_mps)
         _check_finite(self, "dt", lo=0.0, lo_open=True)
@@ -129,6 +137,7 @@ LOCALIZER_INSTANCE = "<instance>"
 EPISODE_KEYS = frozenset({
     "scene", "route", "lane_offset_m", "start_s_m", "random_start", "speed_mps", "max_steps",
     "odometry", "odometry_noise", "aliasing", "occlusion", "appearance", "change",
+    "wander_m", "speed_wander", "wander_seed",
 })
 
 
@@ -726,8 +735,14 @@ class SatLocEnv(SharedSpecMixin, gym.Env):
         self._episode, self.route = cfg, route
         rng = self.np_random
         s0 = float(rng.uniform(0, self.route.length * 0.9)) if cfg.random_start else cfg.start_s_m
-        self.pose = self.route.pose_at(s0, cfg.lane_offset_m)
-        self.pilot = Autopilot(self.route, cfg.lane_offset_m, cfg.speed_mps, s0=s0)
+        wander, self.wander_seed = Wander(cfg.wander_m, cfg.speed_wander), None
+        profile = None
+        if wander.active:   # like the change: a child of the episode's seed sequence, the episode's draws unmoved
+            self.wander_seed = (cfg.wander_seed if cfg.wander_seed is not None
+                                else int(self.np_random.spawn(1)[0].integers(2**31 - 1)))
+            profile = wander_profile(self.route.length, wander, self.wander_seed)
+        self.pose = self.route.pose_at(s0, cfg.lane_offset_m + (profile[0](s0) if profile else 0.0))
+        self.pilot = Autopilot(self.route, cfg.lane_offset_m, cfg.speed_mps, s0=s0, wander=profile)
         self._renderer.set_occluders(*sample_occluders(self.route, scene.ground_label, occ, cfg.lane_offset_m, rng))
         self.appearance = Appearance(app, rng)
         self.steps = 0

@@ -27,15 +27,16 @@ __all__ = ["autopilot_drive", "check_route", "first_off_road", "off_road_message
 
 
 def autopilot_drive(scene, route: str, lane_offset_m: float, speed_mps: float = 8.0, dt: float = DEFAULT_DT,
-                    vehicle: VehicleParams = VehicleParams(), start_s_m: float = 0.0
+                    vehicle: VehicleParams = VehicleParams(), start_s_m: float = 0.0, wander=None
                     ) -> Iterator[tuple[Pose2, float, bool]]:
     """(pose, route_s, off_road) after each step of the autopilot driving ``route`` of ``scene`` at
     ``lane_offset_m`` from ``start_s_m`` until it completes the route or leaves the road (the last item),
-    as the environment steps it. Stops after ``20 x`` the steps the route should take (a vehicle that
-    never gets there)."""
+    as the environment steps it. ``wander``: a drift profile (:func:`satloc_env.envs.vehicle.wander_profile`)
+    the drive follows, as the environment's with that seed. Stops after ``20 x`` the steps the route should
+    take (a vehicle that never gets there)."""
     r = scene.routes[route]
-    pose = r.pose_at(start_s_m, lane_offset_m)
-    pilot = Autopilot(r, lane_offset_m, speed_mps, s0=start_s_m)
+    pose = r.pose_at(start_s_m, lane_offset_m + (wander[0](start_s_m) if wander else 0.0))
+    pilot = Autopilot(r, lane_offset_m, speed_mps, s0=start_s_m, wander=wander)
     low, high = (b.astype(np.float64) for b in action_bounds(vehicle))
     limit = 1000 + 20 * int(r.length / max(speed_mps * dt, 1e-3))
     for _ in range(limit):

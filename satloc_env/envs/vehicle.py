@@ -1,4 +1,11 @@
-"""Vehicle motion (kinematic bicycle model) and a route-following autopilot."""
+"""Vehicle motion (kinematic bicycle model) and a route-following autopilot, which may wander.
+
+A driver does not hold the lane's centre line to the centimetre, nor one speed. :class:`Wander` describes
+how far they drift: the lateral position follows a smooth random process around the lane offset (standard
+deviation ``lateral_m``, correlated over ``scale_m`` of route) and the cruising speed likewise (relative
+standard deviation ``speed``). :func:`wander_profile` draws one such drive, seeded; the autopilot steers
+towards the wandering offset at its look-ahead point. With no wander it drives exactly as before.
+"""
 from __future__ import annotations
 
 import math
@@ -49,17 +56,62 @@ def step_bicycle(pose: Pose2, speed: float, yaw_rate: float, dt: float, p: Vehic
     return pose @ Pose2(dx, dy, dth), v, w
 
 
+@dataclass(frozen=True)
+class Wander:
+    """How far a driver drifts (see the module docstring); all zero: not at all."""
+
+    lateral_m: float = 0.0      # standard deviation of the lateral position around the lane offset (metres)
+    speed: float = 0.0          # relative standard deviation of the cruising speed
+    scale_m: float = 30.0       # correlation length of both along the route (metres)
+    max_lateral_m: float = 0.8  # the drift never exceeds this (a car in a 3.5 m lane)
+
+    @property
+    def active(self) -> bool:
+        return self.lateral_m > 0 or self.speed > 0
+
+
+def _smooth_process(length_m: float, scale_m: float, rng: np.random.Generator):
+    """A smooth zero-mean process of unit standard deviation over [-scale_m, length_m + scale_m]: Gaussian
+    values every scale_m / 3 metres, smoothed over neighbouring knots, through a cubic spline."""
+    from scipy.interpolate import CubicSpline
+
+    step = scale_m / 3.0
+    s = np.arange(-scale_m, length_m + 2 * scale_m, step)
+    v = rng.standard_normal(s.size + 4)
+    v = np.convolve(v, np.array([1.0, 2.0, 3.0, 2.0, 1.0]) / 9.0, mode="valid")
+    v = (v - v.mean()) / (v.std() or 1.0)
+    return CubicSpline(s, v)
+
+
+def wander_profile(length_m: float, wander: Wander, seed: int):
+    """(lateral(s), speed_factor(s)): one seeded drive's drift in metres and its speed factor, as functions of
+    the arc length ``s`` along a route of ``length_m`` (beyond its ends they hold their end values)."""
+    rng = np.random.default_rng([int(seed), 7])
+    lat, spd = _smooth_process(length_m, wander.scale_m, rng), _smooth_process(length_m, wander.scale_m, rng)
+
+    def lateral(s: float) -> float:
+        s = min(max(s, -wander.scale_m), length_m + wander.scale_m)
+        return float(np.clip(wander.lateral_m * lat(s), -wander.max_lateral_m, wander.max_lateral_m))
+
+    def speed_factor(s: float) -> float:
+        s = min(max(s, -wander.scale_m), length_m + wander.scale_m)
+        return float(np.clip(1.0 + wander.speed * spd(s), 0.5, 1.5))
+    return lateral, speed_factor
+
+
 class Autopilot:
     """Pure-pursuit route follower at a lateral lane offset: ``action = pilot.act(pose)``.
 
     Slows down before sharp turns. Keeps track of its progress ``s`` along the route so laps that overlap
-    are not confused.
+    are not confused. With a ``wander`` profile (:func:`wander_profile`) it steers towards the lane offset
+    plus the drift at its look-ahead point and cruises at the speed times the profile's factor.
     """
 
     def __init__(self, route: Route, lane_offset: float, speed: float = 8.0, lookahead: float = 6.0,
-                 s0: float = 0.0):
+                 s0: float = 0.0, wander=None):
         self.route, self.offset, self.speed, self.lookahead = route, lane_offset, speed, lookahead
         self.s = s0
+        self.wander = wander
 
     def follow(self, pose: Pose2) -> None:
         """Update the progress ``s`` along the route after the vehicle moved to ``pose``."""
@@ -67,12 +119,16 @@ class Autopilot:
 
     def act(self, pose: Pose2) -> np.ndarray:
         self.s, _ = self.route.project((pose.x, pose.y), s_hint=self.s, window=15.0)
-        target = self.route.pose_at(self.s + self.lookahead, self.offset)
+        ahead = self.s + self.lookahead
+        offset = self.offset if self.wander is None else self.offset + self.wander[0](ahead)
+        target = self.route.pose_at(ahead, offset)
         local = pose.transform_inv(np.array([target.x, target.y]))
         ld2 = max(float(local @ local), 1e-6)
         curvature = 2.0 * local[1] / ld2
         turn = abs(self.route.curvature_ahead(self.s, 12.0))
         v = self.speed * (1.0 - 0.6 * min(1.0, turn / (math.pi / 2)))
+        if self.wander is not None:
+            v *= self.wander[1](self.s)
         return np.array([v, v * curvature], dtype=np.float32)
 
     @property

@@ -1,0 +1,89 @@
+"""Drives that wander (satloc_env.envs.vehicle.Wander): the autopilot's lateral position and speed drift
+smoothly inside the lane, seeded per drive; without wander it holds the lane offset."""
+import gymnasium as gym
+import numpy as np
+import pytest
+
+import satloc_env  # noqa: F401
+from satloc import ConfigError
+from satloc_env.envs.vehicle import Wander, wander_profile
+
+STEPS = 320
+
+
+def _drive(**kw):
+    env = gym.make("satloc/SatLoc-v0", scene="city", localizer=None, **kw)
+    try:
+        _, info = env.reset(seed=3)
+        u = env.unwrapped
+        route = u.route
+        s, lat, speed = [], [], []
+        for _ in range(STEPS):
+            _, _, term, trunc, info = env.step(u.autopilot_action())
+            si, li = route.project(info["pose"][:2], s_hint=float(info["route_s"]))
+            s.append(si)
+            lat.append(li)
+            speed.append(float(np.hypot(*info["odometry_true"][:2])) / u.config.dt)
+            assert not info["off_road"] and not term
+        straight = np.array([abs(route.curvature_ahead(x - 15, 30)) < 0.05 for x in s])
+        return np.array(s), np.array(lat), np.array(speed), straight
+    finally:
+        env.close()
+
+
+def test_the_lateral_position_and_speed_wander_inside_the_lane_and_differ_between_drives():
+    s0, lat0, v0, st0 = _drive()
+    s1, lat1, v1, st1 = _drive(wander_m=0.3, speed_wander=0.1, wander_seed=1)
+    s2, lat2, v2, st2 = _drive(wander_m=0.3, speed_wander=0.1, wander_seed=2)
+    assert st0.sum() > 100 and st1.sum() > 100
+    assert lat0[st0].std() < 0.05                                   # the lane offset held
+    for lat, st in ((lat1, st1), (lat2, st2)):
+        assert lat[st].std() > 0.2                                  # a spread on straight stretches
+        assert np.all(np.abs(lat[st] + 1.75) <= 0.8 + 0.1)          # inside the lane
+    # no two drives share it: the drift of one seed does not predict the other's at the same place
+    common = st1 & (s1 < min(s1.max(), s2.max()))
+    other = np.interp(s1[common], s2, lat2)
+    assert np.mean(np.abs(lat1[common] - other)) > 0.1
+    assert v1[st1][20:].std() > v0[st0][20:].std() + 0.3            # the speed varies too
+
+
+def test_wander_profile_is_seeded_smooth_and_bounded():
+    w = Wander(lateral_m=0.5, speed=0.2, scale_m=30.0)
+    a, b = wander_profile(500.0, w, 4), wander_profile(500.0, w, 4)
+    c = wander_profile(500.0, w, 5)
+    s = np.linspace(0, 500, 2001)
+    la, lb, lc = (np.array([p[0](x) for x in s]) for p in (a, b, c))
+    assert np.array_equal(la, lb) and not np.allclose(la, lc)
+    assert np.abs(la).max() <= w.max_lateral_m and 0.25 < la.std() < 0.6
+    assert np.abs(np.diff(la)).max() < 0.05                         # smooth: < 5 cm per 25 cm of route
+    sp = np.array([a[1](x) for x in s])
+    assert 0.5 <= sp.min() and sp.max() <= 1.5 and sp.std() > 0.1
+
+
+def test_bad_wander_settings_are_refused():
+    for kw, field in (({"wander_m": -0.1}, "wander_m"), ({"wander_m": 2.0}, "wander_m"),
+                      ({"speed_wander": 0.9}, "speed_wander"), ({"wander_seed": -1}, "wander_seed")):
+        with pytest.raises(ConfigError, match=field):
+            gym.make("satloc/SatLoc-v0", scene="city", localizer=None, **kw)
+
+
+def test_the_off_road_check_drives_the_same_wandering_path():
+    """drivecheck.autopilot_drive with a drift profile moves the car exactly as the environment does with
+    that wander seed (what a recorder's check before recording needs)."""
+    from satloc_env import load_scene
+    from satloc_env.envs.drivecheck import autopilot_drive
+
+    env = gym.make("satloc/SatLoc-v0", scene="city", localizer=None, wander_m=0.3, speed_wander=0.1, wander_seed=9)
+    try:
+        env.reset(seed=0)
+        u = env.unwrapped
+        poses = []
+        for _ in range(60):
+            _, _, _, _, info = env.step(u.autopilot_action())
+            poses.append(info["pose"].copy())
+        route = u.route
+    finally:
+        env.close()
+    profile = wander_profile(route.length, Wander(0.3, 0.1), 9)
+    checked = [p.as_array() for p, _, _ in autopilot_drive(load_scene("city"), "main", -1.75, wander=profile)][:60]
+    assert np.allclose(np.array(checked), np.array(poses), atol=1e-6)
