@@ -48,6 +48,9 @@ __all__ = ["TexturedMesh", "World", "build_world", "build_occluders", "sun_direc
 PAD = 8
 #: Background colour of rendered images (a light, hazy blue).
 SKY_RGB = (168, 196, 226)
+#: neutral ground around the tile (metres): beyond the renderer's default view distance (150 m) along the
+#: camera's corner rays, so no view from the tile reaches the padding's edge (a scene's default ground_pad_m)
+DEFAULT_GROUND_PAD_M = 250.0
 #: Texel size (metres) of the procedural textures.
 _FACADE_M, _FOLIAGE_M, _BARK_M, _CAR_M, _PERSON_M, _OBSTACLE_M = 0.1, 0.08, 0.05, 0.04, 0.03, 0.04
 #: Width (texels) of the atlas of an occluder mesh, which has no ground region.

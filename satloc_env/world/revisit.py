@@ -379,8 +379,7 @@ def changed_world(scene, strength: float, seed: int):
     strength, seed, _ = _check(strength, seed, ())
     if strength == 0.0:
         return scene.world
-    from .meshes import build_world
-    from .scene import DEFAULT_GROUND_PAD_M
+    from .meshes import DEFAULT_GROUND_PAD_M, build_world
 
     pad = scene.spec.ground_pad_m
     layout = changed_layout(scene.layout, strength, seed)

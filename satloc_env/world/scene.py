@@ -117,6 +117,7 @@ from satloc.satmap import SatelliteMap, read_image
 from .capture import capture_tile
 from .generator import GridParams, generate_grid
 from .layout import Building, Car, Layout, Tree
+from .meshes import DEFAULT_GROUND_PAD_M
 from .roadgraph import GraphParams
 from .route import Route
 
@@ -321,9 +322,6 @@ class SceneSpec:
 
 MAX_GROUND_PX = 20000 * 20000  # the largest ground raster a scene may ask for (as satloc.geodata.georef's maps)
 MAX_LAPS = 1000
-#: neutral ground around the tile (metres): beyond the renderer's default view distance (150 m) along the
-#: camera's corner rays, so no view from the tile reaches the padding's edge
-DEFAULT_GROUND_PAD_M = 250.0
 MAX_GROUND_PAD_M = 5000.0
 
 
