@@ -133,3 +133,20 @@ def test_scene_knob_and_override(tmp_path, city):
         load_scene(bad)
     with pytest.raises(ConfigError, match="satellite_gap"):
         load_scene(base, satellite_gap=-1)
+
+
+def test_a_scene_over_an_image_is_captured_too():
+    """suburb_utm (a GeoTIFF): the camera keeps seeing the image; the map at 0.5 shares no fine texture with
+    it, at 0 it is the image."""
+    base = load_scene("suburb_utm")
+    cap = load_scene("suburb_utm", satellite_gap=0.5)
+    assert np.array_equal(base.satmap.image, base.layout.ground_rgb)
+    assert np.array_equal(cap.layout.ground_rgb, base.layout.ground_rgb)
+    assert cap.satmap.image.shape == base.satmap.image.shape
+    mpp = base.spec.meters_per_pixel
+    sigma = capture_params(DEFAULT_GAP, mpp).gsd_m / mpp
+    labels = base.layout.ground_labels
+    r0, n = fine_texture_correlation(base.satmap.image, labels, base.satmap.image, labels, sigma)
+    assert r0 == pytest.approx(1.0) and n > 10_000
+    r, _ = fine_texture_correlation(base.satmap.image, labels, cap.satmap.image, cap.satmap.labels, sigma)
+    assert abs(r) < 0.1, r

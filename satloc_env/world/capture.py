@@ -34,6 +34,12 @@ part), so leaving one out changes none of the others:
 ``jpeg``
     Compression: JPEG at quality ``100 - 40 gap`` (80 at 0.5).
 
+A scene over an image (:func:`capture_image`) has no layout to paint from: its ground is the image itself.
+Its map is the image captured the same way without ``lean`` (the image already is a view from above): the
+world changed at the capture's time where its labels say what lies there (season, road wear), the texture
+below the sensor's resolution the capture's own, blurred, warped and compressed. The camera keeps seeing the
+image as it is.
+
 :data:`DEFAULT_GAP` (0.5) is a tile captured by a 0.3 m sensor 15 degrees off nadir, registered to 0.3 m
 RMS, at JPEG quality 80, in another season with another sun and other parked cars. What that rests on
 (orders of magnitude, not a survey): the sharpest commercial satellite imagery is delivered at 0.3-0.5 m,
@@ -57,7 +63,8 @@ from .layout import Layout
 from .revisit import changed_layout
 from .tile import paint_tile
 
-__all__ = ["PARTS", "DEFAULT_GAP", "Capture", "capture_params", "capture_tile", "class_lowpass", "fine_residual"]
+__all__ = ["PARTS", "DEFAULT_GAP", "Capture", "capture_params", "capture_tile", "capture_image", "class_lowpass",
+           "fine_residual"]
 
 #: the parts of a capture, in the order they are applied
 PARTS = ("time", "lean", "texture", "blur", "registration", "jpeg")
@@ -107,11 +114,7 @@ def capture_tile(lay: Layout, mpp: float, seed: int, gap: float, parts: Iterable
     """(image (h, w, 3) uint8, labels (h, w) uint8) of the tile of ``lay`` at ``mpp`` captured with knob
     ``gap`` (see the module docstring); ``gap`` 0, or no ``parts``, is :func:`paint_tile`'s tile. Deterministic
     for (``lay``, ``mpp``, ``seed``, ``gap``, ``parts``)."""
-    cap = capture_params(gap, mpp)
-    parts = tuple(parts)
-    unknown = sorted(set(parts) - set(PARTS))
-    if unknown:
-        raise ConfigError(f"satellite capture parts: unknown {unknown}; the parts are {list(PARTS)}")
+    cap, parts = _checked(gap, mpp, parts)
     if cap.gap == 0.0 or not parts:
         return paint_tile(lay, mpp, seed)
     if "time" in parts:
@@ -127,10 +130,41 @@ def capture_tile(lay: Layout, mpp: float, seed: int, gap: float, parts: Iterable
         t = math.tan(math.radians(cap.off_nadir_deg))
         lean = (t * math.cos(az), t * math.sin(az))
     img, labels = paint_tile(lay, mpp, seed, lean=lean)
+    return _sensor(img, labels, cap, mpp, seed, parts)
+
+
+def capture_image(lay: Layout, mpp: float, seed: int, gap: float, parts: Iterable[str] = PARTS
+                  ) -> tuple[np.ndarray, np.ndarray]:
+    """The map of a scene over an image (``lay.ground_rgb`` is the image, at ``mpp``) captured with knob
+    ``gap``: the parts of :func:`capture_tile` but ``lean``; ``gap`` 0, or no ``parts``, is the image itself."""
+    cap, parts = _checked(gap, mpp, parts)
+    if cap.gap == 0.0 or not parts:
+        return lay.ground_rgb, lay.ground_labels
+    if "time" in parts:
+        lay = changed_layout(lay, cap.time, int(_rng(seed, "time").integers(0, 2**31)),
+                             parts=("vegetation", "road", "cars"))
+    img = lay.ground_rgb
+    if "texture" in parts:
+        img = _own_texture(img, lay.ground_labels, TEXTURE_SCALE * cap.gsd_m / lay.ground_mpp, cap.texture,
+                           _rng(seed, "texture"))
+    return _sensor(img, lay.ground_labels.copy(), cap, mpp, seed, parts)
+
+
+def _checked(gap: float, mpp: float, parts: Iterable[str]) -> tuple[Capture, tuple[str, ...]]:
+    cap = capture_params(gap, mpp)
+    parts = tuple(parts)
+    unknown = sorted(set(parts) - set(PARTS))
+    if unknown:
+        raise ConfigError(f"satellite capture parts: unknown {unknown}; the parts are {list(PARTS)}")
+    return cap, parts
+
+
+def _sensor(img: np.ndarray, labels: np.ndarray, cap: Capture, mpp: float, seed: int, parts: tuple[str, ...]
+            ) -> tuple[np.ndarray, np.ndarray]:
+    """The sensor's blur, the registration warp and the compression, as ``parts`` ask."""
     img = img.astype(np.float32)
     if "blur" in parts:
-        s = 0.5 * cap.gsd_m / mpp
-        img = cv2.GaussianBlur(img, (0, 0), s, borderType=cv2.BORDER_REFLECT)
+        img = cv2.GaussianBlur(img, (0, 0), 0.5 * cap.gsd_m / mpp, borderType=cv2.BORDER_REFLECT)
     out = np.clip(np.round(img), 0, 255).astype(np.uint8)
     if "registration" in parts and cap.registration_rms_m > 0:
         out, labels = _warp(out, labels, cap.registration_rms_m / mpp, WARP_SPACING_M / mpp,

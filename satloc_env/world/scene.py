@@ -114,7 +114,7 @@ from satloc.persist import (
 )
 from satloc.satmap import SatelliteMap, read_image
 
-from .capture import capture_tile
+from .capture import capture_image, capture_tile
 from .generator import GridParams, generate_grid
 from .layout import Building, Car, Layout, Tree
 from .meshes import DEFAULT_GROUND_PAD_M
@@ -271,7 +271,7 @@ class Knobs:
         sun, road wear and patches, parked cars moved, another season); the satellite tile never changes.
     satellite_gap: how far the satellite map is a capture of the world rather than a copy of the rendered
         ground (:mod:`satloc_env.world.capture`: its own sub-resolution texture, capture time, off-nadir view,
-        sensor blur, registration error, compression); 0 is the ground texture itself. Generated scenes only.
+        sensor blur, registration error, compression); 0 is the ground texture itself.
     """
 
     aliasing: float = 0.0
@@ -880,11 +880,8 @@ def build_scene(spec: SceneSpec, base_dir: Path | None = None, aliasing: float |
             tile, tile_labels = capture_tile(lay, spec.meters_per_pixel, spec.seed, satellite_gap)
         except ValueError as e:
             raise ConfigError(f"{where}: {e}") from e
-    elif satellite_gap > 0:
-        raise ConfigError(f"{where}: knobs.satellite_gap: a satellite capture of an image scene is not built yet "
-                          f"(its map is its image); use 0, got {satellite_gap:g}")
     else:
-        tile, tile_labels = lay.ground_rgb, lay.ground_labels
+        tile, tile_labels = capture_image(lay, spec.meters_per_pixel, spec.seed, satellite_gap)
     frame = ground.frame if ground is not None else None
     satmap = SatelliteMap(tile, spec.meters_per_pixel, (0.0, lay.height_m), tile_labels, frame,
                           radiometry=ground.radiometry if ground is not None else None)
