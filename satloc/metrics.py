@@ -137,12 +137,15 @@ def stationary_block_length(values) -> float:
     return float(min(max(b, 1.0), v.size)) if np.isfinite(b) else 1.0
 
 
-def ci_method(method: CIMethod, block_length: float | None = None, level: float = 0.95) -> str:
+def ci_method(method: CIMethod, block_length=None, level: float = 0.95) -> str:
     """How an interval was made, as the tables' ``ci_method`` column says it (no comma: a plain CSV cell)."""
     if method == "iid":
         return f"percentile bootstrap {level:.0%}; queries resampled one by one"
     if block_length is None:
         return f"stationary block bootstrap {level:.0%}; no query"
+    if isinstance(block_length, (list, tuple)):
+        each = " / ".join(f"{b:.1f}" for b in block_length)
+        return f"stationary block bootstrap {level:.0%} within each pass; mean blocks {each} queries (Politis-White)"
     return f"stationary block bootstrap {level:.0%}; mean block {block_length:.1f} queries (Politis-White)"
 
 
@@ -152,7 +155,24 @@ def bootstrap_indices(n: int, n_boot: int, seed: int, method: CIMethod = "iid",
     blocks of mean length ``block_length`` (``"stationary"``; wrapping around the end)."""
     if method not in ("iid", "stationary"):
         raise ConfigError(f"bootstrap: method: expected 'iid' or 'stationary', got {method!r}")
+    return _indices(n, n_boot, np.random.default_rng(seed), method, block_length)
+
+
+def grouped_bootstrap_indices(sizes, n_boot: int, seed: int, method: CIMethod, block_lengths) -> np.ndarray:
+    """(n_boot, sum(sizes)) resampled indices of sequences laid end to end (e.g. several passes joined):
+    each sequence resampled within itself, with its own block length, so that no block runs from one
+    sequence into the next and each keeps its size."""
+    if method not in ("iid", "stationary"):
+        raise ConfigError(f"bootstrap: method: expected 'iid' or 'stationary', got {method!r}")
     rng = np.random.default_rng(seed)
+    out, start = [], 0
+    for n, b in zip(sizes, block_lengths):
+        out.append(start + _indices(int(n), n_boot, rng, method, b))
+        start += int(n)
+    return np.concatenate(out, axis=1) if out else np.zeros((n_boot, 0), np.int64)
+
+
+def _indices(n: int, n_boot: int, rng: np.random.Generator, method: CIMethod, block_length) -> np.ndarray:
     if method == "iid" or n < 2:
         return rng.integers(0, n, (n_boot, n))
     from arch.bootstrap import StationaryBootstrap
@@ -245,21 +265,36 @@ def precision_recall(errors, scores, threshold: float, inside=None, radius_m: fl
 
 def precision_recall_ci(errors, scores, threshold: float, inside=None, radius_m: float = 10.0,
                         n_boot: int = 2000, level: float = 0.95, seed: int = 0, method: CIMethod = "iid",
-                        block_length: float | None = None) -> dict:
+                        block_length: float | None = None, groups=None) -> dict:
     """Percentile bootstrap intervals of precision and recall at a fixed ``threshold`` (queries resampled,
     seeded; a resample where one is undefined is left out of its interval): ``precision_ci`` and
     ``recall_ci``, each (low, high), and ``block_length`` (None for ``"iid"``). ``method="stationary"``
-    resamples blocks of queries; ``block_length`` None: the longest that :func:`stationary_block_length`
-    gives for the declared, truly-inside and true-positive indicators."""
+    resamples blocks of queries; ``block_length`` None: the longer of what :func:`stationary_block_length`
+    gives for the declared and the true-positive indicators (not for "truly inside", which steps once between
+    passes). ``groups``: the sizes of sequences laid end to end (passes joined), each resampled within
+    itself with its own block length (``block_length`` is then their list)."""
     e, s, ins = _inputs(errors, scores, inside)
     with np.errstate(invalid="ignore"):
         declared = s >= threshold
         good = declared & ins & (e <= radius_m)
     if e.size == 0:
         return {"precision_ci": (float("nan"),) * 2, "recall_ci": (float("nan"),) * 2, "block_length": None}
-    if method == "stationary" and block_length is None:
-        block_length = max(stationary_block_length(x.astype(np.float64)) for x in (declared, ins, good))
-    idx = bootstrap_indices(e.size, n_boot, seed, method, block_length)
+    def blocks(sl):
+        return max(stationary_block_length(x[sl].astype(np.float64)) for x in (declared, good))
+
+    if groups is not None:
+        sizes = [int(g) for g in groups]
+        if sum(sizes) != e.size or min(sizes, default=1) < 1:
+            raise ConfigError(f"precision_recall_ci: groups: expected sizes >= 1 adding up to {e.size}, got {sizes}")
+        bounds = np.cumsum([0] + sizes)
+        if method == "stationary" and block_length is None:
+            block_length = [blocks(slice(a, b)) for a, b in zip(bounds[:-1], bounds[1:])]
+        lengths = block_length if isinstance(block_length, (list, tuple)) else [block_length] * len(sizes)
+        idx = grouped_bootstrap_indices(sizes, n_boot, seed, method, lengths)
+    else:
+        if method == "stationary" and block_length is None:
+            block_length = blocks(slice(None))
+        idx = bootstrap_indices(e.size, n_boot, seed, method, block_length)
     tp, nd, npos = good[idx].sum(1), declared[idx].sum(1), ins[idx].sum(1)
     a = (1 - level) / 2
 

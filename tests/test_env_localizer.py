@@ -202,8 +202,11 @@ def test_localizer_of_another_map_is_refused(loc):
 def test_localizer_of_the_copied_map_is_refused_on_a_captured_one(build_dir, cache):
     """A build made on the ground's copy (satellite_gap 0) does not localize on the same scene's captured map:
     the map check compares content, and the auto localizer's cache keeps the two apart."""
-    with pytest.raises(ConfigError, match="is not the map of scene 'city'"):
+    with pytest.raises(ConfigError, match="captured at satellite_gap 0, not on the map at 0.5"):
         gym.make(ID, scene="city", localizer=str(build_dir), satellite_gap=0.5)
+    # a Localizer instance (no record of its data): its map's content is compared
+    with pytest.raises(ConfigError, match="is not the map of scene 'city'"):
+        gym.make(ID, scene="city", localizer=load_localizer(build_dir, LocalizerConfig(mode="go")), satellite_gap=0.5)
     a = autoloc.build_path("city", None, "half", cache_dir=cache, **SMALL)
     b = autoloc.build_path("city", None, "half", satellite_gap=0.5, cache_dir=cache, **SMALL)
     assert a == build_dir and b != a and "gap0.5" in b.name

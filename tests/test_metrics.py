@@ -279,3 +279,25 @@ def test_paired_bootstrap_cancels_what_the_queries_share():
     assert la < hb                                  # the two separate intervals overlap
     with pytest.raises(ConfigError, match="one value per query"):
         paired_bootstrap_ci(a, b[:-1])
+
+
+def test_joined_passes_are_resampled_each_within_itself():
+    """Two passes laid end to end (inside, then outside the map): the step of "truly inside" between them
+    does not set the block length, no block runs across, and each pass keeps its size in every resample."""
+    from satloc.metrics import ci_method, grouped_bootstrap_indices, precision_recall_ci
+
+    rng = np.random.default_rng(4)
+    n_in, n_out = 150, 100
+    errors = np.where(rng.random(n_in + n_out) < 0.8, 2.0, 50.0)     # independent queries
+    scores = rng.random(n_in + n_out)
+    inside = np.r_[np.ones(n_in, bool), np.zeros(n_out, bool)]
+    ci = precision_recall_ci(errors, scores, 0.3, inside, method="stationary", groups=[n_in, n_out])
+    assert len(ci["block_length"]) == 2 and max(ci["block_length"]) < 5
+    assert "within each pass" in ci_method("stationary", ci["block_length"])
+    iid = precision_recall_ci(errors, scores, 0.3, inside)
+    width = lambda c: c[1] - c[0]  # noqa: E731
+    assert width(ci["precision_ci"]) < 1.5 * width(iid["precision_ci"])
+    idx = grouped_bootstrap_indices([n_in, n_out], 50, 0, "stationary", [4.0, 4.0])
+    assert np.all(idx[:, :n_in] < n_in) and np.all(idx[:, n_in:] >= n_in)
+    with pytest.raises(ConfigError, match="groups"):
+        precision_recall_ci(errors, scores, 0.3, inside, method="stationary", groups=[n_in, n_out + 1])

@@ -100,6 +100,9 @@ def cache_key(scene: str | os.PathLike, aliasing: float | None = None, resolutio
             "format_version": FORMAT_VERSION, "satloc_version": SATLOC_VERSION, "key_version": _KEY_VERSION,
             "speed_mps": speed, "database_pass": to_dict(db), "build": to_dict(bc, runtime=False),
             "projection": to_dict(pc, runtime=False)}   # not the device: how an entry is made, not what it holds
+    if satellite_gap is not None and (isinstance(satellite_gap, bool) or not isinstance(satellite_gap, (int, float))
+                                      or not 0.0 <= satellite_gap <= 1.0):
+        raise ConfigError(f"satellite_gap: expected a number in [0, 1] or None (the scene's), got {satellite_gap!r}")
     gap = _own_gap(scene) if satellite_gap is None else float(satellite_gap)
     if gap != 0.0:
         key["satellite_gap"] = gap
@@ -226,14 +229,15 @@ def _build_entry(out: Path, key: dict, scene, aliasing, resolution, max_frames, 
     stages = tqdm(total=3, desc="auto localizer", unit="stage", disable=not progress, leave=False)
     # localizer=None: the recorder's env must not itself ask for an auto localizer (infinite recursion)
     env = make_env(scene=os.fspath(scene), resolution=resolution, aliasing=aliasing, speed_mps=speed,
-                   satellite_gap=key.get("satellite_gap", 0.0),
+                   satellite_gap=key.get("satellite_gap", 0.0),   # load_scene: the same cache entry as None
                    depth=db.depth, labels=db.labels, localizer=None)
     try:
         env.reset(seed=db.seed)
         sc = env.scene
         sc.satmap.save(rec / "map")
         record_pass(env, db, db.route or sc.spec.database_route, rec / "database", "database", progress,
-                    {"source": "satloc_env.envs.auto_localizer", "scene": sc.name, "aliasing": sc.spec.knobs.aliasing})
+                    {"source": "satloc_env.envs.auto_localizer", "scene": sc.name, "aliasing": sc.spec.knobs.aliasing,
+                     "satellite_gap": sc.spec.knobs.satellite_gap})
     finally:
         env.close()
     stages.update(1)

@@ -84,7 +84,7 @@ class EnvConfig:
         # value fails when the env is made or reset, naming the field, instead of giving NaN poses later
         limits = VehicleParams()
         _check_finite(self, "lane_offset_m")
-        _check_finite(self, "wander_m", lo=0.0, hi=1.0)
+        _check_finite(self, "wander_m", lo=0.0, hi=0.5)
         _check_finite(self, "speed_wander", lo=0.0, hi=0.5)
         if self.wander_seed is not None and self.wander_seed < 0:
             raise ConfigError(f"wander_seed: expected an integer >= 0 or None, got {self.wander_seed}")
@@ -131,6 +131,9 @@ class ActionError(ValueError):
 
 #: the value of ``EnvConfig.localizer`` when a :class:`satloc.localizer.Localizer` instance was passed.
 LOCALIZER_INSTANCE = "<instance>"
+#: the spawn key of the episode seed sequence's child that seeds the autopilot's drift (the change uses the
+#: first spawned child, key 0)
+WANDER_SPAWN_KEY = 7919
 
 
 #: keys that ``reset(options=...)`` may change; the others fix the spaces or the renderer.
@@ -276,15 +279,20 @@ def build_identity(build_dir: str | os.PathLike) -> dict:
             meta = read_json(Path(db) / "sequence.json", "sequence").get("meta") or {}
         if "scene" not in meta and (b / "autoloc.json").is_file():
             key = read_json(b / "autoloc.json", "autoloc_cache").get("key") or {}
-            meta = {**meta, **{k: key[k] for k in ("scene", "aliasing") if k in key}}
+            meta = {**meta, **{k: key[k] for k in ("scene", "aliasing", "satellite_gap") if k in key}}
     except (FormatError, OSError, AttributeError):  # an unreadable record only loses the description
         pass
-    for k in ("scene", "aliasing", "geo_frame"):
+    if isinstance(meta, dict) and isinstance(meta.get("scene"), str) and "geo_frame" not in meta:
+        meta.setdefault("satellite_gap", 0.0)   # a simulated pass recorded before the knob: the ground's copy
+    for k in ("scene", "aliasing", "satellite_gap", "geo_frame"):
         if meta.get(k) is not None:
             out[k] = meta[k]
     if isinstance(out.get("scene"), str):
         out["source"] += f" of scene {out['scene']!r}" + (f" (aliasing {out['aliasing']:g})"
                                                            if isinstance(out.get("aliasing"), (int, float)) else "")
+        gap = out.get("satellite_gap")
+        if isinstance(gap, (int, float)) and gap:
+            out["source"] += f" (satellite gap {gap:g})"
     return out
 
 
@@ -653,6 +661,13 @@ class SatLocEnv(SharedSpecMixin, gym.Env):
         aliasing = getattr(getattr(spec, "knobs", None), "aliasing", None)
         what = f"scene {scene.name!r}" + (f" (aliasing {aliasing:g})" if aliasing is not None else "")
         ident = self._loc_identity
+        gap = getattr(getattr(spec, "knobs", None), "satellite_gap", None)
+        built = ident.get("satellite_gap")
+        if (isinstance(gap, (int, float)) and isinstance(built, (int, float)) and ident.get("scene") == scene.name
+                and not math.isclose(gap, built, abs_tol=1e-9)):
+            raise ConfigError(f"localizer: {ident['source']} was built on scene {scene.name!r}'s satellite map "
+                              f"captured at satellite_gap {built:g}, not on the map at {gap:g}; a localizer localizes "
+                              "only on the map it was built on")
         compared = check_localizer_map(self.localizer, scene.satmap, what, ident["source"]) is not None
         if not compared and isinstance(ident.get("scene"), str):
             other = (ident["scene"] != scene.name
@@ -661,6 +676,14 @@ class SatLocEnv(SharedSpecMixin, gym.Env):
             if other:
                 raise ConfigError(f"localizer: {ident['source']} is not a build of {what}; a localizer localizes only "
                                   "on the map it was built on")
+
+    def _wander_seed(self) -> int:
+        """The drift's seed when none is given: drawn from a child of the episode's seed sequence with a spawn key
+        of its own, so it depends neither on whether the change is on nor on the episode's other draws, and
+        takes none of them."""
+        ss = self.np_random.bit_generator.seed_seq
+        child = np.random.SeedSequence(ss.entropy, spawn_key=tuple(ss.spawn_key) + (WANDER_SPAWN_KEY,))
+        return int(np.random.default_rng(child).integers(2**31 - 1))
 
     @property
     def scene(self) -> Scene:
@@ -737,9 +760,8 @@ class SatLocEnv(SharedSpecMixin, gym.Env):
         s0 = float(rng.uniform(0, self.route.length * 0.9)) if cfg.random_start else cfg.start_s_m
         wander, self.wander_seed = Wander(cfg.wander_m, cfg.speed_wander), None
         profile = None
-        if wander.active:   # like the change: a child of the episode's seed sequence, the episode's draws unmoved
-            self.wander_seed = (cfg.wander_seed if cfg.wander_seed is not None
-                                else int(self.np_random.spawn(1)[0].integers(2**31 - 1)))
+        if wander.active:
+            self.wander_seed = cfg.wander_seed if cfg.wander_seed is not None else self._wander_seed()
             profile = wander_profile(self.route.length, wander, self.wander_seed)
         self.pose = self.route.pose_at(s0, cfg.lane_offset_m + (profile[0](s0) if profile else 0.0))
         self.pilot = Autopilot(self.route, cfg.lane_offset_m, cfg.speed_mps, s0=s0, wander=profile)

@@ -270,7 +270,8 @@ def record_passes(config: RecordConfig | dict[str, Any], out_dir: str | Path, pr
             route = p.route or (scene.spec.database_route if name == "database" else scene.spec.query_route)
             if name == "database":
                 scene.satmap.save(out / "map")
-            meta = {"source": "satloc_env", "scene": scene.name, "aliasing": scene.spec.knobs.aliasing}
+            meta = {"source": "satloc_env", "scene": scene.name, "aliasing": scene.spec.knobs.aliasing,
+                    "satellite_gap": scene.spec.knobs.satellite_gap}
             if scene.satmap.frame is not None:  # a scene over georeferenced imagery: poses are in its GeoFrame
                 meta["geo_frame"] = scene.satmap.frame.to_dict()
             sequences.append(record_pass(env, p, route, out / name, name, progress, meta))

@@ -417,7 +417,8 @@ def table2(out: str | Path, config: dict | None = None, progress: bool = True, l
                               t2.rule, t2.min_precision, t2.radius_m)
         cal.pop("curve")
         pr = precision_recall(err, sc, cal["threshold"], inside_t, t2.radius_m)
-        ci = precision_recall_ci(err, sc, cal["threshold"], inside_t, t2.radius_m, method="stationary")
+        ci = precision_recall_ci(err, sc, cal["threshold"], inside_t, t2.radius_m, method="stationary",
+                                 groups=[len(res[p][1][method]["errors"]) for p in test])
         oracle = operating_point(err, sc, inside_t, t2.rule, t2.min_precision, t2.radius_m)
         curves[method_name(method)] = oracle.pop("curve")
         spq = np.mean([res[p][1][method]["s_per_query"] for p in test])

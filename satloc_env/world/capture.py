@@ -21,9 +21,11 @@ part), so leaving one out changes none of the others:
     Texture below the sensor's resolution of the capture's own. In the ground texture the tile is painted
     from, each class's fine residual (the texture minus its Gaussian blur of ``2 gsd_m`` taken within the class,
     so that the edges between classes, lane markings included, stay where they are) becomes
-    ``cos(a) residual + sin(a) noise``, ``a = min(1, 2 gap) pi / 2``, where the noise is band-limited like the
-    residual and scaled to the residual's standard deviation per class and channel (same statistics,
-    independent pattern). From ``gap`` 0.5 on, no sub-resolution texture of the ground survives.
+    ``cos(a) residual + sin(a) noise``, ``a = min(1, 2 gap) pi / 2``, where the noise has the residual's grain
+    (white noise blurred until neighbouring texels correlate as the residual's do, then high-passed alike) and
+    the residual's standard deviation per class and channel (one noise field for the three channels: the
+    texture's grain is in its brightness). From ``gap`` 0.5 on, no sub-resolution texture of the ground
+    survives.
 ``blur``
     The sensor's point spread: a Gaussian of ``gsd_m / 2`` (``gsd_m = mpp (1 + gap)``, 0.3 m on a 0.2 m tile
     at 0.5).
@@ -226,10 +228,25 @@ def _own_texture(img: np.ndarray, labels: np.ndarray, sigma_px: float, amount: f
     img = np.asarray(img, np.float32)
     low = class_lowpass(img, labels, sigma_px)
     res = img - low
-    n = fine_residual(r.standard_normal(labels.shape).astype(np.float32), sigma_px)
+    # noise with the residual's grain: white noise blurred so that neighbouring texels correlate as the
+    # residual's do (a Gaussian of s correlates neighbours by exp(-1 / (4 s^2))), then the same high-pass
+    rho = _neighbour_correlation(res.mean(axis=2))
+    n = r.standard_normal(labels.shape).astype(np.float32)
+    if rho > 0.05:
+        n = cv2.GaussianBlur(n, (0, 0), math.sqrt(-1.0 / (4.0 * math.log(min(rho, 0.95)))),
+                             borderType=cv2.BORDER_REFLECT)
+    n = fine_residual(n, sigma_px)
     new = (n / _class_std(n, labels)[labels])[..., None] * _class_std(res, labels)[labels]
     a = amount * math.pi / 2
     return np.clip(np.round(low + math.cos(a) * res + math.sin(a) * new), 0, 255).astype(np.uint8)
+
+
+def _neighbour_correlation(x: np.ndarray) -> float:
+    """Correlation of horizontally and vertically neighbouring values of ``x`` (h, w)."""
+    a = np.concatenate([x[:, :-1].ravel(), x[:-1, :].ravel()])
+    b = np.concatenate([x[:, 1:].ravel(), x[1:, :].ravel()])
+    c = np.corrcoef(a, b)[0, 1]
+    return float(c) if np.isfinite(c) else 0.0
 
 
 def _class_std(x: np.ndarray, labels: np.ndarray) -> np.ndarray:

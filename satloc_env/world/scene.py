@@ -283,6 +283,8 @@ class Knobs:
     def __post_init__(self):
         for k in ("aliasing", "occlusion", "appearance", "change", "satellite_gap"):
             v = getattr(self, k)
+            if isinstance(v, bool) or not isinstance(v, (int, float)):
+                raise ConfigError(f"{k}: expected a number in [0, 1], got {v!r}")
             if not 0.0 <= v <= 1.0:
                 raise ConfigError(f"{k}: expected a value in [0, 1], got {v}")
 
@@ -910,4 +912,7 @@ def load_scene(name_or_path: str | os.PathLike, aliasing: float | None = None,
             raise ConfigError(f"{p}: a saved scene's satellite map is fixed (satellite_gap "
                               f"{scene.spec.knobs.satellite_gap:g}); got satellite_gap {satellite_gap:g}")
         return scene
-    return _cached_scene(str(scene_path(name_or_path).resolve()), aliasing, satellite_gap)
+    path = str(scene_path(name_or_path).resolve())
+    if satellite_gap is None:   # one cache entry for "the file's gap" and that gap given explicitly
+        satellite_gap = load_spec(path)[0].knobs.satellite_gap
+    return _cached_scene(path, aliasing, float(satellite_gap))
