@@ -3,7 +3,8 @@
 
 :func:`open_sequence` opens any of them, or a sequence in satloc's own layout, by looking at the folder.
 :mod:`satloc.datasets.lidar_mosaic` makes a satellite stand-in from a KITTI drive's own images and LiDAR (for a
-self-consistency check where no satellite image is at hand)."""
+self-consistency check where no satellite image is at hand). They may import satloc's data model and
+:mod:`satloc.geodata`, never :mod:`satloc_env` (an import-linter contract in ``pyproject.toml`` checks it)."""
 from __future__ import annotations
 
 import os
