@@ -111,15 +111,24 @@ def from_dict(cls: type[T], data: Any, where: str = "config") -> T:
         raise ConfigError(f"{where.rstrip(':')}: {e}") from e
 
 
+def added_field(default: Any, **kw: Any) -> Any:
+    """A dataclass field added after configurations were stored (stage stamps, cache keys, recordings):
+    :func:`to_dict` leaves it out while it holds ``default``, so what was stored before still matches, and
+    :func:`from_dict` gives it ``default`` where a stored configuration lacks it."""
+    return dataclasses.field(default=default, metadata={"added": True}, **kw)
+
+
 def to_dict(obj: Any, runtime: bool = True) -> Any:
     """Plain (JSON/YAML-ready) dict of a dataclass, tuples turned into lists.
 
     ``runtime=False`` leaves out the fields marked ``metadata={"runtime": True}`` (at any depth): settings of
     how a stage runs, not of what it makes (e.g. :func:`satloc.device.device_field`), which the keys of
-    cached stages must not depend on."""
+    cached stages must not depend on. A field made with :func:`added_field` is left out while it holds its
+    default."""
     if dataclasses.is_dataclass(obj) and not isinstance(obj, type):
         return {f.name: to_dict(getattr(obj, f.name), runtime) for f in dataclasses.fields(obj)
-                if runtime or not f.metadata.get("runtime")}
+                if (runtime or not f.metadata.get("runtime"))
+                and not (f.metadata.get("added") and getattr(obj, f.name) == f.default)}
     if isinstance(obj, (list, tuple)):
         return [to_dict(v, runtime) for v in obj]
     if isinstance(obj, dict):

@@ -68,3 +68,30 @@ def test_make_vec_async_default_context():
     r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)
     assert r.returncode == 0, r.stderr
     assert "(2, 188, 620, 3) (2, 3)" in r.stdout
+
+
+def test_recordings_with_a_captured_map_and_wandering_passes(tmp_path):
+    """A recording can ask for the map as a capture and for passes that wander: the map is the captured one,
+    the recording says so, the database pass drifts about its lane; the stored keys of a recording that asks
+    for neither are those of before (what earlier stamps and caches hold)."""
+    from satloc.config import to_dict
+    from satloc_env import load_scene
+    from satloc_env.experiments.scene_run import ExperimentConfig, record_config
+
+    assert "satellite_gap" not in to_dict(RecordConfig())
+    assert not {"wander_m", "speed_wander"} & set(to_dict(PassConfig()))
+    assert not {"satellite_gap", "wander_m", "speed_wander"} & set(to_dict(ExperimentConfig()))
+    cfg = RecordConfig(scene="city", satellite_gap=0.5,
+                       database=PassConfig(spacing_m=1.0, max_frames=60, wander_m=0.4),
+                       query=PassConfig(lane_offset_m=-0.75, spacing_m=10.0, max_frames=2, seed=1, wander_m=0.4))
+    db, _ = record_passes(cfg, tmp_path / "rec", progress=False)
+    assert db.meta["satellite_gap"] == 0.5 and db.meta["pass_config"]["wander_m"] == 0.4
+    saved = SatelliteMap.load(tmp_path / "rec" / "map")
+    assert np.array_equal(saved.image, load_scene("city", satellite_gap=0.5).satmap.image)
+    route = load_scene("city").routes["main"]
+    straight = db.poses[db.poses[:, 0] > 30]     # the first street, west from (100, 180), before its corner
+    assert len(straight) > 30
+    lateral = np.array([route.project(p[:2], s_hint=100.0 - p[0], window=10.0)[1] for p in straight])
+    assert lateral.std() > 0.05 and np.abs(lateral + 1.75).max() < 0.9
+    rc = record_config(ExperimentConfig(satellite_gap=0.5, wander_m=0.3))
+    assert rc.satellite_gap == 0.5 and rc.database.wander_m == 0.3 and rc.query.wander_m == 0.3

@@ -36,7 +36,16 @@ from satloc.track import compose_motion
 from satloc_env.world.scene import Scene, load_scene
 
 from .occluders import Appearance, sample_occluders
-from .vehicle import DEFAULT_DT, Autopilot, VehicleParams, Wander, action_bounds, step_bicycle, wander_profile
+from .vehicle import (
+    DEFAULT_DT,
+    Autopilot,
+    VehicleParams,
+    Wander,
+    action_bounds,
+    default_wander_seed,
+    step_bicycle,
+    wander_profile,
+)
 
 
 @dataclass
@@ -131,9 +140,6 @@ class ActionError(ValueError):
 
 #: the value of ``EnvConfig.localizer`` when a :class:`satloc.localizer.Localizer` instance was passed.
 LOCALIZER_INSTANCE = "<instance>"
-#: the spawn key of the episode seed sequence's child that seeds the autopilot's drift (the change uses the
-#: first spawned child, key 0)
-WANDER_SPAWN_KEY = 7919
 
 
 #: keys that ``reset(options=...)`` may change; the others fix the spaces or the renderer.
@@ -678,12 +684,9 @@ class SatLocEnv(SharedSpecMixin, gym.Env):
                                   "on the map it was built on")
 
     def _wander_seed(self) -> int:
-        """The drift's seed when none is given: drawn from a child of the episode's seed sequence with a spawn key
-        of its own, so it depends neither on whether the change is on nor on the episode's other draws, and
-        takes none of them."""
-        ss = self.np_random.bit_generator.seed_seq
-        child = np.random.SeedSequence(ss.entropy, spawn_key=tuple(ss.spawn_key) + (WANDER_SPAWN_KEY,))
-        return int(np.random.default_rng(child).integers(2**31 - 1))
+        """The drift's seed when none is given (:func:`satloc_env.envs.vehicle.default_wander_seed`): it takes
+        none of the episode's draws."""
+        return default_wander_seed(self.np_random.bit_generator.seed_seq)
 
     @property
     def scene(self) -> Scene:

@@ -49,11 +49,11 @@ def autopilot_drive(scene, route: str, lane_offset_m: float, speed_mps: float = 
             return
 
 
-def first_off_road(scene, route: str, lane_offset_m: float, speed_mps: float = 8.0, dt: float = DEFAULT_DT
-                   ) -> tuple[Pose2, float] | None:
-    """The first pose (and its route arc length) where the autopilot leaves the road on ``route``, None if
-    it drives the route to its end on the road."""
-    for pose, s, off in autopilot_drive(scene, route, lane_offset_m, speed_mps, dt):
+def first_off_road(scene, route: str, lane_offset_m: float, speed_mps: float = 8.0, dt: float = DEFAULT_DT,
+                   wander=None) -> tuple[Pose2, float] | None:
+    """The first pose (and its route arc length) where the autopilot leaves the road on ``route`` (drifting
+    as ``wander`` says, if given), None if it drives the route to its end on the road."""
+    for pose, s, off in autopilot_drive(scene, route, lane_offset_m, speed_mps, dt, wander=wander):
         if off:
             return pose, s
     return None
@@ -75,13 +75,13 @@ def off_road_message(scene, route: str, lane_offset_m: float, pose, s: float) ->
 
 
 def check_route(scene, route: str, lane_offset_m: float, speed_mps: float = 8.0, dt: float = DEFAULT_DT,
-                where: str | None = None) -> None:
+                where: str | None = None, wander=None) -> None:
     """ConfigError (see :func:`off_road_message`, prefixed by ``where`` or the scene's name) when the
-    autopilot leaves the road on ``route`` at ``lane_offset_m``."""
+    autopilot leaves the road on ``route`` at ``lane_offset_m`` (drifting as ``wander`` says, if given)."""
     if route not in scene.routes:
         raise ConfigError(f"{where or f'scene {scene.name!r}'}: route: {route!r} is not a route of scene "
                           f"{scene.name!r} ({sorted(scene.routes)})")
-    hit = first_off_road(scene, route, lane_offset_m, speed_mps, dt)
+    hit = first_off_road(scene, route, lane_offset_m, speed_mps, dt, wander=wander)
     if hit is not None:
         pose, s = hit
         raise ConfigError(f"{where or f'scene {scene.name!r}'}: "

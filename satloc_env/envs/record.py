@@ -42,7 +42,7 @@ from gymnasium.envs.registration import load_env_creator
 from tqdm import tqdm
 
 from satloc import __version__ as SATLOC_VERSION
-from satloc.config import from_dict, to_dict
+from satloc.config import added_field, from_dict, to_dict
 from satloc.errors import ConfigError, FormatError
 from satloc.geometry import Pose2
 from satloc.persist import header, read_json, write_json
@@ -52,6 +52,7 @@ from satloc_env.world.scene import SCENES_DIR, load_scene, load_spec, scene_path
 
 from .drivecheck import check_route, off_road_message
 from .ids import ENV_ID
+from .vehicle import Wander, default_wander_seed, wander_profile
 
 
 def make_env(**config: Any) -> gym.Env:
@@ -83,6 +84,8 @@ class PassConfig:
     seed: int = 0
     depth: bool = True              # store true depth (simulator ground truth) with each frame
     labels: bool = False
+    wander_m: float = added_field(0.0)       # the autopilot's lateral drift (std, m; satloc_env.envs.vehicle),
+    speed_wander: float = added_field(0.0)   # and its speed's (relative std), seeded by ``seed``
 
 
 @dataclass
@@ -90,6 +93,7 @@ class RecordConfig:
     scene: str = "city"
     resolution: str = "half"
     aliasing: float | None = None
+    satellite_gap: float | None = added_field(None)   # the map as a capture (satloc_env.world.capture); None: the scene's
     speed_mps: float = 8.0
     database: PassConfig = field(default_factory=PassConfig)
     query: PassConfig = field(default_factory=lambda: PassConfig(lane_offset_m=-0.75, spacing_m=10.0,
@@ -101,9 +105,11 @@ def record_pass(env: gym.Env, p: PassConfig, route: str, out: Path, name: str, p
                 meta: dict | None = None) -> Sequence:
     """Drive ``route`` once with the autopilot of ``env`` (a ``satloc/SatLoc-v0`` environment, wrapped or
     not), writing a frame every ``p.spacing_m`` metres to ``out``."""
-    obs, info = env.reset(seed=p.seed, options={
-        "route": route, "lane_offset_m": p.lane_offset_m, "occlusion": p.occlusion, "appearance": p.appearance,
-        "change": p.change, "max_steps": 10**9})
+    options = {"route": route, "lane_offset_m": p.lane_offset_m, "occlusion": p.occlusion,
+               "appearance": p.appearance, "change": p.change, "max_steps": 10**9}
+    if p.wander_m or p.speed_wander:
+        options.update(wander_m=p.wander_m, speed_wander=p.speed_wander)
+    obs, info = env.reset(seed=p.seed, options=options)
     length = env.unwrapped.route.length
     total = p.max_frames or int(length // p.spacing_m) + 1
     m = dict(meta or {})
@@ -149,7 +155,16 @@ def check_passes(scene, passes, speed_mps: float, where: str | None = None) -> N
     first of ``passes`` ((route, PassConfig) pairs) it cannot drive (:func:`satloc_env.envs.drivecheck.check_route`:
     the recorder's own off-road check, without rendering)."""
     for route, p in passes:
-        check_route(scene, route, p.lane_offset_m, speed_mps, where=where)
+        check_route(scene, route, p.lane_offset_m, speed_mps, where=where, wander=pass_wander(scene, route, p))
+
+
+def pass_wander(scene, route: str, p: PassConfig):
+    """The drift profile a pass drives (:func:`satloc_env.envs.vehicle.wander_profile`, seeded as the environment
+    seeds it from ``reset(seed=p.seed)``), None without wander."""
+    w = Wander(p.wander_m, p.speed_wander)
+    if not w.active or route not in scene.routes:
+        return None
+    return wander_profile(scene.routes[route].length, w, default_wander_seed(p.seed))
 
 
 def check_scene_routes(scene, cfg: RecordConfig | None = None, where: str | None = None) -> None:
@@ -245,7 +260,7 @@ def record_passes(config: RecordConfig | dict[str, Any], out_dir: str | Path, pr
     """Record the database and query passes of a scene into ``out_dir`` (see the module docstring); after an
     interrupted run with the same configuration, only the passes it did not finish."""
     cfg = config if isinstance(config, RecordConfig) else from_dict(RecordConfig, config, "record config")
-    scene = load_scene(cfg.scene, cfg.aliasing)   # before any work: both passes drivable by the autopilot
+    scene = load_scene(cfg.scene, cfg.aliasing, cfg.satellite_gap)   # before any work: both passes drivable
     check_passes(scene, pass_routes(scene, cfg), cfg.speed_mps)
     out = Path(out_dir)
     conf = to_dict(cfg)
@@ -263,7 +278,7 @@ def record_passes(config: RecordConfig | dict[str, Any], out_dir: str | Path, pr
             continue
         # localizer=None: recording needs no localization (and "auto" would itself record the database pass)
         env = make_env(scene=cfg.scene, resolution=cfg.resolution, aliasing=cfg.aliasing, speed_mps=cfg.speed_mps,
-                       depth=p.depth, labels=p.labels, localizer=None)
+                       satellite_gap=cfg.satellite_gap, depth=p.depth, labels=p.labels, localizer=None)
         try:
             env.reset(seed=p.seed)
             scene = env.scene

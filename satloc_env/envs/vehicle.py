@@ -83,6 +83,20 @@ def _smooth_process(length_m: float, scale_m: float, rng: np.random.Generator):
     return CubicSpline(s, v)
 
 
+#: the spawn key of the episode seed sequence's child that seeds the drift when no seed is given (the revisit
+#: change takes the first spawned child, key 0)
+WANDER_SPAWN_KEY = 7919
+
+
+def default_wander_seed(seed_seq) -> int:
+    """The drift's seed of an episode whose seed sequence is ``seed_seq`` (a ``numpy.random.SeedSequence``, or
+    the integer given to ``reset(seed=...)``): drawn from its child with the spawn key of its own
+    :data:`WANDER_SPAWN_KEY`, so it depends neither on the change nor on the episode's other draws."""
+    ss = seed_seq if isinstance(seed_seq, np.random.SeedSequence) else np.random.SeedSequence(int(seed_seq))
+    child = np.random.SeedSequence(ss.entropy, spawn_key=tuple(ss.spawn_key) + (WANDER_SPAWN_KEY,))
+    return int(np.random.default_rng(child).integers(2**31 - 1))
+
+
 def wander_profile(length_m: float, wander: Wander, seed: int):
     """(lateral(s), speed_factor(s)): one seeded drive's drift in metres and its speed factor, as functions of
     the arc length ``s`` along a route of ``length_m`` (beyond its ends they hold their end values)."""

@@ -31,7 +31,7 @@ from pathlib import Path
 import numpy as np
 
 from satloc.baselines import EfmConfig, FabMapConfig
-from satloc.config import from_dict, to_dict
+from satloc.config import added_field, from_dict, to_dict
 from satloc.context import ContextConfig
 from satloc.errors import ConfigError
 from satloc.geometry import Pose2, wrap_angle
@@ -116,6 +116,9 @@ class ExperimentConfig:
     occlusion: float = 0.3                  # ... with occluders and another appearance ...
     appearance: float = 0.5
     change: float = QUERY_CHANGE            # ... and the world changed as on another day (satloc_env.world.revisit)
+    satellite_gap: float | None = added_field(None)   # the map as a capture (satloc_env.world.capture); None: scene's
+    wander_m: float = added_field(0.0)      # both passes' lateral drift (std, m) and speed drift (relative std),
+    speed_wander: float = added_field(0.0)  # each pass seeded by its own seed (satloc_env.envs.vehicle.Wander)
     coverage_m: float = 5.0                 # evaluate queries whose true pose is this close to the database path
     features: str = "default"
     context: ContextConfig = field(default_factory=ContextConfig)
@@ -198,11 +201,13 @@ def covered_queries(db: Sequence, q: Sequence, radius_m: float) -> np.ndarray:
 def record_config(cfg: ExperimentConfig) -> RecordConfig:
     """The recording of an experiment's scene: the database pass and the revisit (query) pass (recorded
     densely for visual odometry: :func:`dense_pass`)."""
-    return RecordConfig(scene=cfg.scene, aliasing=cfg.aliasing,
-                        database=PassConfig(max_frames=cfg.database_frames),
+    wander = {"wander_m": cfg.wander_m, "speed_wander": cfg.speed_wander}
+    return RecordConfig(scene=cfg.scene, aliasing=cfg.aliasing, satellite_gap=cfg.satellite_gap,
+                        database=PassConfig(max_frames=cfg.database_frames, **wander),
                         query=dense_pass(cfg, PassConfig(lane_offset_m=cfg.query_lane_m, spacing_m=cfg.query_spacing_m,
                                                          occlusion=cfg.occlusion, appearance=cfg.appearance,
-                                                         change=cfg.change, seed=1, max_frames=cfg.query_frames)))
+                                                         change=cfg.change, seed=1, max_frames=cfg.query_frames,
+                                                         **wander)))
 
 
 def is_tracked(cfg) -> bool:
@@ -297,7 +302,7 @@ def check_recordings(recs, second_pass: bool = False) -> None:
     pass's lane too (Table I's residential protocol); ConfigError naming the scene, the route and the first
     point where it leaves the road."""
     for rec in recs:
-        scene = load_scene(rec.scene, rec.aliasing)
+        scene = load_scene(rec.scene, rec.aliasing, rec.satellite_gap)
         passes = pass_routes(scene, rec)
         if second_pass:
             passes.append((passes[0][0], rec.query))

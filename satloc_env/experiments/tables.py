@@ -274,16 +274,17 @@ def _table2_recording(t2: Table2Config) -> tuple[RecordConfig, dict[str, PassCon
     def extra(route, seed, spacing, frames):
         return dense_pass(e, PassConfig(route=route, lane_offset_m=e.query_lane_m, spacing_m=spacing,
                                         occlusion=e.occlusion, appearance=e.appearance, change=e.change,
-                                        seed=seed, max_frames=frames))
+                                        seed=seed, max_frames=frames, **wander))
 
-    rec = RecordConfig(scene=t2.scene, aliasing=e.aliasing,
-                       database=PassConfig(route=t2.inside_route, max_frames=e.database_frames),
+    wander = {"wander_m": e.wander_m, "speed_wander": e.speed_wander}
+    rec = RecordConfig(scene=t2.scene, aliasing=e.aliasing, satellite_gap=e.satellite_gap,
+                       database=PassConfig(route=t2.inside_route, max_frames=e.database_frames, **wander),
                        query=extra(t2.inside_route, 1, e.query_spacing_m, e.query_frames))
     cs, cb = t2.calibration_seeds
     more = {"outside": extra(t2.outside_route, 2, e.query_spacing_m, t2.outside_frames),
             "calib_inside": extra(t2.inside_route, cs, t2.calibration_spacing_m, e.query_frames),
             "calib_outside": extra(t2.outside_route, cb, t2.calibration_spacing_m, t2.outside_frames)}
-    scene = load_scene(t2.scene, e.aliasing)   # before any work: every pass drivable by the autopilot
+    scene = load_scene(t2.scene, e.aliasing, e.satellite_gap)   # before any work: every pass drivable
     check_passes(scene, pass_routes(scene, rec) + [(p.route, p) for p in more.values()], rec.speed_mps,
                  f"scene {t2.scene!r}")
     from satloc_env.envs.auto_localizer import cache_key
@@ -310,7 +311,7 @@ def _record_table2_pass(rec: RecordConfig, name: str, p: PassConfig | None, out:
         record_passes(rec, out / "rec", progress)
     else:
         env = make_env(scene=rec.scene, resolution=rec.resolution, aliasing=rec.aliasing, speed_mps=rec.speed_mps,
-                       depth=True, labels=False, localizer=None)
+                       satellite_gap=rec.satellite_gap, depth=True, labels=False, localizer=None)
         try:
             env.reset(seed=p.seed)
             record_pass(env, p, p.route, out / "rec" / name, name, progress,
@@ -696,13 +697,14 @@ def _protocol(cfg: ExperimentConfig, protocol: str, label: str, sdir: Path, db_f
         p = dense_pass(cfg, PassConfig(lane_offset_m=cfg.query_lane_m, spacing_m=speed, occlusion=cfg.occlusion,
                                        appearance=cfg.appearance, change=cfg.change, seed=2,
                                        max_frames=None if cfg.database_frames is None else
-                                       int(np.ceil(db_full.path_length() / speed)) + 1))
+                                       int(np.ceil(db_full.path_length() / speed)) + 1,
+                                       wander_m=cfg.wander_m, speed_wander=cfg.speed_wander))
         prc = {"pass": to_dict(p), "record": rc}
         if not _stage_done(pdir / "record.json", prc):
             log(f"[{label}] recording the second pass (a frame every {speed:g} m)")
             env = make_env(scene=cfg.scene, resolution=rc.get("resolution", "half"), aliasing=cfg.aliasing,
                            speed_mps=rc.get("speed_mps", RecordConfig().speed_mps), depth=p.depth, labels=False,
-                           localizer=None)
+                           localizer=None, satellite_gap=cfg.satellite_gap)
             try:
                 env.reset(seed=p.seed)
                 route = rc.get("database", {}).get("route") or env.scene.spec.database_route
