@@ -200,13 +200,14 @@ def cmd_evaluate(args) -> int:
 def cmd_record(args) -> int:
     from satloc_env.envs.record import PassConfig, RecordConfig, record_passes
 
+    wander = {"wander_m": args.wander, "speed_wander": args.speed_wander}
     cfg = RecordConfig(
-        scene=args.scene, resolution=args.resolution, aliasing=args.aliasing,
+        scene=args.scene, resolution=args.resolution, aliasing=args.aliasing, satellite_gap=args.satellite_gap,
         database=PassConfig(lane_offset_m=args.db_lane, spacing_m=args.db_spacing, max_frames=args.max_frames,
-                            seed=args.seed),
+                            seed=args.seed, **wander),
         query=PassConfig(lane_offset_m=args.query_lane, spacing_m=args.query_spacing, max_frames=args.max_frames,
                          occlusion=args.occlusion, appearance=args.appearance, change=args.change,
-                         seed=args.seed + 1),
+                         seed=args.seed + 1, **wander),
     )
     db, q = record_passes(cfg, args.out, progress=not args.quiet)
     print(json.dumps({"out": args.out, "database_frames": len(db), "database_m": round(db.path_length(), 1),
@@ -285,7 +286,7 @@ def cmd_scene(args) -> int:
     from satloc_env.envs.record import check_scene_routes
     from satloc_env.world.scene import load_scene
 
-    scene = load_scene(args.scene, args.aliasing)
+    scene = load_scene(args.scene, args.aliasing, args.satellite_gap)
     check_scene_routes(scene)   # every route drivable by the autopilot at the recorder's lane offsets
     if args.save:
         scene.save(args.save)
@@ -434,6 +435,11 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--out", required=True)
     r.add_argument("--resolution", choices=["half", "full"], default="half")
     r.add_argument("--aliasing", type=float, default=None)
+    r.add_argument("--satellite-gap", type=float, default=None,
+                   help="the map as a capture of the world in [0, 1] (satloc_env.world.capture; default: the scene's)")
+    r.add_argument("--wander", type=float, default=0.0,
+                   help="both passes' lateral drift in the lane, std in metres (satloc_env.envs.vehicle.Wander)")
+    r.add_argument("--speed-wander", type=float, default=0.0, help="both passes' speed drift, relative std")
     r.add_argument("--db-lane", type=float, default=-1.75)
     r.add_argument("--query-lane", type=float, default=-0.75)
     r.add_argument("--db-spacing", type=float, default=1.0)
@@ -527,6 +533,8 @@ def build_parser() -> argparse.ArgumentParser:
     s = sub.add_parser("scene", help="generate a scene; print its summary, save it or draw it")
     s.add_argument("scene")
     s.add_argument("--aliasing", type=float, default=None)
+    s.add_argument("--satellite-gap", type=float, default=None,
+                   help="the map as a capture of the world in [0, 1] (satloc_env.world.capture; default: the scene's)")
     s.add_argument("--save", help="directory to save the generated scene to")
     s.add_argument("--picture", help="PNG (or JPEG) of the tile with its road graph, buildings, trees and route")
     s.set_defaults(func=cmd_scene)

@@ -95,3 +95,15 @@ def test_recordings_with_a_captured_map_and_wandering_passes(tmp_path):
     assert lateral.std() > 0.05 and np.abs(lateral + 1.75).max() < 0.9
     rc = record_config(ExperimentConfig(satellite_gap=0.5, wander_m=0.3))
     assert rc.satellite_gap == 0.5 and rc.database.wander_m == 0.3 and rc.query.wander_m == 0.3
+
+
+def test_bad_wander_or_gap_of_a_recording_is_refused_before_any_work(tmp_path, capsys):
+    from satloc import ConfigError
+
+    with pytest.raises(ConfigError, match="wander_m"):
+        PassConfig(wander_m=0.9)
+    assert main(["record", "--scene", "city", "--out", str(tmp_path / "r"), "--wander", "0.9"]) == 2
+    assert "wander_m" in capsys.readouterr().err
+    assert main(["record", "--scene", "city", "--out", str(tmp_path / "g"), "--satellite-gap", "1.5"]) == 2
+    assert "satellite_gap" in capsys.readouterr().err
+    assert not (tmp_path / "r").exists() and not (tmp_path / "g").exists()

@@ -87,6 +87,12 @@ class PassConfig:
     wander_m: float = added_field(0.0)       # the autopilot's lateral drift (std, m; satloc_env.envs.vehicle),
     speed_wander: float = added_field(0.0)   # and its speed's (relative std), seeded by ``seed``
 
+    def __post_init__(self):
+        for k, hi in (("wander_m", 0.5), ("speed_wander", 0.5)):
+            v = getattr(self, k)
+            if isinstance(v, bool) or not isinstance(v, (int, float)) or not 0.0 <= v <= hi:
+                raise ConfigError(f"pass {k}: expected a number in [0, {hi}], got {v!r}")
+
 
 @dataclass
 class RecordConfig:
