@@ -238,7 +238,7 @@ def test_table2_recordings_finished_before_a_failure_are_reused(tmp_path, monkey
     monkeypatch.setattr(R, "record_passes", fake_passes)
     monkeypatch.setattr(C, "record_pass", fake_pass)
     monkeypatch.setattr(C, "make_env", lambda **kw: FakeEnv())
-    rec = types.SimpleNamespace(scene="ring", resolution="half", aliasing=0.0, speed_mps=8.0)
+    rec = types.SimpleNamespace(scene="ring", resolution="half", aliasing=0.0, speed_mps=8.0, satellite_gap=None)
     outside = types.SimpleNamespace(seed=2, route="branch")
     for rc in ({"v": 1}, {"v": 1}, {"v": 2}):
         C._record_table2_pass(rec, "query", None, tmp_path, rc, log=lambda m: None)
