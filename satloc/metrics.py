@@ -153,9 +153,7 @@ def bootstrap_indices(n: int, n_boot: int, seed: int, method: CIMethod = "iid",
                       block_length: float | None = None) -> np.ndarray:
     """(n_boot, n) resampled indices of ``n`` queries: one by one (``"iid"``) or in stationary-bootstrap
     blocks of mean length ``block_length`` (``"stationary"``; wrapping around the end)."""
-    if method not in ("iid", "stationary"):
-        raise ConfigError(f"bootstrap: method: expected 'iid' or 'stationary', got {method!r}")
-    return _indices(n, n_boot, np.random.default_rng(seed), method, block_length)
+    return grouped_bootstrap_indices([n], n_boot, seed, method, [block_length])
 
 
 def grouped_bootstrap_indices(sizes, n_boot: int, seed: int, method: CIMethod, block_lengths) -> np.ndarray:
@@ -191,16 +189,13 @@ def bootstrap_ci(values, statistic=np.mean, n_boot: int = 2000, level: float = 0
     queries one by one, ``"stationary"`` in blocks of mean ``block_length`` (None: from the data,
     :func:`stationary_block_length`)."""
     v = _vector(values, "values")
-    if not 0 < level < 1 or n_boot < 1:
-        raise ConfigError(f"bootstrap: expected 0 < level < 1 and n_boot >= 1, got {level}, {n_boot}")
+    _check_level(level, n_boot)
     if v.size == 0:
         return float("nan"), float("nan")
     if method == "stationary" and block_length is None:
         block_length = stationary_block_length(v)
     idx = bootstrap_indices(v.size, n_boot, seed, method, block_length)
-    stats = statistic(v[idx], axis=1)
-    a = (1 - level) / 2
-    return float(np.quantile(stats, a)), float(np.quantile(stats, 1 - a))
+    return _percentiles(statistic(v[idx], axis=1), level)
 
 
 def paired_bootstrap_ci(a, b, statistic=np.mean, n_boot: int = 2000, level: float = 0.95, seed: int = 0,
@@ -212,16 +207,24 @@ def paired_bootstrap_ci(a, b, statistic=np.mean, n_boot: int = 2000, level: floa
     x, y = _vector(a, "a"), _vector(b, "b")
     if x.shape != y.shape:
         raise ConfigError(f"paired bootstrap: a and b must have one value per query each, got {x.size} and {y.size}")
-    if not 0 < level < 1 or n_boot < 1:
-        raise ConfigError(f"bootstrap: expected 0 < level < 1 and n_boot >= 1, got {level}, {n_boot}")
+    _check_level(level, n_boot)
     if x.size == 0:
         return float("nan"), float("nan")
     if method == "stationary" and block_length is None:
         block_length = stationary_block_length(x - y)
     idx = bootstrap_indices(x.size, n_boot, seed, method, block_length)
-    d = statistic(x[idx], axis=1) - statistic(y[idx], axis=1)
-    q = (1 - level) / 2
-    return float(np.quantile(d, q)), float(np.quantile(d, 1 - q))
+    return _percentiles(statistic(x[idx], axis=1) - statistic(y[idx], axis=1), level)
+
+
+def _check_level(level: float, n_boot: int) -> None:
+    if not 0 < level < 1 or n_boot < 1:
+        raise ConfigError(f"bootstrap: expected 0 < level < 1 and n_boot >= 1, got {level}, {n_boot}")
+
+
+def _percentiles(stats: np.ndarray, level: float) -> tuple[float, float]:
+    """The central ``level`` interval of bootstrap statistics."""
+    a = (1 - level) / 2
+    return float(np.quantile(stats, a)), float(np.quantile(stats, 1 - a))
 
 
 def _inputs(errors, scores, inside) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -279,31 +282,25 @@ def precision_recall_ci(errors, scores, threshold: float, inside=None, radius_m:
         good = declared & ins & (e <= radius_m)
     if e.size == 0:
         return {"precision_ci": (float("nan"),) * 2, "recall_ci": (float("nan"),) * 2, "block_length": None}
+
     def blocks(sl):
         return max(stationary_block_length(x[sl].astype(np.float64)) for x in (declared, good))
 
-    if groups is not None:
-        sizes = [int(g) for g in groups]
-        if sum(sizes) != e.size or min(sizes, default=1) < 1:
-            raise ConfigError(f"precision_recall_ci: groups: expected sizes >= 1 adding up to {e.size}, got {sizes}")
-        bounds = np.cumsum([0] + sizes)
-        if method == "stationary" and block_length is None:
-            block_length = [blocks(slice(a, b)) for a, b in zip(bounds[:-1], bounds[1:])]
-        lengths = block_length if isinstance(block_length, (list, tuple)) else [block_length] * len(sizes)
-        idx = grouped_bootstrap_indices(sizes, n_boot, seed, method, lengths)
+    sizes = [e.size] if groups is None else [int(g) for g in groups]
+    if sum(sizes) != e.size or min(sizes, default=1) < 1:
+        raise ConfigError(f"precision_recall_ci: groups: expected sizes >= 1 adding up to {e.size}, got {sizes}")
+    bounds = np.cumsum([0] + sizes)
+    if method == "stationary" and block_length is None:
+        lengths = [blocks(slice(a, b)) for a, b in zip(bounds[:-1], bounds[1:])]
+        block_length = lengths if groups is not None else lengths[0]
     else:
-        if method == "stationary" and block_length is None:
-            block_length = blocks(slice(None))
-        idx = bootstrap_indices(e.size, n_boot, seed, method, block_length)
+        lengths = block_length if isinstance(block_length, (list, tuple)) else [block_length] * len(sizes)
+    idx = grouped_bootstrap_indices(sizes, n_boot, seed, method, lengths)
     tp, nd, npos = good[idx].sum(1), declared[idx].sum(1), ins[idx].sum(1)
-    a = (1 - level) / 2
 
     def ci(num, den):
         ok = den > 0
-        if not ok.any():
-            return float("nan"), float("nan")
-        r = num[ok] / den[ok]
-        return float(np.quantile(r, a)), float(np.quantile(r, 1 - a))
+        return _percentiles(num[ok] / den[ok], level) if ok.any() else (float("nan"), float("nan"))
 
     return {"precision_ci": ci(tp, nd), "recall_ci": ci(tp, npos),
             "block_length": block_length if method == "stationary" else None}

@@ -683,11 +683,6 @@ class SatLocEnv(SharedSpecMixin, gym.Env):
                 raise ConfigError(f"localizer: {ident['source']} is not a build of {what}; a localizer localizes only "
                                   "on the map it was built on")
 
-    def _wander_seed(self) -> int:
-        """The drift's seed when none is given (:func:`satloc_env.envs.vehicle.default_wander_seed`): it takes
-        none of the episode's draws."""
-        return default_wander_seed(self.np_random.bit_generator.seed_seq)
-
     @property
     def scene(self) -> Scene:
         if self._scene is None:
@@ -764,7 +759,8 @@ class SatLocEnv(SharedSpecMixin, gym.Env):
         wander, self.wander_seed = Wander(cfg.wander_m, cfg.speed_wander), None
         profile = None
         if wander.active:
-            self.wander_seed = cfg.wander_seed if cfg.wander_seed is not None else self._wander_seed()
+            self.wander_seed = (cfg.wander_seed if cfg.wander_seed is not None   # none of the episode's draws
+                                else default_wander_seed(self.np_random.bit_generator.seed_seq))
             profile = wander_profile(self.route.length, wander, self.wander_seed)
         self.pose = self.route.pose_at(s0, cfg.lane_offset_m + (profile[0](s0) if profile else 0.0))
         self.pilot = Autopilot(self.route, cfg.lane_offset_m, cfg.speed_mps, s0=s0, wander=profile)

@@ -119,12 +119,7 @@ def capture_tile(lay: Layout, mpp: float, seed: int, gap: float, parts: Iterable
     cap, parts = _checked(gap, mpp, parts)
     if cap.gap == 0.0 or not parts:
         return paint_tile(lay, mpp, seed)
-    if "time" in parts:
-        lay = _capture_time(lay, cap.time, seed)
-    if "texture" in parts:
-        lay = dataclasses.replace(lay, ground_rgb=_own_texture(
-            lay.ground_rgb, lay.ground_labels, TEXTURE_SCALE * cap.gsd_m / lay.ground_mpp, cap.texture,
-            _rng(seed, "texture")))
+    lay = _captured_ground(lay, cap, seed, parts)
     lean = (0.0, 0.0)
     if "lean" in parts:
         r = _rng(seed, "lean")
@@ -142,14 +137,20 @@ def capture_image(lay: Layout, mpp: float, seed: int, gap: float, parts: Iterabl
     cap, parts = _checked(gap, mpp, parts)
     if cap.gap == 0.0 or not parts:
         return lay.ground_rgb, lay.ground_labels
+    lay = _captured_ground(lay, cap, seed, parts)   # (the capture's sun has nothing to shade in an image)
+    return _sensor(lay.ground_rgb, lay.ground_labels.copy(), cap, mpp, seed, parts)
+
+
+def _captured_ground(lay: Layout, cap: Capture, seed: int, parts: tuple[str, ...]) -> Layout:
+    """``lay`` at the capture's time, its ground texture below the sensor's resolution the capture's own, as
+    ``parts`` ask (a new layout; ``lay`` is not touched)."""
     if "time" in parts:
-        lay = changed_layout(lay, cap.time, int(_rng(seed, "time").integers(0, 2**31)),
-                             parts=("vegetation", "road", "cars"))
-    img = lay.ground_rgb
+        lay = _capture_time(lay, cap.time, seed)
     if "texture" in parts:
-        img = _own_texture(img, lay.ground_labels, TEXTURE_SCALE * cap.gsd_m / lay.ground_mpp, cap.texture,
-                           _rng(seed, "texture"))
-    return _sensor(img, lay.ground_labels.copy(), cap, mpp, seed, parts)
+        lay = dataclasses.replace(lay, ground_rgb=_own_texture(
+            lay.ground_rgb, lay.ground_labels, TEXTURE_SCALE * cap.gsd_m / lay.ground_mpp, cap.texture,
+            _rng(seed, "texture")))
+    return lay
 
 
 def _checked(gap: float, mpp: float, parts: Iterable[str]) -> tuple[Capture, tuple[str, ...]]:
@@ -209,7 +210,8 @@ def class_lowpass(img: np.ndarray, labels: np.ndarray, sigma_px: float) -> np.nd
         m = (labels == c).astype(np.float32)
         num = img * m[..., None]
         if f > 1:
-            num, m_s = cv2.resize(num, small, interpolation=cv2.INTER_AREA), cv2.resize(m, small, interpolation=cv2.INTER_AREA)
+            num = cv2.resize(num, small, interpolation=cv2.INTER_AREA)
+            m_s = cv2.resize(m, small, interpolation=cv2.INTER_AREA)
         else:
             m_s = m
         num = cv2.GaussianBlur(num, (0, 0), sigma_px / f, borderType=cv2.BORDER_REFLECT)
