@@ -111,11 +111,15 @@ def from_dict(cls: type[T], data: Any, where: str = "config") -> T:
         raise ConfigError(f"{where.rstrip(':')}: {e}") from e
 
 
-def added_field(default: Any, **kw: Any) -> Any:
+def added_field(default: Any, before: Any = dataclasses.MISSING, **kw: Any) -> Any:
     """A dataclass field added after configurations were stored (stage stamps, cache keys, recordings):
-    :func:`to_dict` leaves it out while it holds ``default``, so what was stored before still matches, and
-    :func:`from_dict` gives it ``default`` where a stored configuration lacks it."""
-    return dataclasses.field(default=default, metadata={"added": True}, **kw)
+    :func:`to_dict` leaves it out while it holds ``before``, the value the versions without the field behaved
+    as (by default ``default``), so what was stored before still matches where it means the same thing, and a
+    new default (``default`` other than ``before``) is written out, so it never matches a stored configuration
+    made without it. :func:`from_dict` gives it ``default`` where a configuration lacks it."""
+    return dataclasses.field(default=default, metadata={"added": True,
+                                                        "before": default if before is dataclasses.MISSING else before},
+                             **kw)
 
 
 def to_dict(obj: Any, runtime: bool = True) -> Any:
@@ -123,12 +127,12 @@ def to_dict(obj: Any, runtime: bool = True) -> Any:
 
     ``runtime=False`` leaves out the fields marked ``metadata={"runtime": True}`` (at any depth): settings of
     how a stage runs, not of what it makes (e.g. :func:`satloc.device.device_field`), which the keys of
-    cached stages must not depend on. A field made with :func:`added_field` is left out while it holds its
-    default."""
+    cached stages must not depend on. A field made with :func:`added_field` is left out while it holds the
+    value the versions before it behaved as."""
     if dataclasses.is_dataclass(obj) and not isinstance(obj, type):
         return {f.name: to_dict(getattr(obj, f.name), runtime) for f in dataclasses.fields(obj)
                 if (runtime or not f.metadata.get("runtime"))
-                and not (f.metadata.get("added") and getattr(obj, f.name) == f.default)}
+                and not (f.metadata.get("added") and getattr(obj, f.name) == f.metadata.get("before", f.default))}
     if isinstance(obj, (list, tuple)):
         return [to_dict(v, runtime) for v in obj]
     if isinstance(obj, dict):

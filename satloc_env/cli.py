@@ -131,8 +131,8 @@ def cmd_experiment(args) -> int:
             raise SatlocError(f"{p}: config file not found")
         config = yaml.safe_load(p.read_text()) or {}
     log = (lambda *a, **k: None) if args.quiet else (lambda m: print(m, file=sys.stderr, flush=True))
-    if args.ray is not None and args.which not in ("table1", "table2", "sweep"):
-        raise SatlocError(f"--ray: only table1, table2 and sweep run on Ray, not {args.which}")
+    if args.ray is not None and args.which not in ("table1", "table2", "sweep", "gap"):
+        raise SatlocError(f"--ray: only table1, table2, sweep and gap run on Ray, not {args.which}")
     from satloc_env.experiments.scale import Runner
 
     with Runner(ray=args.ray is not None, address=args.ray, exact=args.ray_threads == "serial") as runner:
@@ -143,12 +143,14 @@ def cmd_experiment(args) -> int:
             print((Path(args.out) / "table2.md").read_text(), end="")
             print(f"written: {Path(args.out) / 'table2.csv'}, {Path(args.out) / 'pr_curves.png'}")
             return 0
-        if args.which == "sweep":
-            from satloc_env.experiments.tables import sweep
+        if args.which in ("sweep", "gap"):
+            from satloc_env.experiments.tables import gap_curve, sweep
 
-            sweep(args.out, config, progress=not args.quiet, log=log, runner=runner)
+            (sweep if args.which == "sweep" else gap_curve)(args.out, config, progress=not args.quiet, log=log,
+                                                            runner=runner)
             print((Path(args.out) / "sweep.md").read_text(), end="")
-            print(f"written: {Path(args.out) / 'sweep.csv'}, {Path(args.out) / 'sweep.png'}")
+            extra = f", {Path(args.out) / 'gap.png'}" if args.which == "gap" else ""
+            print(f"written: {Path(args.out) / 'sweep.csv'}, {Path(args.out) / 'sweep.png'}{extra}")
             return 0
         if args.which == "table1":
             rows = table1(args.out, tuple(args.scenes), config, progress=not args.quiet, log=log, runner=runner)
@@ -200,7 +202,7 @@ def cmd_evaluate(args) -> int:
 def cmd_record(args) -> int:
     from satloc_env.envs.record import PassConfig, RecordConfig, record_passes
 
-    wander = {"wander_m": args.wander, "speed_wander": args.speed_wander}
+    wander = {k: v for k, v in (("wander_m", args.wander), ("speed_wander", args.speed_wander)) if v is not None}
     cfg = RecordConfig(
         scene=args.scene, resolution=args.resolution, aliasing=args.aliasing, satellite_gap=args.satellite_gap,
         database=PassConfig(lane_offset_m=args.db_lane, spacing_m=args.db_spacing, max_frames=args.max_frames,
@@ -380,14 +382,16 @@ def build_parser() -> argparse.ArgumentParser:
 
     ex = sub.add_parser("experiment", help="paper experiments on simulated scenes: table1; table2 (queries outside "
                                            "the map, every method, PR curves); sweep (every method over aliasing x "
-                                           "occlusion x appearance); aliasing (how often each "
+                                           "occlusion x appearance x satellite gap); gap (each method's error "
+                                           "against the satellite map's capture gap); aliasing (how often each "
                                            "single-image cue prefers a look-alike place); tune (the tuned "
                                            "settings chosen on a calibration scene no table tests on)")
-    ex.add_argument("which", choices=["table1", "table2", "sweep", "aliasing", "tune"])
+    ex.add_argument("which", choices=["table1", "table2", "sweep", "gap", "aliasing", "tune"])
     ex.add_argument("--out", required=True)
     ex.add_argument("--scenes", nargs="+", default=["city", "residential"])
     ex.add_argument("--config", help="YAML with ExperimentConfig fields (satloc_env/experiments/scene_run.py); table2: "
-                                     "Table2Config, sweep: SweepConfig fields (satloc_env/experiments/tables.py), tune: "
+                                     "Table2Config, sweep and gap: SweepConfig fields (satloc_env/experiments/tables.py; gap: "
+                                     "over GAP_CURVE there), tune: "
                                      "TuneConfig fields (satloc_env/experiments/tune.py); --scenes is not used by these)")
     ex.add_argument("--quiet", action="store_true")
     ex.add_argument("--ray", nargs="?", const="", default=None, metavar="ADDRESS",
@@ -437,9 +441,11 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--aliasing", type=float, default=None)
     r.add_argument("--satellite-gap", type=float, default=None,
                    help="the map as a capture of the world in [0, 1] (satloc_env.world.capture; default: the scene's)")
-    r.add_argument("--wander", type=float, default=0.0,
-                   help="both passes' lateral drift in the lane, std in metres (satloc_env.envs.vehicle.Wander)")
-    r.add_argument("--speed-wander", type=float, default=0.0, help="both passes' speed drift, relative std")
+    r.add_argument("--wander", type=float, default=None,
+                   help="both passes' lateral drift in the lane, std in metres (satloc_env.envs.vehicle.Wander; "
+                        "default 0.3; 0: exactly on the lane offset)")
+    r.add_argument("--speed-wander", type=float, default=None,
+                   help="both passes' speed drift, relative std (default 0.1)")
     r.add_argument("--db-lane", type=float, default=-1.75)
     r.add_argument("--query-lane", type=float, default=-0.75)
     r.add_argument("--db-spacing", type=float, default=1.0)

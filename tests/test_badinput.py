@@ -329,8 +329,8 @@ def test_localizer_of_another_scene_is_refused_by_satloc_v0(scenes, loc, build_d
     with pytest.raises(ConfigError, match=r"the Localizer instance was built on a satellite map of the same size as "
                                           r"the map of scene 'tiny2' .* other content \(\d+% of its 8x8-pixel cells"):
         gym.make(ENV_ID, scene=scenes["tiny2"], localizer=loc)
-    with pytest.raises(ConfigError, match=r"the build '.*tiny-alias0-half-\w+' of scene 'tiny' \(aliasing 0\) was "
-                                          r"built on .* not the map of scene 'tiny2'"):
+    with pytest.raises(ConfigError, match=r"the build '.*tiny-alias0-gap0\.5-half-\w+' of scene 'tiny' \(aliasing 0\) "
+                                          r"\(satellite gap 0\.5\) was built on .* not the map of scene 'tiny2'"):
         gym.make(ENV_ID, scene=scenes["tiny2"], localizer=str(build_dir))
     # and when a reset changes the scene; the env stays usable on its own scene
     env = gym.make(ENV_ID, scene=scenes["tiny"], localizer=loc)
@@ -349,8 +349,8 @@ def test_without_colour_features_the_build_record_decides(scenes, loc, build_dir
     directory's recorded scene then decides."""
     monkeypatch.setattr("satloc_env.envs.drive._rgb_channels", lambda extractor: None)
     assert map_difference(loc, satloc_env.load_scene(scenes["tiny2"]).satmap) is None
-    with pytest.raises(ConfigError, match=r"the build '.*' of scene 'tiny' \(aliasing 0\) is not a build of scene "
-                                          r"'tiny2' \(aliasing 0\)"):
+    with pytest.raises(ConfigError, match=r"the build '.*' of scene 'tiny' \(aliasing 0\) \(satellite gap 0\.5\) is "
+                                          r"not a build of scene 'tiny2' \(aliasing 0\)"):
         gym.make(ENV_ID, scene=scenes["tiny2"], localizer=str(build_dir))
     gym.make(ENV_ID, scene=scenes["tiny"], localizer=str(build_dir)).close()
 
@@ -397,8 +397,9 @@ def test_localizer_of_another_camera_is_refused(scenes, rec, loc):
 
 def test_replay_refuses_a_localizer_of_other_data(scenes, rec, loc, build_dir, tmp_path):
     # a recording of another scene: the build records 'tiny', the sequence 'tiny2'
-    with pytest.raises(ConfigError, match=r"the build '.*' of scene 'tiny' \(aliasing 0\) is not a build of scene "
-                                          r"'tiny2' \(aliasing 0\), where sequence 'query' was recorded"):
+    with pytest.raises(ConfigError, match=r"the build '.*' of scene 'tiny' \(aliasing 0\) \(satellite gap 0\.5\) is "
+                                          r"not a build of scene 'tiny2' \(aliasing 0\), where sequence 'query' was "
+                                          r"recorded"):
         gym.make(REPLAY_ID, sequence=rec["tiny2"], localizer=str(build_dir))
     # a sequence whose path lies off the localizer's map
     moved = [rec["tiny"][i] for i in range(3)]

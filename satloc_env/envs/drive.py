@@ -38,11 +38,14 @@ from satloc_env.world.scene import Scene, load_scene
 from .occluders import Appearance, sample_occluders
 from .vehicle import (
     DEFAULT_DT,
+    DEFAULT_SPEED_WANDER,
+    DEFAULT_WANDER_M,
     Autopilot,
     VehicleParams,
     Wander,
     action_bounds,
     default_wander_seed,
+    drift_at,
     step_bicycle,
     wander_profile,
 )
@@ -54,9 +57,10 @@ class EnvConfig:
     resolution: Literal["half", "full"] = "half"   # 620x188 or 1242x375 (KITTI rig)
     route: str | None = None                # route name; default: the scene's database route
     lane_offset_m: float = -1.75            # lateral offset from the route centre line (left positive)
-    wander_m: float = 0.0                   # the autopilot's lateral drift around the lane offset: std, metres
-                                            # (a smooth random process along the route; satloc_env.envs.vehicle)
-    speed_wander: float = 0.0               # the autopilot's speed drift: relative std
+    wander_m: float = DEFAULT_WANDER_M      # the autopilot's lateral drift around the lane offset: std, metres
+                                            # (a smooth random process along the route; satloc_env.envs.vehicle;
+                                            # 0: exactly on the lane offset)
+    speed_wander: float = DEFAULT_SPEED_WANDER   # the autopilot's speed drift: relative std
     wander_seed: int | None = None          # the drift's seed (None: drawn from the episode's seed)
     start_s_m: float = 0.0                  # start position along the route
     random_start: bool = False              # start at a random place on the route (from the episode seed)
@@ -762,7 +766,7 @@ class SatLocEnv(SharedSpecMixin, gym.Env):
             self.wander_seed = (cfg.wander_seed if cfg.wander_seed is not None   # none of the episode's draws
                                 else default_wander_seed(self.np_random.bit_generator.seed_seq))
             profile = wander_profile(self.route.length, wander, self.wander_seed)
-        self.pose = self.route.pose_at(s0, cfg.lane_offset_m + (profile[0](s0) if profile else 0.0))
+        self.pose = self.route.pose_at(s0, cfg.lane_offset_m + drift_at(self.route, cfg.lane_offset_m, profile, s0))
         self.pilot = Autopilot(self.route, cfg.lane_offset_m, cfg.speed_mps, s0=s0, wander=profile)
         self._renderer.set_occluders(*sample_occluders(self.route, scene.ground_label, occ, cfg.lane_offset_m, rng))
         self.appearance = Appearance(app, rng)

@@ -21,7 +21,7 @@ import numpy as np
 from satloc.errors import ConfigError
 from satloc.geometry import Pose2
 
-from .vehicle import DEFAULT_DT, Autopilot, VehicleParams, action_bounds, step_bicycle
+from .vehicle import DEFAULT_DT, Autopilot, VehicleParams, action_bounds, drift_at, step_bicycle
 
 __all__ = ["autopilot_drive", "check_route", "first_off_road", "off_road_message"]
 
@@ -35,7 +35,7 @@ def autopilot_drive(scene, route: str, lane_offset_m: float, speed_mps: float = 
     the drive follows, as the environment's with that seed. Stops after ``20 x`` the steps the route should
     take (a vehicle that never gets there)."""
     r = scene.routes[route]
-    pose = r.pose_at(start_s_m, lane_offset_m + (wander[0](start_s_m) if wander else 0.0))
+    pose = r.pose_at(start_s_m, lane_offset_m + drift_at(r, lane_offset_m, wander, start_s_m))
     pilot = Autopilot(r, lane_offset_m, speed_mps, s0=start_s_m, wander=wander)
     low, high = (b.astype(np.float64) for b in action_bounds(vehicle))
     limit = 1000 + 20 * int(r.length / max(speed_mps * dt, 1e-3))

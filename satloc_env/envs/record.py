@@ -52,7 +52,7 @@ from satloc_env.world.scene import SCENES_DIR, load_scene, load_spec, scene_path
 
 from .drivecheck import check_route, off_road_message
 from .ids import ENV_ID
-from .vehicle import Wander, default_wander_seed, wander_profile
+from .vehicle import DEFAULT_SPEED_WANDER, DEFAULT_WANDER_M, Wander, default_wander_seed, wander_profile
 
 
 def make_env(**config: Any) -> gym.Env:
@@ -84,8 +84,9 @@ class PassConfig:
     seed: int = 0
     depth: bool = True              # store true depth (simulator ground truth) with each frame
     labels: bool = False
-    wander_m: float = added_field(0.0)       # the autopilot's lateral drift (std, m; satloc_env.envs.vehicle),
-    speed_wander: float = added_field(0.0)   # and its speed's (relative std), seeded by ``seed``
+    wander_m: float = added_field(DEFAULT_WANDER_M, before=0.0)        # the autopilot's lateral drift (std, m;
+    speed_wander: float = added_field(DEFAULT_SPEED_WANDER, before=0.0)  # satloc_env.envs.vehicle) and its speed's
+                                                                         # (relative std), seeded by ``seed``
 
     def __post_init__(self):
         for k, hi in (("wander_m", 0.5), ("speed_wander", 0.5)):
@@ -107,14 +108,28 @@ class RecordConfig:
                                                                    change=QUERY_CHANGE, seed=1))
 
 
+def record_stamp(cfg: RecordConfig) -> dict:
+    """What a recording of ``cfg`` is stamped with and compared by (its ``recording.json``, the experiments'
+    stage stamps): :func:`satloc.config.to_dict` of ``cfg`` with ``satellite_gap`` the gap its map is captured
+    at (None resolved to the scene's own), written only when not 0, as recordings made before the knob (their
+    maps the ground's copy) were stamped."""
+    from satloc_env.world.scene import own_satellite_gap
+
+    d = to_dict(cfg)
+    d.pop("satellite_gap", None)
+    gap = own_satellite_gap(cfg.scene) if cfg.satellite_gap is None else float(cfg.satellite_gap)
+    if gap != 0.0:
+        d["satellite_gap"] = gap
+    return d
+
+
 def record_pass(env: gym.Env, p: PassConfig, route: str, out: Path, name: str, progress: bool = True,
                 meta: dict | None = None) -> Sequence:
     """Drive ``route`` once with the autopilot of ``env`` (a ``satloc/SatLoc-v0`` environment, wrapped or
     not), writing a frame every ``p.spacing_m`` metres to ``out``."""
     options = {"route": route, "lane_offset_m": p.lane_offset_m, "occlusion": p.occlusion,
-               "appearance": p.appearance, "change": p.change, "max_steps": 10**9}
-    if p.wander_m or p.speed_wander:
-        options.update(wander_m=p.wander_m, speed_wander=p.speed_wander)
+               "appearance": p.appearance, "change": p.change, "max_steps": 10**9,
+               "wander_m": p.wander_m, "speed_wander": p.speed_wander}
     obs, info = env.reset(seed=p.seed, options=options)
     length = env.unwrapped.route.length
     total = p.max_frames or int(length // p.spacing_m) + 1
@@ -269,7 +284,7 @@ def record_passes(config: RecordConfig | dict[str, Any], out_dir: str | Path, pr
     scene = load_scene(cfg.scene, cfg.aliasing, cfg.satellite_gap)   # before any work: both passes drivable
     check_passes(scene, pass_routes(scene, cfg), cfg.speed_mps)
     out = Path(out_dir)
-    conf = to_dict(cfg)
+    conf = record_stamp(cfg)
     sha = scene_identity(cfg.scene)[2]
     done = _resumable(out, conf, sha)
     if not done:

@@ -5,6 +5,13 @@ how far they drift: the lateral position follows a smooth random process around 
 deviation ``lateral_m``, correlated over ``scale_m`` of route) and the cruising speed likewise (relative
 standard deviation ``speed``). :func:`wander_profile` draws one such drive, seeded; the autopilot steers
 towards the wandering offset at its look-ahead point. With no wander it drives exactly as before.
+
+The environment and the recorder drive with :data:`DEFAULT_WANDER_M` and :data:`DEFAULT_SPEED_WANDER` unless
+told otherwise (0 and 0 give the lane-exact drives of the versions before the drift). What the lateral figure
+rests on: the standard deviation of lateral position (SDLP) that driving studies measure is of the order of
+0.2 m on a highway for a driver told to hold the lane (the standardised on-the-road test: Verster & Roth 2011,
+Int J Gen Med 4:359-371); 0.3 m allows for city streets, where lanes are wide for the speed and parked cars
+and turns move the line. Speed: a tenth of the cruising speed, a driver in city traffic.
 """
 from __future__ import annotations
 
@@ -14,7 +21,11 @@ from dataclasses import dataclass
 import numpy as np
 
 from satloc.geometry import Pose2
-from satloc_env.world.route import Route
+from satloc_env.world.route import REFERENCE_ROAD_M, Route
+
+#: the autopilot's lateral drift (std, metres) and speed drift (relative std) by default (see the module docstring)
+DEFAULT_WANDER_M = 0.3
+DEFAULT_SPEED_WANDER = 0.1
 
 #: seconds per simulator step (the environment's default ``dt``, which the recorder drives at)
 DEFAULT_DT = 0.1
@@ -113,6 +124,27 @@ def wander_profile(length_m: float, wander: Wander, seed: int):
     return lateral, speed_factor
 
 
+#: half a car's width plus a margin (metres): on a road whose width the route knows, the drift never takes the
+#: car's side beyond its edge
+CAR_HALF_WIDTH_M = 1.0
+
+
+def drift_at(route: Route, lane_offset: float, wander, s: float) -> float:
+    """The lateral drift (metres, before the route's narrowing of offsets) of the profile ``wander`` at arc
+    length ``s``, 0 without one. On a route that knows its road's width (``route.offset_scale``: routes over
+    a road graph), clipped to the room between the lane and the road's edge for a car
+    (:data:`CAR_HALF_WIDTH_M`): none where the car barely fits, as on a one-lane street; on routes without
+    widths (generated scenes) the profile's own bound only."""
+    if wander is None:
+        return 0.0
+    d = float(wander[0](s))
+    if route.offset_scale is None:
+        return d
+    scale = float(np.interp(s, route.cum, route.offset_scale))
+    room = max(0.0, (scale * (REFERENCE_ROAD_M / 2 - abs(lane_offset)) - CAR_HALF_WIDTH_M) / scale)
+    return float(np.clip(d, -room, room))
+
+
 class Autopilot:
     """Pure-pursuit route follower at a lateral lane offset: ``action = pilot.act(pose)``.
 
@@ -134,7 +166,7 @@ class Autopilot:
     def act(self, pose: Pose2) -> np.ndarray:
         self.s, _ = self.route.project((pose.x, pose.y), s_hint=self.s, window=15.0)
         ahead = self.s + self.lookahead
-        offset = self.offset if self.wander is None else self.offset + self.wander[0](ahead)
+        offset = self.offset + drift_at(self.route, self.offset, self.wander, ahead)
         target = self.route.pose_at(ahead, offset)
         local = pose.transform_inv(np.array([target.x, target.y]))
         ld2 = max(float(local @ local), 1e-6)

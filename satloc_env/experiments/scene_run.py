@@ -43,7 +43,16 @@ from satloc.projection import ProjectionConfig
 from satloc.satmap import SatelliteMap
 from satloc.sequence import Sequence
 from satloc.track import compose_motion, noisy_odometry
-from satloc_env.envs.record import QUERY_CHANGE, PassConfig, RecordConfig, check_passes, pass_routes, record_passes
+from satloc_env.envs.record import (
+    QUERY_CHANGE,
+    PassConfig,
+    RecordConfig,
+    check_passes,
+    pass_routes,
+    record_passes,
+    record_stamp,
+)
+from satloc_env.envs.vehicle import DEFAULT_SPEED_WANDER, DEFAULT_WANDER_M
 from satloc_env.world.scene import load_scene
 
 # "<mode>[+track][+align]": tracked over the query sequence with odometry (satloc.track), refined by bird's-eye
@@ -117,8 +126,9 @@ class ExperimentConfig:
     appearance: float = 0.5
     change: float = QUERY_CHANGE            # ... and the world changed as on another day (satloc_env.world.revisit)
     satellite_gap: float | None = added_field(None)   # the map as a capture (satloc_env.world.capture); None: scene's
-    wander_m: float = added_field(0.0)      # both passes' lateral drift (std, m) and speed drift (relative std),
-    speed_wander: float = added_field(0.0)  # each pass seeded by its own seed (satloc_env.envs.vehicle.Wander)
+    wander_m: float = added_field(DEFAULT_WANDER_M, before=0.0)          # both passes' lateral drift (std, m)
+    speed_wander: float = added_field(DEFAULT_SPEED_WANDER, before=0.0)  # and speed drift (relative std), each
+                                            # pass seeded by its own seed (satloc_env.envs.vehicle.Wander)
     coverage_m: float = 5.0                 # evaluate queries whose true pose is this close to the database path
     features: str = "default"
     context: ContextConfig = field(default_factory=ContextConfig)
@@ -319,7 +329,7 @@ def _stages(cfg: ExperimentConfig, out: Path, progress: bool, log) -> tuple[Sequ
     from satloc_env.envs.auto_localizer import cache_key
 
     # the scene files' content too (YAML, image, road mask): an edited scene is recorded again
-    rc = dict(to_dict(rec), scene_sha256=cache_key(cfg.scene, cfg.aliasing)["scene_sha256"])
+    rc = dict(record_stamp(rec), scene_sha256=cache_key(cfg.scene, cfg.aliasing)["scene_sha256"])
     if not _stage_done(out / "record.json", rc):
         log(f"[{cfg.scene}] recording the database and query passes into {out / 'rec'}")
         record_passes(rec, out / "rec", progress)

@@ -44,13 +44,23 @@ from satloc.metrics import ci_method, pr_curve, precision_recall, precision_reca
 from satloc.persist import atomic_path, load_npz, read_json, save_npz, write_json
 from satloc.satmap import SatelliteMap
 from satloc.sequence import Sequence
-from satloc_env.envs.record import PassConfig, RecordConfig, check_passes, make_env, pass_routes, record_pass
+from satloc_env.envs.record import (
+    PassConfig,
+    RecordConfig,
+    check_passes,
+    make_env,
+    pass_routes,
+    record_pass,
+    record_stamp,
+)
+from satloc_env.world.capture import DEFAULT_GAP
 from satloc_env.world.scene import load_scene
 
 from .scale import Runner, Unit
 from .scene_run import (  # noqa: F401
     BASELINE_NAMES,
     METHOD_NAMES,
+    MODES,
     CompareConfig,
     ExperimentConfig,
     _covered,
@@ -89,13 +99,14 @@ def trained_fabmap(cc: CompareConfig, test_scene: str, out: Path, progress: bool
     d = Path(out) / "fabmap"
     from satloc_env.envs.auto_localizer import cache_key
 
+    p = PassConfig(spacing_m=cc.fabmap_train_spacing_m, max_frames=cc.fabmap_train_frames, depth=False)
     stamp = {"train_scene": train_scene, "frames": cc.fabmap_train_frames, "spacing_m": cc.fabmap_train_spacing_m,
-             "fabmap": to_dict(cc.fabmap), "scene_sha256": cache_key(train_scene, None)["scene_sha256"]}
+             "fabmap": to_dict(cc.fabmap), "scene_sha256": cache_key(train_scene, None)["scene_sha256"],
+             **{k: v for k, v in to_dict(p).items() if k in ("wander_m", "speed_wander")}}   # drift: since it existed
     model = d / "fabmap.npz"
     if _stage_done(Path(out) / "fabmap_stage.json", stamp) and model.is_file():
         return model
     log(f"[{test_scene}] training FAB-MAP on {cc.fabmap_train_frames} frames of {train_scene!r}")
-    p = PassConfig(spacing_m=cc.fabmap_train_spacing_m, max_frames=cc.fabmap_train_frames, depth=False)
     env = make_env(scene=train_scene, resolution="half", depth=False, labels=False, localizer=None)
     try:
         env.reset(seed=0)
@@ -233,9 +244,11 @@ class Table2Config:
     radius_m: float = 10.0                # a true positive is declared inside, inside and within this
     rule: str = "max_f1"                  # satloc.metrics.select_threshold's rule
     min_precision: float = 0.9            # rule "recall_at_precision"
-    # calibration: a second revisit of the ring and a second branch pass, disjoint from the test passes (other
-    # seeds for occluders and appearance, queries every calibration_spacing_m instead of the experiment's
-    # query_spacing_m, so at other places); each method's threshold is picked there and frozen for the test
+    # calibration: a revisit of a ring and a branch pass (other seeds for occluders, appearance and drift,
+    # queries every calibration_spacing_m) at another place: ``calibration_scene``'s own ring and branch (routes
+    # of the same names) against its own map; None: the test scene's (nearer than ``radius_m`` to the test
+    # queries: the same places). Each method's threshold is picked there and frozen for the test
+    calibration_scene: str | None = "loop_calib"
     calibration_seeds: tuple[int, int] = (3, 4)
     calibration_spacing_m: float = 7.0
 
@@ -249,6 +262,14 @@ class Table2Config:
                               f"passes' (1, 2), got {list(self.calibration_seeds)}")
         if self.calibration_spacing_m <= 0:
             raise ConfigError(f"calibration_spacing_m: expected > 0, got {self.calibration_spacing_m}")
+        if self.calibration_scene is not None and scene_label(self.calibration_scene) == scene_label(self.scene):
+            raise ConfigError(f"calibration_scene: {self.calibration_scene!r} is the test scene; give another "
+                              "place, or null for calibration passes on the test scene")
+
+    @property
+    def separate_calibration(self) -> bool:
+        """Whether the calibration passes drive another scene (``calibration_scene``) than the test."""
+        return self.calibration_scene is not None
 
 
 def operating_point(errors, scores, inside, rule: str = "max_f1", min_precision: float = 0.9,
@@ -264,32 +285,43 @@ def operating_point(errors, scores, inside, rule: str = "max_f1", min_precision:
             "declared": pr["declared"], "positives": pr["positives"], "rule": rule, "curve": curve}
 
 
-def _table2_recording(t2: Table2Config) -> tuple[RecordConfig, dict[str, PassConfig], dict]:
-    """Table II's recordings: the database pass of the ring and the query passes, ``inside`` (a revisit of the
-    ring, the recording's query pass) and ``outside`` (the branch) for the test, ``calib_inside`` and
-    ``calib_outside`` for calibration (other seeds and spacing). Checks that every pass is drivable; returns
-    the recording of the first two, the other passes by name and the stage's stamp."""
+def _table2_recording(t2: Table2Config, calibration: bool = False
+                      ) -> tuple[RecordConfig, dict[str, PassConfig], dict]:
+    """Table II's recordings of one scene: the database pass of the ring and the query passes. The test
+    scene's (``calibration`` False): ``inside`` (a revisit of the ring, the recording's query pass) and
+    ``outside`` (the branch), with ``calib_inside`` and ``calib_outside`` (other seeds and spacing) when the
+    calibration drives the test scene too; ``calibration_scene``'s (``calibration`` True): ``calib_inside``
+    (the recording's query pass) and ``calib_outside`` against its own database pass. Checks that every pass
+    is drivable; returns the recording of the database and its query pass, the other passes by name and the
+    stage's stamp."""
     e = t2.experiment
+    wander = {"wander_m": e.wander_m, "speed_wander": e.speed_wander}
+    scene_name = t2.calibration_scene if calibration else t2.scene
 
     def extra(route, seed, spacing, frames):
         return dense_pass(e, PassConfig(route=route, lane_offset_m=e.query_lane_m, spacing_m=spacing,
                                         occlusion=e.occlusion, appearance=e.appearance, change=e.change,
                                         seed=seed, max_frames=frames, **wander))
 
-    wander = {"wander_m": e.wander_m, "speed_wander": e.speed_wander}
-    rec = RecordConfig(scene=t2.scene, aliasing=e.aliasing, satellite_gap=e.satellite_gap,
-                       database=PassConfig(route=t2.inside_route, max_frames=e.database_frames, **wander),
-                       query=extra(t2.inside_route, 1, e.query_spacing_m, e.query_frames))
     cs, cb = t2.calibration_seeds
-    more = {"outside": extra(t2.outside_route, 2, e.query_spacing_m, t2.outside_frames),
-            "calib_inside": extra(t2.inside_route, cs, t2.calibration_spacing_m, e.query_frames),
-            "calib_outside": extra(t2.outside_route, cb, t2.calibration_spacing_m, t2.outside_frames)}
-    scene = load_scene(t2.scene, e.aliasing, e.satellite_gap)   # before any work: every pass drivable
+    calib = {"calib_inside": extra(t2.inside_route, cs, t2.calibration_spacing_m, e.query_frames),
+             "calib_outside": extra(t2.outside_route, cb, t2.calibration_spacing_m, t2.outside_frames)}
+    if calibration:
+        query, more = calib.pop("calib_inside"), calib
+    else:
+        query = extra(t2.inside_route, 1, e.query_spacing_m, e.query_frames)
+        more = {"outside": extra(t2.outside_route, 2, e.query_spacing_m, t2.outside_frames)}
+        if not t2.separate_calibration:
+            more.update(calib)
+    rec = RecordConfig(scene=scene_name, aliasing=e.aliasing, satellite_gap=e.satellite_gap,
+                       database=PassConfig(route=t2.inside_route, max_frames=e.database_frames, **wander),
+                       query=query)
+    scene = load_scene(scene_name, e.aliasing, e.satellite_gap)   # before any work: every pass drivable
     check_passes(scene, pass_routes(scene, rec) + [(p.route, p) for p in more.values()], rec.speed_mps,
-                 f"scene {t2.scene!r}")
+                 f"scene {scene_name!r}")
     from satloc_env.envs.auto_localizer import cache_key
 
-    rc = dict(to_dict(rec), scene_sha256=cache_key(t2.scene, e.aliasing)["scene_sha256"],
+    rc = dict(record_stamp(rec), scene_sha256=cache_key(scene_name, e.aliasing)["scene_sha256"],
               **{name: to_dict(p) for name, p in more.items()})
     return rec, more, rc
 
@@ -327,11 +359,11 @@ TABLE2_PARTS = ("inside", "outside", "calib_inside", "calib_outside")
 
 def _table2_build(t2: Table2Config, e: ExperimentConfig, out: Path, rc: dict, warm: bool, progress: bool = True,
                   log=print) -> dict:
-    """Table II's build on the recorded database pass (``rc``: the recording's stamp) and (``warm``: for parts
-    running at the same time) the localizers' satellite tables cached in it, so that the parts only read
-    them. Returns the stage times."""
+    """Table II's build on the database pass recorded in ``out`` (``rc``: the recording's stamp; ``e.scene``
+    its scene) and (``warm``: for parts running at the same time) the localizers' satellite tables cached in
+    it, so that the parts only read them. Returns the stage times."""
     db = Sequence.load(out / "rec" / "database")
-    bdir, times = build_and_learn(e, t2.scene, db, out / "rec" / "map", out, {"record": rc}, progress, log)
+    bdir, times = build_and_learn(e, e.scene, db, out / "rec" / "map", out, {"record": rc}, progress, log)
     if warm:
         from satloc.pipeline import load_localizer
 
@@ -344,18 +376,43 @@ def _table2_build(t2: Table2Config, e: ExperimentConfig, out: Path, rc: dict, wa
     return times
 
 
+def _part_source(t2: Table2Config, out: Path, part: str) -> tuple[Path, str]:
+    """Where a part of Table II (:data:`TABLE2_PARTS`) was recorded: the folder of its scene's recording and
+    build (``out``, or ``out/calibration`` for the calibration parts on ``calibration_scene``), and its pass."""
+    if part.startswith("calib") and t2.separate_calibration:
+        return out / "calibration", "query" if part == "calib_inside" else part
+    return out, "query" if part == "inside" else part
+
+
 def _table2_part(t2: Table2Config, e: ExperimentConfig, out: Path, part: str, times: dict, progress: bool = True,
-                 log=print) -> tuple[np.ndarray, dict]:
-    """One query pass of Table II (:data:`TABLE2_PARTS`) against the shared build, in ``out/<part>``: which of
-    its queries are inside the map, and :func:`compare`'s results."""
-    db = Sequence.load(out / "rec" / "database")
-    q = Sequence.load(out / "rec" / ("query" if part == "inside" else part))
+                 log=print) -> tuple[np.ndarray, dict, np.ndarray]:
+    """One query pass of Table II (:data:`TABLE2_PARTS`) against its scene's build (:func:`_part_source`),
+    in ``out/<part>``: which of its queries are inside the map, :func:`compare`'s results and the queries'
+    true positions."""
+    src, name = _part_source(t2, out, part)
+    scene = t2.calibration_scene if src != out else t2.scene
+    if scene_label(e.scene) != scene_label(scene):
+        e = from_dict(ExperimentConfig, dict(to_dict(e), scene=scene), "table2 config: experiment")
+    db = Sequence.load(src / "rec" / "database")
+    q = Sequence.load(src / "rec" / name)
     spacing = e.query_spacing_m if part in ("inside", "outside") else t2.calibration_spacing_m
     sel = spaced_frames(q, spacing, t2.outside_frames if "outside" in part else e.query_frames)
     inside = np.isin(sel, covered_queries(db, q, e.coverage_m))
     (out / part).mkdir(exist_ok=True)
-    return inside, compare(e, e.compare, t2.scene, db, q, sel, out / "build", SatelliteMap.load(out / "rec" / "map"),
-                           out / part, {"scene": t2.scene, "part": part}, times, progress, log, fabmap_dir=out)
+    res = compare(e, e.compare, scene, db, q, sel, src / "build", SatelliteMap.load(src / "rec" / "map"), out / part,
+                  {"scene": scene, "part": part}, times, progress, log, fabmap_dir=out)
+    return inside, res, np.asarray(q.poses, np.float64)[sel, :2]
+
+
+def nearest_distance(a: np.ndarray, b: np.ndarray) -> float:
+    """The smallest distance between a point of ``a`` (N, 2) and a point of ``b`` (M, 2) (NaN rows ignored)."""
+    from scipy.spatial import cKDTree
+
+    a, b = np.asarray(a, np.float64), np.asarray(b, np.float64)
+    a, b = a[np.all(np.isfinite(a), axis=1)], b[np.all(np.isfinite(b), axis=1)]
+    if not len(a) or not len(b):
+        return float("nan")
+    return float(cKDTree(b).query(a)[0].min())
 
 
 def table2(out: str | Path, config: dict | None = None, progress: bool = True, log=print,
@@ -365,7 +422,10 @@ def table2(out: str | Path, config: dict | None = None, progress: bool = True, l
     Records (stage-stamped) the database pass of ``inside_route`` and four query passes: for the test a
     revisit of the ring (the experiment's query lane, appearance and occluders) and a pass on
     ``outside_route``; for calibration the same two with other seeds and another spacing
-    (``calibration_seeds``, ``calibration_spacing_m``). Runs :func:`compare` on each against the same build; a
+    (``calibration_seeds``, ``calibration_spacing_m``) on ``calibration_scene`` (another place, recorded, built
+    and learned in ``out/calibration``) or, with ``calibration_scene`` None, on the test scene (the nearest
+    distance between a calibration and a test query is then reported: ``calibration_nearest_m``). Runs
+    :func:`compare` on each pass against its scene's build; a
     query is *inside* when its true position lies within ``experiment.coverage_m`` of the database path (so
     branch frames where the branch rejoins the ring are inside). Each method's threshold is picked on its PR
     curve over the **calibration** queries (:func:`operating_point`) and frozen; precision and recall are
@@ -383,24 +443,38 @@ def table2(out: str | Path, config: dict | None = None, progress: bool = True, l
     e = t2.experiment
     if scene_label(e.scene) != scene_label(t2.scene):
         e = from_dict(ExperimentConfig, dict(to_dict(e), scene=t2.scene), "table2 config: experiment")
-    rec, more, rc = _table2_recording(t2)
     runner = runner or Runner()
-    recorded = _stage_done(out / "record.json", rc)
-    units = []
-    if not recorded:
-        log(f"[{t2.scene}] recording the database pass, and the test and calibration passes on "
-            f"{t2.inside_route} and {t2.outside_route}")
-        units = [Unit("table2 record database, inside", _record_table2_pass, (rec, "query", None, out, rc))]
-        units += [Unit(f"table2 record {name}", _record_table2_pass, (rec, name, p, out, rc))
+    # the test scene's recording in out, the calibration scene's (if another) in out/calibration
+    places = [(out, e, *_table2_recording(t2))]
+    if t2.separate_calibration:
+        if scene_label(t2.calibration_scene) == scene_label(e.compare.train_scene(t2.scene)) and uses_fabmap(e.compare):
+            raise ConfigError(f"calibration_scene: {t2.calibration_scene!r} is FAB-MAP's training scene too; give "
+                              "another (experiment.compare.fabmap_train_scene or calibration_scene)")
+        ec = from_dict(ExperimentConfig, dict(to_dict(e), scene=t2.calibration_scene), "table2 config: experiment")
+        places.append((out / "calibration", ec, *_table2_recording(t2, calibration=True)))
+    units, fresh = [], []
+    for d, pe, rec, more, rc in places:
+        if _stage_done(d / "record.json", rc):
+            continue
+        d.mkdir(parents=True, exist_ok=True)
+        fresh.append((d, rc))
+        log(f"[{rec.scene}] recording the database pass and the passes {['query'] + list(more)} on "
+            f"{t2.inside_route} and {t2.outside_route} into {d / 'rec'}")
+        units.append(Unit(f"table2 record {rec.scene} database, query", _record_table2_pass, (rec, "query", None, d, rc)))
+        units += [Unit(f"table2 record {rec.scene} {name}", _record_table2_pass, (rec, name, p, d, rc))
                   for name, p in more.items()]
     if uses_fabmap(e.compare):   # trained on another scene: beside the recordings
         units.append(Unit("FAB-MAP training", _fabmap_unit, (e.compare, e.scene, out)))
     runner.run(units, progress, log)
-    if not recorded:
-        _stamp(out / "record.json", rc)
-    (times,) = runner.run([Unit("table2 build", _table2_build, (t2, e, out, rc, runner.parallel))], progress, log)
-    res: dict[str, tuple[np.ndarray, dict]] = dict(zip(TABLE2_PARTS, runner.run(
-        [Unit(f"table2 {part}", _table2_part, (t2, e, out, part, times)) for part in TABLE2_PARTS], progress, log)))
+    for d, rc in fresh:
+        _stamp(d / "record.json", rc)
+    built = runner.run([Unit(f"table2 build {pe.scene}", _table2_build, (t2, pe, d, rc, runner.parallel))
+                        for d, pe, _, _, rc in places], progress, log)
+    times = built[0]
+    parts = runner.run([Unit(f"table2 {part}", _table2_part, (t2, e, out, part, built[-1] if part.startswith("calib")
+                                                                else times)) for part in TABLE2_PARTS], progress, log)
+    res: dict[str, tuple[np.ndarray, dict]] = {part: (r[0], r[1]) for part, r in zip(TABLE2_PARTS, parts)}
+    where = {part: r[2] for part, r in zip(TABLE2_PARTS, parts)}
 
     def joined(parts, method, key):
         return np.concatenate([res[p][1][method][key] for p in parts])
@@ -408,9 +482,15 @@ def table2(out: str | Path, config: dict | None = None, progress: bool = True, l
     test, calib = ("inside", "outside"), ("calib_inside", "calib_outside")
     inside_t = np.concatenate([res[p][0] for p in test])
     inside_c = np.concatenate([res[p][0] for p in calib])
-    calibrated_on = (f"{t2.scene}: calibration passes (seeds {t2.calibration_seeds[0]}, {t2.calibration_seeds[1]}, a "
-                     f"query every {t2.calibration_spacing_m:g} m; {len(inside_c)} queries, {int(inside_c.sum())} "
-                     f"inside)")
+    if t2.separate_calibration:
+        nearest = None   # another world: no calibration query shares a place with a test query
+        apart = "another place than the test queries"
+    else:
+        nearest = nearest_distance(np.concatenate([where[p] for p in test]), np.concatenate([where[p] for p in calib]))
+        apart = f"the test scene: the nearest calibration query {nearest:.2f} m from a test query"
+    calibrated_on = (f"{t2.calibration_scene or t2.scene}: calibration passes (seeds {t2.calibration_seeds[0]}, "
+                     f"{t2.calibration_seeds[1]}, a query every {t2.calibration_spacing_m:g} m; {len(inside_c)} "
+                     f"queries, {int(inside_c.sum())} inside; {apart})")
     rows, curves = [], {}
     for method in res["inside"][1]:
         err, sc = joined(test, method, "errors"), joined(test, method, "inlier_score")
@@ -431,6 +511,7 @@ def table2(out: str | Path, config: dict | None = None, progress: bool = True, l
                      "oracle_precision": oracle["precision"], "oracle_recall": oracle["recall"],
                      "oracle_threshold": oracle["threshold"], "calibration_precision": cal["precision"],
                      "calibration_recall": cal["recall"], "calibrated_on": calibrated_on,
+                     "calibration_scene": t2.calibration_scene or t2.scene, "calibration_nearest_m": nearest,
                      "odometry": odometry_label(e, method), "queries": int(len(err)),
                      "inside_queries": int(inside_t.sum()), "s_per_query": float(spq),
                      "ci_method": ci_method("stationary", ci["block_length"])})
@@ -441,11 +522,12 @@ def table2(out: str | Path, config: dict | None = None, progress: bool = True, l
 
 
 #: table2.csv's columns: precision and recall of the test queries at the threshold calibrated on
-#: ``calibrated_on``, their 95 % bootstrap intervals, the oracle (the rule on the test queries' own curve) and
-#: the tracked rows' odometry
+#: ``calibrated_on`` (``calibration_scene``; ``calibration_nearest_m``: the nearest distance between a
+#: calibration and a test query, empty when they drive different scenes), their 95 % bootstrap intervals, the
+#: oracle (the rule on the test queries' own curve) and the tracked rows' odometry
 TABLE2_COLUMNS = ("method", "precision", "recall", "threshold", "precision_ci95_low", "precision_ci95_high",
                   "recall_ci95_low", "recall_ci95_high", "oracle_precision", "oracle_recall", "calibrated_on",
-                  "odometry", "ci_method")
+                  "calibration_scene", "calibration_nearest_m", "odometry", "ci_method")
 
 
 def _fmt(v: float, f: str = ".3f") -> str:
@@ -533,52 +615,64 @@ def plot_pr_curves(curves: dict, rows: list[dict], path: Path) -> None:
 class SweepConfig:
     """``satloc experiment sweep``: every method of ``experiment`` (modes and ``compare.baselines``, revisit
     protocol) on ``scene`` at every combination of the knobs. Each combination is its own experiment folder
-    ``a<aliasing>_o<occlusion>_p<appearance>`` (recorded and built there, reused on rerun). Seeds are fixed:
-    database pass 0, query pass 1 (the revisit recording of :mod:`satloc_env.experiments.scene_run`),
-    ``experiment.odometry_seed`` and ``experiment.compare.fabmap.seed``."""
+    ``a<aliasing>_o<occlusion>_p<appearance>_g<satellite_gap>`` (recorded and built there, reused on rerun).
+    Seeds are fixed: database pass 0, query pass 1 (the revisit recording of
+    :mod:`satloc_env.experiments.scene_run`), ``experiment.odometry_seed`` and ``experiment.compare.fabmap.seed``."""
 
     scene: str = "city"
     aliasing: tuple[float, ...] = (0.0, 0.5, 1.0)
     occlusion: tuple[float, ...] = (0.0, 0.3, 0.6)
     appearance: tuple[float, ...] = (0.5,)
+    satellite_gap: tuple[float, ...] = (DEFAULT_GAP,)
     experiment: ExperimentConfig = field(default_factory=lambda: ExperimentConfig(
         database_frames=150, modes=("go", "np", "full", "full+track"), pictures=False))
 
     def __post_init__(self):
-        for name in ("aliasing", "occlusion", "appearance"):
+        for name in ("aliasing", "occlusion", "appearance", "satellite_gap"):
             v = getattr(self, name)
             if not v or any(not 0 <= x <= 1 for x in v):
                 raise ConfigError(f"{name}: expected a non-empty list of values in [0, 1], got {list(v)}")
             if len({f"{x:g}" for x in v}) != len(v):   # each combination has a folder of its own, named by them
                 raise ConfigError(f"{name}: values must differ in their first 6 significant digits (each "
-                                  f"combination is the folder a<aliasing>_o<occlusion>_p<appearance>), got {list(v)}")
+                                  f"combination is the folder a<aliasing>_o<occlusion>_p<appearance>_g<satellite_gap>)"
+                                  f", got {list(v)}")
+
+    def combinations(self) -> list[tuple[float, float, float, float]]:
+        return [(a, o, p, g) for a in self.aliasing for o in self.occlusion for p in self.appearance
+                for g in self.satellite_gap]
 
 
-SWEEP_COLUMNS = ("scene", "aliasing", "occlusion", "appearance", "method", "mean_m", "ci95_low", "ci95_high",
-                 "recall_10m", "failure_rate", "queries", "odometry", "ci_method")
+SWEEP_COLUMNS = ("scene", "aliasing", "occlusion", "appearance", "satellite_gap", "method", "mean_m", "ci95_low",
+                 "ci95_high", "median_m", "within_1m", "recall_10m", "failure_rate", "queries", "odometry", "ci_method")
 
 
-def _sweep_config(sc: SweepConfig, a: float, o: float, p: float) -> ExperimentConfig:
+def _combo_name(a: float, o: float, p: float, g: float) -> str:
+    return f"a{a:g}_o{o:g}_p{p:g}_g{g:g}"
+
+
+def _sweep_config(sc: SweepConfig, a: float, o: float, p: float, g: float) -> ExperimentConfig:
     return from_dict(ExperimentConfig, dict(to_dict(sc.experiment), scene=sc.scene, aliasing=a, occlusion=o,
-                                            appearance=p), "sweep config: experiment")
+                                            appearance=p, satellite_gap=g), "sweep config: experiment")
 
 
-def _sweep_unit(sc: SweepConfig, a: float, o: float, p: float, out: Path, times: dict, progress: bool = True,
-                log=print) -> list[dict]:
+def _sweep_unit(sc: SweepConfig, a: float, o: float, p: float, g: float, out: Path, times: dict,
+                progress: bool = True, log=print) -> list[dict]:
     """Every method on one knob combination whose stages are done (:func:`_stages_unit`, ``times``) in its
-    folder ``out/a<a>_o<o>_p<p>``; its rows of ``sweep.csv``. FAB-MAP's trained model (it does not depend on the
-    knobs) is read from ``out``."""
-    cfg = _sweep_config(sc, a, o, p)
-    d = out / f"a{a:g}_o{o:g}_p{p:g}"
+    folder ``out/a<a>_o<o>_p<p>_g<g>``; its rows of ``sweep.csv``. FAB-MAP's trained model (it depends on none
+    of the knobs) is read from ``out``."""
+    cfg = _sweep_config(sc, a, o, p, g)
+    d = out / _combo_name(a, o, p, g)
     db, q = Sequence.load(d / "rec" / "database"), Sequence.load(d / "rec" / "query")
-    res = compare(cfg, cfg.compare, f"{sc.scene} a={a:g} o={o:g} p={p:g}", db, q, _covered(cfg, db, q), d / "build",
-                  SatelliteMap.load(d / "rec" / "map"), d, {"scene": sc.scene, "config": to_dict(cfg)}, times,
-                  progress, log, fabmap_dir=out)
-    return [{"scene": sc.scene, "aliasing": a, "occlusion": o, "appearance": p, "method": method_name(m),
-             "mean_m": round(float(r["mean_m"]), 3), "ci95_low": round(float(r["ci95_low"]), 3),
-             "ci95_high": round(float(r["ci95_high"]), 3), "recall_10m": round(float(r["within_10m"]), 3),
-             "failure_rate": round(float(r["failure_rate"]), 3), "queries": int(r["queries"]),
-             "odometry": odometry_label(cfg, m), "ci_method": r.get("ci_method", "")} for m, r in res.items()]
+    res = compare(cfg, cfg.compare, f"{sc.scene} a={a:g} o={o:g} p={p:g} g={g:g}", db, q, _covered(cfg, db, q),
+                  d / "build", SatelliteMap.load(d / "rec" / "map"), d, {"scene": sc.scene, "config": to_dict(cfg)},
+                  times, progress, log, fabmap_dir=out)
+    return [{"scene": sc.scene, "aliasing": a, "occlusion": o, "appearance": p, "satellite_gap": g,
+             "method": method_name(m), "mean_m": round(float(r["mean_m"]), 3),
+             "ci95_low": round(float(r["ci95_low"]), 3), "ci95_high": round(float(r["ci95_high"]), 3),
+             "median_m": round(float(r["median_m"]), 3), "within_1m": round(float(r["within_1m"]), 3),
+             "recall_10m": round(float(r["within_10m"]), 3), "failure_rate": round(float(r["failure_rate"]), 3),
+             "queries": int(r["queries"]), "odometry": odometry_label(cfg, m), "ci_method": r.get("ci_method", "")}
+            for m, r in res.items()]
 
 
 def sweep(out: str | Path, config: dict | None = None, progress: bool = True, log=print,
@@ -595,11 +689,13 @@ def sweep(out: str | Path, config: dict | None = None, progress: bool = True, lo
     out.mkdir(parents=True, exist_ok=True)
     sc = from_dict(SweepConfig, dict(config or {}), "sweep config")
     check_recordings(record_config(from_dict(ExperimentConfig, dict(to_dict(sc.experiment), scene=sc.scene,
-                                                                    aliasing=a), "sweep config: experiment"))
-                     for a in sc.aliasing)   # before any work: the passes drivable (the roads do not alias)
+                                                                    aliasing=a, satellite_gap=sc.satellite_gap[0]),
+                                             "sweep config: experiment"))
+                     for a in sc.aliasing)   # before any work: the passes drivable (the roads do not alias, and
+                                             # the gap changes the map, not the roads)
     runner = runner or Runner()
-    combos = [(a, o, p) for a in sc.aliasing for o in sc.occlusion for p in sc.appearance]
-    names = [f"a{a:g}_o{o:g}_p{p:g}" for a, o, p in combos]
+    combos = sc.combinations()
+    names = [_combo_name(*c) for c in combos]
     stages = [Unit(f"sweep {n} stages", _stages_unit, (_sweep_config(sc, *c), out / n)) for n, c in zip(names, combos)]
     if uses_fabmap(sc.experiment.compare):   # shared by every combination: beside their stages
         stages.append(Unit("FAB-MAP training", _fabmap_unit, (sc.experiment.compare, sc.scene, out)))
@@ -616,16 +712,68 @@ def sweep(out: str | Path, config: dict | None = None, progress: bool = True, lo
     seeds = {"database_pass": 0, "query_pass": 1, "odometry": sc.experiment.odometry_seed,
              "fabmap": sc.experiment.compare.fabmap.seed}
     lines = [f"Scene `{sc.scene}`; seeds: {seeds}.", "",
-             "| aliasing | occlusion | appearance | method | mean m [95 % CI] | within 10 m | failed | queries | odometry |",
-             "|---|---|---|---|---|---|---|---|---|"]
-    lines += [f"| {r['aliasing']:g} | {r['occlusion']:g} | {r['appearance']:g} | {r['method']} | {r['mean_m']:.2f} "
-              f"[{r['ci95_low']:.2f}-{r['ci95_high']:.2f}] | {100 * r['recall_10m']:.0f} % | "
-              f"{100 * r['failure_rate']:.0f} % | {r['queries']} | {r['odometry']} |" for r in rows]
+             "| aliasing | occlusion | appearance | satellite gap | method | mean m [95 % CI] | median m | within 1 m "
+             "| within 10 m | failed | queries | odometry |",
+             "|---|---|---|---|---|---|---|---|---|---|---|---|"]
+    lines += [f"| {r['aliasing']:g} | {r['occlusion']:g} | {r['appearance']:g} | {r['satellite_gap']:g} | "
+              f"{r['method']} | {r['mean_m']:.2f} [{r['ci95_low']:.2f}-{r['ci95_high']:.2f}] | {r['median_m']:.2f} | "
+              f"{100 * r['within_1m']:.0f} % | {100 * r['recall_10m']:.0f} % | {100 * r['failure_rate']:.0f} % | "
+              f"{r['queries']} | {r['odometry']} |" for r in rows]
     with atomic_path(out / "sweep.md", suffix=".md") as tmp:
         tmp.write_text("\n".join(lines) + "\n")
     write_json(out / "sweep.json", {"format": "sweep", "config": to_dict(sc), "seeds": seeds, "rows": rows})
     plot_sweep(rows, out / "sweep.png")
     return rows
+
+
+#: ``satloc experiment gap``: the sweep over the satellite gap alone, on the demo's slice of ``city`` (its first
+#: 400 database frames, every mode, the baselines), the other knobs as Table I's revisit protocol has them
+GAP_CURVE = {"scene": "city", "aliasing": [0.0], "occlusion": [0.3], "appearance": [0.5],
+             "satellite_gap": [0.0, 0.25, 0.5, 0.75, 1.0],
+             "experiment": {"database_frames": 400, "modes": list(MODES), "pictures": False}}
+
+
+def gap_curve(out: str | Path, config: dict | None = None, progress: bool = True, log=print,
+              runner: Runner | None = None) -> list[dict]:
+    """Each method's error against the satellite gap (:mod:`satloc_env.world.capture`): :func:`sweep` with
+    :data:`GAP_CURVE` under ``config`` (its keys replace those of :data:`GAP_CURVE`; ``experiment`` merges),
+    then ``gap.png`` (mean and median error, and the fraction within 1 m, against the gap, one line per
+    method) beside ``sweep.csv``. Returns the rows."""
+    config = dict(config or {})
+    merged = {**GAP_CURVE, **config, "experiment": {**GAP_CURVE["experiment"], **(config.get("experiment") or {})}}
+    rows = sweep(out, merged, progress, log, runner)
+    plot_gap(rows, Path(out) / "gap.png")
+    return rows
+
+
+def plot_gap(rows: list[dict], path: Path) -> None:
+    """Mean and median error (log) and the fraction within 1 m against ``satellite_gap``, one line per method
+    (rows of :func:`sweep` that differ only in the gap)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(1, 3, figsize=(17, 4.8))
+    for m in dict.fromkeys(r["method"] for r in rows):
+        part = sorted((r for r in rows if r["method"] == m), key=lambda r: r["satellite_gap"])
+        g = [r["satellite_gap"] for r in part]
+        style = "--" if m in BASELINE_NAMES.values() else "o-"
+        axes[0].semilogy(g, [max(r["mean_m"], 1e-2) for r in part], style, label=m)
+        axes[1].semilogy(g, [max(r["median_m"], 1e-2) for r in part], style, label=m)
+        axes[2].plot(g, [r["within_1m"] for r in part], style, label=m)
+    for ax, yl in zip(axes, ("mean error (m)", "median error (m)", "within 1 m")):
+        ax.set_xlabel("satellite_gap (0: the map is the rendered ground's copy)")
+        ax.set_ylabel(yl)
+        ax.grid(alpha=0.3, which="both")
+    axes[2].set_ylim(0, 1.02)
+    axes[2].legend(fontsize=8, loc="upper left", bbox_to_anchor=(1.02, 1.0), borderaxespad=0.0)
+    fig.suptitle(f"{rows[0]['scene']}: error against the satellite map's capture gap (dashed: the baselines, "
+                 "ground images only)" if rows else "")
+    fig.tight_layout()
+    with atomic_path(path, suffix=".png") as tmp:
+        fig.savefig(tmp, dpi=110)
+    plt.close(fig)
 
 
 def plot_sweep(rows: list[dict], path: Path) -> None:
@@ -635,11 +783,12 @@ def plot_sweep(rows: list[dict], path: Path) -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    combos = list(dict.fromkeys((r["aliasing"], r["occlusion"], r["appearance"]) for r in rows))
-    labels = [f"a{a:g}\no{o:g}\np{p:g}" for a, o, p in combos]
+    key = ("aliasing", "occlusion", "appearance", "satellite_gap")
+    combos = list(dict.fromkeys(tuple(r.get(k, DEFAULT_GAP) for k in key) for r in rows))
+    labels = [f"a{a:g}\no{o:g}\np{p:g}\ng{g:g}" for a, o, p, g in combos]
     fig, axes = plt.subplots(1, 2, figsize=(max(8, 1.2 * len(combos) + 4), 4.5))
     for m in dict.fromkeys(r["method"] for r in rows):
-        by = {(r["aliasing"], r["occlusion"], r["appearance"]): r for r in rows if r["method"] == m}
+        by = {tuple(r.get(k, DEFAULT_GAP) for k in key): r for r in rows if r["method"] == m}
         x = np.arange(len(combos))
         axes[0].semilogy(x, [max(by[c]["mean_m"], 1e-2) if c in by else np.nan for c in combos], "o-", label=m)
         axes[1].plot(x, [by[c]["recall_10m"] if c in by else np.nan for c in combos], "o-", label=m)
@@ -650,7 +799,7 @@ def plot_sweep(rows: list[dict], path: Path) -> None:
         ax.grid(alpha=0.3)
     axes[1].set_ylim(0, 1.02)
     axes[0].legend(fontsize=7)
-    fig.suptitle("knobs: a = aliasing, o = occlusion, p = appearance")
+    fig.suptitle("knobs: a = aliasing, o = occlusion, p = appearance, g = satellite gap")
     fig.tight_layout()
     with atomic_path(path, suffix=".png") as tmp:
         fig.savefig(tmp, dpi=110)
@@ -681,8 +830,14 @@ def _protocol(cfg: ExperimentConfig, protocol: str, label: str, sdir: Path, db_f
     pdir = sdir / f"protocol_{protocol}"
     pdir.mkdir(exist_ok=True)
     speed = float(rc.get("speed_mps", RecordConfig().speed_mps))
-    spacing = float(rc.get("database", {}).get("spacing_m", PassConfig().spacing_m))
-    step = max(1, int(round(speed / spacing)))   # about one frame per second
+    # one frame per second: the pass's frames as recorded lie further apart than its spacing_m (at most one
+    # per simulator step: 1.6 m at 8 m/s for spacing_m 1), so the step is measured on its poses
+    xy = np.asarray(db_full.poses, np.float64)[:, :2]
+    gaps = np.hypot(*np.diff(xy, axis=0).T)
+    gaps = gaps[np.isfinite(gaps) & (gaps > 0)]
+    spacing = float(np.median(gaps)) if len(gaps) else float(rc.get("database", {}).get("spacing_m",
+                                                                                         PassConfig().spacing_m))
+    step = max(1, int(round(speed / spacing)))
     dbi, qi = protocol_split(protocol, len(db_full), cfg.city_database_fraction, cfg.split_seed, step)
     db = db_full.view(dbi, name=f"{protocol} protocol database")
     source = {"record": rc, "protocol": protocol, "database_frames": [int(i) for i in dbi]}

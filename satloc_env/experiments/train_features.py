@@ -58,7 +58,7 @@ import torch
 import torch.nn.functional as F
 from tqdm import tqdm
 
-from satloc.config import from_dict, to_dict
+from satloc.config import added_field, from_dict, to_dict
 from satloc.device import HELP as DEVICE_HELP
 from satloc.device import device_field, resolve_device
 from satloc.errors import ConfigError, SatlocError
@@ -67,6 +67,7 @@ from satloc.labels import CLASSES, NUM_CLASSES
 from satloc.persist import header, write_json
 from satloc.satmap import SatelliteMap
 from satloc_env.envs import ENV_ID
+from satloc_env.world.capture import DEFAULT_GAP
 from satloc_env.world.scene import SceneSpec, build_scene, load_scene
 
 IGNORE = 255
@@ -96,6 +97,8 @@ class TrainConfig:
     sat_holdout: float = 0.2            # bottom fraction of each training tile kept for evaluation
     sat_seed_variants: int = 2          # extra satellite tiles per training scene, from other seeds
     sat_variant_ground_mpp: tuple[float, ...] = (0.1, 0.2)   # their ground-texture resolutions, in turn
+    satellite_gap: float = added_field(DEFAULT_GAP, before=0.0)   # the satellite tiles (training and held out)
+                                        # as captures of the world at this gap (satloc_env.world.capture)
     lr: float = 3e-3
     weight_decay: float = 1e-4
     boundary_weight: float = 1.0
@@ -209,7 +212,7 @@ def seed_variant_tiles(spec: SceneSpec, n: int, ground_mpp: Sequence[float], rng
         if s in exclude or s == spec.seed:
             continue
         mpp = float(ground_mpp[len(tiles) % len(ground_mpp)])
-        sm = build_scene(replace(spec, seed=s, ground_mpp=mpp)).satmap
+        sm = build_scene(replace(spec, seed=s, ground_mpp=mpp)).satmap   # the spec's knobs: its satellite gap
         tiles.append((sm.image, sm.labels))
     return tiles
 
@@ -358,7 +361,8 @@ def _training_frames(scenes: Sequence[str], seeds: Mapping[str, np.ndarray], cfg
 def _heldout_metrics(predictor: FCNPredictor, scenes: Sequence[str], heldout: Sequence[str],
                      eval_seeds: Mapping[str, np.ndarray], satmaps: Mapping[str, SatelliteMap],
                      cfg: TrainConfig) -> dict[str, dict]:
-    """Metrics on everything training did not see (see the module docstring)."""
+    """Metrics on everything training did not see (see the module docstring); the held-out scenes' tiles
+    captured at ``cfg.satellite_gap``."""
     metrics: dict[str, dict] = {"ground": {}, "satellite": {}}
     for s in [*heldout, *scenes]:
         kind = "scene" if s in heldout else "episodes"
@@ -366,7 +370,7 @@ def _heldout_metrics(predictor: FCNPredictor, scenes: Sequence[str], heldout: Se
                                 cfg.frame_every * 2, cfg.dt, cfg.heldout_max_occlusion if s in heldout else 1.0)
         metrics["ground"][f"{kind}:{s}"] = evaluate(predictor, "ground", zip(im, lab))
     for s in heldout:
-        sm = load_scene(s).satmap
+        sm = load_scene(s, satellite_gap=cfg.satellite_gap).satmap
         metrics["satellite"][f"scene:{s}"] = evaluate(predictor, "satellite", iter([(sm.image, sm.labels)]))
     for s, sm in satmaps.items():
         r = _split_tile(sm.labels, cfg.sat_holdout)
@@ -436,7 +440,7 @@ def _train(out_dir: Path, scenes: list[str], heldout: list[str], cfg: TrainConfi
     rest = seeds[len(scenes) * n_train:]
     eval_seeds = {s: rest[i * n_eval:(i + 1) * n_eval] for i, s in enumerate([*scenes, *heldout])}
     # the unaliased tiles (also the scenes of the held-out ground episodes), kept for evaluation
-    satmaps = {s: load_scene(s, 0.0).satmap for s in scenes}
+    satmaps = {s: load_scene(s, 0.0, cfg.satellite_gap).satmap for s in scenes}
 
     t0 = time.perf_counter()
     ground = _training_frames(scenes, train_seeds, cfg, progress)
@@ -450,8 +454,8 @@ def _train(out_dir: Path, scenes: list[str], heldout: list[str], cfg: TrainConfi
         sat_tiles.append((sm.image[:r], sm.labels[:r]))
     heldout_seeds = {load_scene(h).spec.seed for h in heldout}
     for s in scenes:
-        sat_tiles += seed_variant_tiles(load_scene(s, 0.0).spec, cfg.sat_seed_variants, cfg.sat_variant_ground_mpp,
-                                        rng, heldout_seeds)
+        sat_tiles += seed_variant_tiles(load_scene(s, 0.0, cfg.satellite_gap).spec, cfg.sat_seed_variants,
+                                        cfg.sat_variant_ground_mpp, rng, heldout_seeds)
     times["generate_tiles_s"] = time.perf_counter() - t0
     crops = SatelliteCrops(sat_tiles, cfg.sat_crop)
 

@@ -21,7 +21,7 @@ A scene file (see ``scenes/*.yaml``)::
     ground_pad_m: 250              # neutral ground around the tile, so no view shows its edge
     objects: {buildings: [...], trees: [...], cars: [...]}   # extra hand-placed objects
     lighting: {sun_azimuth_deg: 135, sun_elevation_deg: 50}
-    knobs: {aliasing: 0.0, occlusion: 0.0, appearance: 0.0, satellite_gap: 0.0}
+    knobs: {aliasing: 0.0, occlusion: 0.0, appearance: 0.0, satellite_gap: 0.5}
 
 **Image scenes** (``generator: {type: image, ...}``) drape an image over the ground plane: the camera sees
 the image as the textured ground (``ground_mpp`` must equal ``meters_per_pixel``) and the satellite tile
@@ -114,7 +114,7 @@ from satloc.persist import (
 )
 from satloc.satmap import SatelliteMap, read_image
 
-from .capture import capture_image, capture_tile
+from .capture import DEFAULT_GAP, capture_image, capture_tile
 from .generator import GridParams, generate_grid
 from .layout import Building, Car, Layout, Tree
 from .meshes import DEFAULT_GROUND_PAD_M
@@ -271,14 +271,16 @@ class Knobs:
         sun, road wear and patches, parked cars moved, another season); the satellite tile never changes.
     satellite_gap: how far the satellite map is a capture of the world rather than a copy of the rendered
         ground (:mod:`satloc_env.world.capture`: its own sub-resolution texture, capture time, off-nadir view,
-        sensor blur, registration error, compression); 0 is the ground texture itself.
+        sensor blur, registration error, compression); 0 is the ground texture itself. Default
+        :data:`~satloc_env.world.capture.DEFAULT_GAP` (0.5), a realistic capture; a scene saved before the knob
+        (its ``scene.json`` without it) was a copy, and loads as 0.
     """
 
     aliasing: float = 0.0
     occlusion: float = 0.0
     appearance: float = 0.0
     change: float = 0.0
-    satellite_gap: float = 0.0
+    satellite_gap: float = DEFAULT_GAP
 
     def __post_init__(self):
         for k in ("aliasing", "occlusion", "appearance", "change", "satellite_gap"):
@@ -527,6 +529,7 @@ class Scene:
         d = Path(path)
         sj, lz = d / "scene.json", d / "layout.npz"
         meta = read_json(sj, "scene")
+        _saved_gap(meta)
         bad = nonfinite_path(meta.get("spec"))
         if bad is not None:
             raise FormatError(f"{sj}: spec.{bad}: expected a finite number")
@@ -898,6 +901,27 @@ def build_scene(spec: SceneSpec, base_dir: Path | None = None, aliasing: float |
 def _cached_scene(path: str, aliasing: float | None, satellite_gap: float | None = None) -> Scene:
     spec, base = load_spec(path)
     return build_scene(spec, base, aliasing, where=path, satellite_gap=satellite_gap)
+
+
+def _saved_gap(meta: dict) -> None:
+    """A saved scene's ``scene.json`` from before the satellite_gap knob: its tile was the ground's copy, gap 0
+    (not today's default)."""
+    knobs = (meta.get("spec") or {}).get("knobs") if isinstance(meta.get("spec"), dict) else None
+    if isinstance(knobs, dict):
+        knobs.setdefault("satellite_gap", 0.0)
+    elif isinstance(meta.get("spec"), dict) and knobs is None:
+        meta["spec"]["knobs"] = {"satellite_gap": 0.0}
+
+
+def own_satellite_gap(scene: str | os.PathLike) -> float:
+    """The satellite gap a scene argument gives by itself: its YAML's ``knobs.satellite_gap`` (default
+    :data:`~satloc_env.world.capture.DEFAULT_GAP`), or a saved scene's (0 when saved before the knob)."""
+    p = Path(scene).expanduser()
+    if p.is_dir() and (p / "scene.json").is_file():
+        meta = read_json(p / "scene.json", "scene")
+        _saved_gap(meta)
+        return float(meta["spec"]["knobs"]["satellite_gap"])
+    return float(load_spec(scene)[0].knobs.satellite_gap)
 
 
 def load_scene(name_or_path: str | os.PathLike, aliasing: float | None = None,
