@@ -112,31 +112,34 @@ def from_dict(cls: type[T], data: Any, where: str = "config") -> T:
 
 
 def added_field(default: Any, before: Any = dataclasses.MISSING, **kw: Any) -> Any:
-    """A dataclass field added after configurations were stored (stage stamps, cache keys, recordings):
-    :func:`to_dict` leaves it out while it holds ``before``, the value the versions without the field behaved
-    as (by default ``default``), so what was stored before still matches where it means the same thing, and a
-    new default (``default`` other than ``before``) is written out, so it never matches a stored configuration
-    made without it. :func:`from_dict` gives it ``default`` where a configuration lacks it."""
+    """A dataclass field added after configurations were stored as keys (stage stamps, cache keys,
+    recordings): :func:`to_dict` with ``stamp=True`` leaves it out while it holds ``before``, the value the
+    versions without the field behaved as (by default ``default``), so a key stored before still matches
+    where it means the same thing, and a new default (``default`` other than ``before``) is written out, so it
+    never matches a key made without it. Plain :func:`to_dict` writes it like any field (so that
+    :func:`from_dict` of it gives it back, an explicit ``before`` included); :func:`from_dict` gives it
+    ``default`` where a configuration lacks it."""
     return dataclasses.field(default=default, metadata={"added": True,
                                                         "before": default if before is dataclasses.MISSING else before},
                              **kw)
 
 
-def to_dict(obj: Any, runtime: bool = True) -> Any:
+def to_dict(obj: Any, runtime: bool = True, stamp: bool = False) -> Any:
     """Plain (JSON/YAML-ready) dict of a dataclass, tuples turned into lists.
 
     ``runtime=False`` leaves out the fields marked ``metadata={"runtime": True}`` (at any depth): settings of
     how a stage runs, not of what it makes (e.g. :func:`satloc.device.device_field`), which the keys of
-    cached stages must not depend on. A field made with :func:`added_field` is left out while it holds the
-    value the versions before it behaved as."""
+    cached stages must not depend on. ``stamp=True`` (a key to compare with stored ones) leaves out a field made
+    with :func:`added_field` while it holds the value the versions before it behaved as."""
     if dataclasses.is_dataclass(obj) and not isinstance(obj, type):
-        return {f.name: to_dict(getattr(obj, f.name), runtime) for f in dataclasses.fields(obj)
+        return {f.name: to_dict(getattr(obj, f.name), runtime, stamp) for f in dataclasses.fields(obj)
                 if (runtime or not f.metadata.get("runtime"))
-                and not (f.metadata.get("added") and getattr(obj, f.name) == f.metadata.get("before", f.default))}
+                and not (stamp and f.metadata.get("added")
+                         and getattr(obj, f.name) == f.metadata.get("before", f.default))}
     if isinstance(obj, (list, tuple)):
-        return [to_dict(v, runtime) for v in obj]
+        return [to_dict(v, runtime, stamp) for v in obj]
     if isinstance(obj, dict):
-        return {k: to_dict(v, runtime) for k, v in obj.items()}
+        return {k: to_dict(v, runtime, stamp) for k, v in obj.items()}
     return obj
 
 

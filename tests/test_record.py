@@ -86,11 +86,15 @@ def test_recordings_with_a_captured_map_and_wandering_passes(tmp_path):
                                                                                    wander_m=0.0, speed_wander=0.0))
     stamp_before = record_stamp(old)
     assert "satellite_gap" not in stamp_before and "wander_m" not in stamp_before["database"]
-    assert not {"wander_m", "speed_wander"} & set(to_dict(still))
+    assert not {"wander_m", "speed_wander"} & set(to_dict(still, stamp=True))
     assert record_stamp(RecordConfig())["satellite_gap"] == 0.5 and record_stamp(RecordConfig()) != stamp_before
     assert to_dict(PassConfig())["wander_m"] == 0.3 and to_dict(ExperimentConfig())["speed_wander"] == 0.1
     assert not {"satellite_gap", "wander_m", "speed_wander"} & set(to_dict(ExperimentConfig(wander_m=0.0,
-                                                                                             speed_wander=0.0)))
+                                                                                             speed_wander=0.0),
+                                                                            stamp=True))
+    # a plain dict gives back what was set, an explicit 0 included (configurations derived from others)
+    from satloc.config import from_dict
+    assert from_dict(PassConfig, to_dict(still)).wander_m == 0.0 and "wander_m" in to_dict(still)
     cfg = RecordConfig(scene="city", satellite_gap=0.5,
                        database=PassConfig(spacing_m=1.0, max_frames=60, wander_m=0.4),
                        query=PassConfig(lane_offset_m=-0.75, spacing_m=10.0, max_frames=2, seed=1, wander_m=0.4))

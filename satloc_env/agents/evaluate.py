@@ -175,7 +175,7 @@ def plot_episode(env: ActiveLocEnv, episode: dict, path: str | Path, title: str 
     from satloc_env.world.scene import load_scene
 
     plt = _pyplot()
-    sat = load_scene(env.map.scene).satmap
+    sat = load_scene(env.map.scene, satellite_gap=env.map.satellite_gap).satmap   # the map it was made on
     frames = episode["frames"]
     n = len(frames)
     cols = min(n, 4)

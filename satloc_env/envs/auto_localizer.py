@@ -1,7 +1,8 @@
 """The environment's ``localizer="auto"``: a localizer built from the scene's database pass, cached on disk.
 
-On first use for a (scene, aliasing, resolution) the database pass is recorded (the scene's
-``database_route``, lane offset -1.75 m, no occluders, reference appearance: ``RecordConfig().database``),
+On first use for a (scene, aliasing, resolution, satellite gap) the database pass is recorded (the scene's
+``database_route``, lane offset -1.75 m, drifting as the recorder's default pass does, no occluders, reference
+appearance: ``RecordConfig().database``) on the scene's map at that gap,
 then :func:`satloc.pipeline.build` and :func:`satloc.pipeline.train_projection` run on it; this takes minutes
 for a shipped scene. The result is a build directory under the cache root::
 
@@ -98,7 +99,7 @@ def cache_key(scene: str | os.PathLike, aliasing: float | None = None, resolutio
     key = {"scene": name, "source": source, "scene_sha256": sha,
             "aliasing": float(own_aliasing if aliasing is None else aliasing), "resolution": resolution,
             "format_version": FORMAT_VERSION, "satloc_version": SATLOC_VERSION, "key_version": _KEY_VERSION,
-            "speed_mps": speed, "database_pass": to_dict(db), "build": to_dict(bc, runtime=False),
+            "speed_mps": speed, "database_pass": to_dict(db, stamp=True), "build": to_dict(bc, runtime=False),
             "projection": to_dict(pc, runtime=False)}   # not the device: how an entry is made, not what it holds
     if satellite_gap is not None and (isinstance(satellite_gap, bool) or not isinstance(satellite_gap, (int, float))
                                       or not 0.0 <= satellite_gap <= 1.0):

@@ -115,7 +115,7 @@ def record_stamp(cfg: RecordConfig) -> dict:
     maps the ground's copy) were stamped."""
     from satloc_env.world.scene import own_satellite_gap
 
-    d = to_dict(cfg)
+    d = to_dict(cfg, stamp=True)
     d.pop("satellite_gap", None)
     gap = own_satellite_gap(cfg.scene) if cfg.satellite_gap is None else float(cfg.satellite_gap)
     if gap != 0.0:

@@ -292,7 +292,16 @@ def vo_steps(seq: Sequence, cache: Path | None = None) -> np.ndarray:
     from satloc.persist import load_npz, save_npz
     from satloc.vo import VOConfig, visual_odometry
 
-    key = {"frames": len(seq), "vo": to_dict(VOConfig()), "name": seq.name}
+    import hashlib
+    import json
+
+    # the frames' identity, not only their count and name: a pass recorded again (other drift, another scene
+    # with the same routes) must not reuse another's odometry
+    meta = {k: seq.meta.get(k) for k in ("scene", "pass_config", "change_seed", "satellite_gap")}
+    h = hashlib.sha256(np.ascontiguousarray(np.asarray(seq.poses, np.float64)).tobytes())
+    h.update(np.ascontiguousarray(np.asarray(seq.timestamps, np.float64)).tobytes())
+    h.update(json.dumps(meta, sort_keys=True, default=str).encode())
+    key = {"frames": len(seq), "vo": to_dict(VOConfig()), "name": seq.name, "identity": h.hexdigest()[:32]}
     if cache is not None and Path(cache).is_file():
         try:
             a, meta = load_npz(cache, "visual_odometry")

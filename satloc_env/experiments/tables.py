@@ -24,12 +24,14 @@ every method; the method's one-off localizer set-up and the baselines' database 
 are reported separately).
 
 :func:`table2` (``satloc experiment table2``) measures outside-the-map detection on ``loop``;
-:func:`sweep` (``satloc experiment sweep``) runs every method over aliasing x occlusion x appearance.
+:func:`sweep` (``satloc experiment sweep``) runs every method over aliasing x occlusion x appearance x satellite
+gap; :func:`gap_curve` (``satloc experiment gap``) over the satellite gap alone.
 Table I's protocols are in :func:`table1`.
 """
 from __future__ import annotations
 
 import csv
+import dataclasses
 import math
 import time
 from dataclasses import dataclass, field
@@ -102,7 +104,7 @@ def trained_fabmap(cc: CompareConfig, test_scene: str, out: Path, progress: bool
     p = PassConfig(spacing_m=cc.fabmap_train_spacing_m, max_frames=cc.fabmap_train_frames, depth=False)
     stamp = {"train_scene": train_scene, "frames": cc.fabmap_train_frames, "spacing_m": cc.fabmap_train_spacing_m,
              "fabmap": to_dict(cc.fabmap), "scene_sha256": cache_key(train_scene, None)["scene_sha256"],
-             **{k: v for k, v in to_dict(p).items() if k in ("wander_m", "speed_wander")}}   # drift: since it existed
+             **{k: v for k, v in to_dict(p, stamp=True).items() if k in ("wander_m", "speed_wander")}}   # drift: since it existed
     model = d / "fabmap.npz"
     if _stage_done(Path(out) / "fabmap_stage.json", stamp) and model.is_file():
         return model
@@ -322,7 +324,7 @@ def _table2_recording(t2: Table2Config, calibration: bool = False
     from satloc_env.envs.auto_localizer import cache_key
 
     rc = dict(record_stamp(rec), scene_sha256=cache_key(scene_name, e.aliasing)["scene_sha256"],
-              **{name: to_dict(p) for name, p in more.items()})
+              **{name: to_dict(p, stamp=True) for name, p in more.items()})
     return rec, more, rc
 
 
@@ -392,7 +394,9 @@ def _table2_part(t2: Table2Config, e: ExperimentConfig, out: Path, part: str, ti
     src, name = _part_source(t2, out, part)
     scene = t2.calibration_scene if src != out else t2.scene
     if scene_label(e.scene) != scene_label(scene):
-        e = from_dict(ExperimentConfig, dict(to_dict(e), scene=scene), "table2 config: experiment")
+        # the calibration place, with the test's FAB-MAP: the model trained for the test scene, shared
+        e = dataclasses.replace(e, scene=scene, compare=dataclasses.replace(
+            e.compare, fabmap_train_scene=e.compare.train_scene(t2.scene)))
     db = Sequence.load(src / "rec" / "database")
     q = Sequence.load(src / "rec" / name)
     spacing = e.query_spacing_m if part in ("inside", "outside") else t2.calibration_spacing_m
@@ -442,7 +446,7 @@ def table2(out: str | Path, config: dict | None = None, progress: bool = True, l
     t2 = from_dict(Table2Config, dict(config or {}), "table2 config")
     e = t2.experiment
     if scene_label(e.scene) != scene_label(t2.scene):
-        e = from_dict(ExperimentConfig, dict(to_dict(e), scene=t2.scene), "table2 config: experiment")
+        e = dataclasses.replace(e, scene=t2.scene)
     runner = runner or Runner()
     # the test scene's recording in out, the calibration scene's (if another) in out/calibration
     places = [(out, e, *_table2_recording(t2))]
@@ -450,7 +454,7 @@ def table2(out: str | Path, config: dict | None = None, progress: bool = True, l
         if scene_label(t2.calibration_scene) == scene_label(e.compare.train_scene(t2.scene)) and uses_fabmap(e.compare):
             raise ConfigError(f"calibration_scene: {t2.calibration_scene!r} is FAB-MAP's training scene too; give "
                               "another (experiment.compare.fabmap_train_scene or calibration_scene)")
-        ec = from_dict(ExperimentConfig, dict(to_dict(e), scene=t2.calibration_scene), "table2 config: experiment")
+        ec = dataclasses.replace(e, scene=t2.calibration_scene)
         places.append((out / "calibration", ec, *_table2_recording(t2, calibration=True)))
     units, fresh = [], []
     for d, pe, rec, more, rc in places:
@@ -482,6 +486,10 @@ def table2(out: str | Path, config: dict | None = None, progress: bool = True, l
     test, calib = ("inside", "outside"), ("calib_inside", "calib_outside")
     inside_t = np.concatenate([res[p][0] for p in test])
     inside_c = np.concatenate([res[p][0] for p in calib])
+    if inside_c.all() or not inside_c.any():
+        log(f"[table2] warning: every calibration query is {'inside' if inside_c.all() else 'outside'} the map: "
+            "the thresholds are picked without queries on the other side (more outside_frames, or another "
+            "calibration_scene)")
     if t2.separate_calibration:
         nearest = None   # another world: no calibration query shares a place with a test query
         apart = "another place than the test queries"
@@ -637,6 +645,10 @@ class SweepConfig:
                                   f"combination is the folder a<aliasing>_o<occlusion>_p<appearance>_g<satellite_gap>)"
                                   f", got {list(v)}")
 
+        if self.experiment.satellite_gap is not None:
+            raise ConfigError(f"experiment.satellite_gap: the sweep's gap is its own axis; give satellite_gap: "
+                              f"[{self.experiment.satellite_gap:g}] instead")
+
     def combinations(self) -> list[tuple[float, float, float, float]]:
         return [(a, o, p, g) for a in self.aliasing for o in self.occlusion for p in self.appearance
                 for g in self.satellite_gap]
@@ -667,10 +679,11 @@ def _sweep_unit(sc: SweepConfig, a: float, o: float, p: float, g: float, out: Pa
                   d / "build", SatelliteMap.load(d / "rec" / "map"), d, {"scene": sc.scene, "config": to_dict(cfg)},
                   times, progress, log, fabmap_dir=out)
     return [{"scene": sc.scene, "aliasing": a, "occlusion": o, "appearance": p, "satellite_gap": g,
-             "method": method_name(m), "mean_m": round(float(r["mean_m"]), 3),
-             "ci95_low": round(float(r["ci95_low"]), 3), "ci95_high": round(float(r["ci95_high"]), 3),
-             "median_m": round(float(r["median_m"]), 3), "within_1m": round(float(r["within_1m"]), 3),
-             "recall_10m": round(float(r["within_10m"]), 3), "failure_rate": round(float(r["failure_rate"]), 3),
+             "method": method_name(m), "mean_m": round(float(r["mean_m"]), 4),   # 4 decimals: sweep.md
+             "ci95_low": round(float(r["ci95_low"]), 4), "ci95_high": round(float(r["ci95_high"]), 4),  # rounds
+             "median_m": round(float(r["median_m"]), 4), "within_1m": round(float(r["within_1m"]), 4),  # them as
+             "recall_10m": round(float(r["within_10m"]), 4),   # compare.json's would be
+             "failure_rate": round(float(r["failure_rate"]), 4),
              "queries": int(r["queries"]), "odometry": odometry_label(cfg, m), "ci_method": r.get("ci_method", "")}
             for m, r in res.items()]
 
@@ -784,11 +797,11 @@ def plot_sweep(rows: list[dict], path: Path) -> None:
     import matplotlib.pyplot as plt
 
     key = ("aliasing", "occlusion", "appearance", "satellite_gap")
-    combos = list(dict.fromkeys(tuple(r.get(k, DEFAULT_GAP) for k in key) for r in rows))
+    combos = list(dict.fromkeys(tuple(r.get(k, 0.0) for k in key) for r in rows))   # rows before the gap: 0
     labels = [f"a{a:g}\no{o:g}\np{p:g}\ng{g:g}" for a, o, p, g in combos]
     fig, axes = plt.subplots(1, 2, figsize=(max(8, 1.2 * len(combos) + 4), 4.5))
     for m in dict.fromkeys(r["method"] for r in rows):
-        by = {tuple(r.get(k, DEFAULT_GAP) for k in key): r for r in rows if r["method"] == m}
+        by = {tuple(r.get(k, 0.0) for k in key): r for r in rows if r["method"] == m}
         x = np.arange(len(combos))
         axes[0].semilogy(x, [max(by[c]["mean_m"], 1e-2) if c in by else np.nan for c in combos], "o-", label=m)
         axes[1].plot(x, [by[c]["recall_10m"] if c in by else np.nan for c in combos], "o-", label=m)
@@ -854,7 +867,7 @@ def _protocol(cfg: ExperimentConfig, protocol: str, label: str, sdir: Path, db_f
                                        max_frames=None if cfg.database_frames is None else
                                        int(np.ceil(db_full.path_length() / speed)) + 1,
                                        wander_m=cfg.wander_m, speed_wander=cfg.speed_wander))
-        prc = {"pass": to_dict(p), "record": rc}
+        prc = {"pass": to_dict(p, stamp=True), "record": rc}
         if not _stage_done(pdir / "record.json", prc):
             log(f"[{label}] recording the second pass (a frame every {speed:g} m)")
             env = make_env(scene=cfg.scene, resolution=rc.get("resolution", "half"), aliasing=cfg.aliasing,
