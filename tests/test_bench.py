@@ -28,14 +28,22 @@ def test_bench_env_prints_steps_per_second(capsys):
 
 
 def test_bench_localize_reuses_only_a_recording_that_covers_the_longest_size(tmp_path):
-    """A recording of another scene, or one shorter than the longest size asked, is not reused (it once
-    measured a 1.14 km database under build_4km and said nothing)."""
-    from satloc_env.experiments.bench import bench_recording
+    """A recording of another scene, or one shorter than the longest size asked, or one recorded otherwise
+    (its stamp: another satellite gap or drift, as recordings made before the defaults moved), is not reused
+    (it once measured a 1.14 km database under build_4km and said nothing)."""
+    from satloc.persist import write_json
+    from satloc_env.envs.record import STATUS, _status, record_stamp
+    from satloc_env.experiments.bench import _bench_record_config, bench_recording
 
-    def done(name):
+    def done(name, stamp=None):
         (tmp_path / name / "query").mkdir(parents=True)
         (tmp_path / name / "query" / "sequence.json").write_text("{}")
+        n = int(name.rsplit("_", 1)[1])
+        write_json(tmp_path / name / STATUS, _status(stamp or record_stamp(_bench_record_config("loop", n)), "sha",
+                                                     ["database", "query"], complete=True))
 
+    assert bench_recording(tmp_path, "loop", 717) == (tmp_path / "rec_loop_717", False)
+    done("rec_loop_900", stamp={"scene": "loop", "note": "recorded before the drift"})
     assert bench_recording(tmp_path, "loop", 717) == (tmp_path / "rec_loop_717", False)
     done("rec_loop_717")
     assert bench_recording(tmp_path, "loop", 717) == (tmp_path / "rec_loop_717", True)

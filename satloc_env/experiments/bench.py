@@ -88,17 +88,35 @@ def _frames_of(rec) -> int:
     return int(rec.name.rsplit("_", 1)[1])
 
 
+def _bench_record_config(scene: str, frames: int):
+    from satloc_env.envs.record import PassConfig, RecordConfig
+
+    return RecordConfig(scene=scene, database=PassConfig(max_frames=frames),
+                        query=PassConfig(lane_offset_m=-0.75, spacing_m=5.0, occlusion=0.3, appearance=0.5, seed=1,
+                                         max_frames=250))
+
+
 def bench_recording(work, scene: str, frames: int):
     """The recording folder of ``satloc bench localize`` in ``work``: ``rec_<scene>_<database frames>``. An
-    existing complete recording of the same scene with at least ``frames`` database frames is reused (its
-    first frames serve every size); otherwise a new folder for ``frames`` frames. Returns ``(folder, reuse)``."""
+    existing complete recording of the same scene with at least ``frames`` database frames, recorded as this
+    version records it (its ``recording.json`` stamp: satellite gap, drift, passes), is reused (its first
+    frames serve every size); otherwise a new folder for ``frames`` frames. Returns ``(folder, reuse)``."""
+    from satloc.persist import read_json
+    from satloc_env.envs.record import STATUS, record_stamp
+
     from .scene_run import scene_label
 
     label = scene_label(scene).replace("/", "_")
     done = []
     for d in Path(work).glob(f"rec_{label}_*"):
         tail = d.name[len(f"rec_{label}_"):]
-        if tail.isdigit() and int(tail) >= frames and (d / "query" / "sequence.json").is_file():
+        if not (tail.isdigit() and int(tail) >= frames and (d / "query" / "sequence.json").is_file()):
+            continue
+        try:
+            st = read_json(d / STATUS, "recording")
+        except Exception:   # no stamp or a damaged one: not reused
+            continue
+        if st.get("complete") and st.get("config") == record_stamp(_bench_record_config(scene, int(tail))):
             done.append((int(tail), d))
     if done:
         return min(done)[1], True
@@ -129,7 +147,7 @@ def bench_localize(sizes_km=(0.25, 1.0, 4.0), work=None, scene: str = "loop", qu
     from satloc.pipeline import BuildConfig, build, load_localizer, train_projection
     from satloc.projection import ProjectionConfig
     from satloc.sequence import Sequence
-    from satloc_env.envs.record import PassConfig, RecordConfig, record_passes
+    from satloc_env.envs.record import record_passes
 
     from .scene_run import covered_queries
 
@@ -139,9 +157,7 @@ def bench_localize(sizes_km=(0.25, 1.0, 4.0), work=None, scene: str = "loop", qu
     # the recorder keeps a frame about every 1.6 m at its default speed and spacing (see satloc demo --help)
     rec, reuse = bench_recording(work, scene, int(longest * 1000 / 1.5) + 50)
     if not reuse:
-        record_passes(RecordConfig(scene=scene, database=PassConfig(max_frames=_frames_of(rec)),
-                                   query=PassConfig(lane_offset_m=-0.75, spacing_m=5.0, occlusion=0.3,
-                                                    appearance=0.5, seed=1, max_frames=250)), rec, progress)
+        record_passes(_bench_record_config(scene, _frames_of(rec)), rec, progress)
     db_all, q = Sequence.load(rec / "database"), Sequence.load(rec / "query")
     s = arc_length(db_all.poses)
     if s[-1] < longest * 1000.0 - 5.0:   # a build must not measure a shorter database than its row says
@@ -226,6 +242,7 @@ def bench_vo(scene: str = "residential", frames: int = 250, work=None, kitti=Non
     import dataclasses
     import tempfile
 
+    from satloc.config import to_dict
     from satloc.sequence import Sequence
     from satloc.stereo import StereoDepth
     from satloc.vo import VOConfig, integrate_odometry, odometry_drift
@@ -235,11 +252,16 @@ def bench_vo(scene: str = "residential", frames: int = 250, work=None, kitti=Non
     work = Path(work) if work else Path(tempfile.mkdtemp(prefix="satloc_bench_vo_"))
     drive_dir = work / f"{Path(scene).stem}_{frames}"
     t0 = time.perf_counter()
+    p = PassConfig(spacing_m=0.0, max_frames=frames)
+    if (drive_dir / "sequence.json").is_file() and Sequence.load(drive_dir).meta.get("pass_config") != to_dict(p):
+        import shutil
+
+        shutil.rmtree(drive_dir)   # a drive recorded otherwise (before the drift, or another pass): again
     if not (drive_dir / "sequence.json").is_file():
         env = make_env(scene=scene, localizer=None, depth=True)
         try:
             env.reset(seed=0)
-            record_pass(env, PassConfig(spacing_m=0.0, max_frames=frames), env.unwrapped.scene.spec.database_route,
+            record_pass(env, p, env.unwrapped.scene.spec.database_route,
                         drive_dir, "vo", progress, {"source": "satloc_env", "scene": env.unwrapped.scene.name})
         finally:
             env.close()

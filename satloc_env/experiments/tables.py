@@ -63,6 +63,7 @@ from .scene_run import (  # noqa: F401
     BASELINE_NAMES,
     METHOD_NAMES,
     MODES,
+    SECOND_PASS_SEED,
     CompareConfig,
     ExperimentConfig,
     _covered,
@@ -863,7 +864,7 @@ def _protocol(cfg: ExperimentConfig, protocol: str, label: str, sdir: Path, db_f
         # a second pass over the database's route at one frame per second (the revisit pass's lane,
         # appearance and occluders, another seed; recorded densely for visual odometry)
         p = dense_pass(cfg, PassConfig(lane_offset_m=cfg.query_lane_m, spacing_m=speed, occlusion=cfg.occlusion,
-                                       appearance=cfg.appearance, change=cfg.change, seed=2,
+                                       appearance=cfg.appearance, change=cfg.change, seed=SECOND_PASS_SEED,
                                        max_frames=None if cfg.database_frames is None else
                                        int(np.ceil(db_full.path_length() / speed)) + 1,
                                        wander_m=cfg.wander_m, speed_wander=cfg.speed_wander))
