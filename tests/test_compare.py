@@ -132,6 +132,7 @@ def test_table1_protocols_on_a_tiny_section(tmp_path):
 
 
 def test_sweep_config_and_figure(tmp_path):
+    from satloc.config import from_dict
     from satloc_env.experiments.tables import SweepConfig, plot_sweep
 
     with pytest.raises(ConfigError, match="occlusion"):
@@ -140,6 +141,39 @@ def test_sweep_config_and_figure(tmp_path):
             for a in (0.0, 1.0) for o in (0.0, 0.6) for m, e, r in (("Ours-full", 0.5, 1.0), ("EFM", 3.0, 0.8))]
     plot_sweep(rows, tmp_path / "sweep.png")
     assert (tmp_path / "sweep.png").stat().st_size > 5000
+    with pytest.raises(ConfigError, match=r"experiment\.satellite_gap: the sweep's gap is its own axis"):
+        from_dict(SweepConfig, {"experiment": {"satellite_gap": 0.5}})
+    with pytest.raises(ConfigError, match="satellite_gap"):
+        SweepConfig(satellite_gap=(0.5, 1.5))
+    assert [c[3] for c in SweepConfig(aliasing=(0.0,), occlusion=(0.3,), satellite_gap=(0.0, 0.5)).combinations()] \
+        == [0.0, 0.5]
+
+
+def test_gap_curve_is_the_sweep_over_the_gap_with_its_picture(tmp_path, monkeypatch):
+    """satloc experiment gap: the sweep with GAP_CURVE's knobs (a user's keys replace them, ``experiment``
+    merges), then gap.png from its rows."""
+    import satloc_env.experiments.tables as T
+    from satloc_env.cli import main
+
+    seen = {}
+
+    def fake_sweep(out, config, progress, log, runner):
+        seen.update(config)
+        return [{"scene": "city", "aliasing": 0.0, "occlusion": 0.3, "appearance": 0.5, "satellite_gap": g,
+                 "method": m, "mean_m": e * (1 + g), "median_m": e / 4 * (1 + g), "within_1m": 0.9 - 0.3 * g}
+                for g in (0.0, 0.5, 1.0) for m, e in (("Ours-full + track", 0.8), ("EFM", 4.8))]
+
+    monkeypatch.setattr(T, "sweep", fake_sweep)
+    rows = T.gap_curve(tmp_path, {"satellite_gap": [0.0, 1.0], "experiment": {"database_frames": 50}},
+                       progress=False, log=lambda m: None)
+    assert seen["satellite_gap"] == [0.0, 1.0] and seen["occlusion"] == [0.3] and seen["scene"] == "city"
+    assert seen["experiment"]["database_frames"] == 50 and seen["experiment"]["modes"] == list(T.MODES)
+    assert len(rows) == 6 and (tmp_path / "gap.png").stat().st_size > 5000
+    # the command: a bad key of its configuration is named, nothing is written
+    bad = tmp_path / "bad.yaml"
+    bad.write_text("gaps: [0, 1]\n")
+    assert main(["experiment", "gap", "--config", str(bad), "--out", str(tmp_path / "g"), "--quiet"]) == 2
+    assert not (tmp_path / "g").exists()
 
 
 def test_sweep_end_to_end_reports_intervals_failures_and_odometry(tmp_path):

@@ -755,6 +755,7 @@ def gap_curve(out: str | Path, config: dict | None = None, progress: bool = True
     method) beside ``sweep.csv``. Returns the rows."""
     config = dict(config or {})
     merged = {**GAP_CURVE, **config, "experiment": {**GAP_CURVE["experiment"], **(config.get("experiment") or {})}}
+    from_dict(SweepConfig, merged, "gap config")   # before any work: an unknown or bad key is named
     rows = sweep(out, merged, progress, log, runner)
     plot_gap(rows, Path(out) / "gap.png")
     return rows
