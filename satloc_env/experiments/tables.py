@@ -387,6 +387,13 @@ def _part_source(t2: Table2Config, out: Path, part: str) -> tuple[Path, str]:
     return out, "query" if part == "inside" else part
 
 
+def _calibration_experiment(t2: Table2Config, e: ExperimentConfig) -> ExperimentConfig:
+    """The experiment on ``calibration_scene``: the test's settings, and the test's FAB-MAP model (trained for
+    the test scene, shared)."""
+    return dataclasses.replace(e, scene=t2.calibration_scene, compare=dataclasses.replace(
+        e.compare, fabmap_train_scene=e.compare.train_scene(t2.scene)))
+
+
 def _table2_part(t2: Table2Config, e: ExperimentConfig, out: Path, part: str, times: dict, progress: bool = True,
                  log=print) -> tuple[np.ndarray, dict, np.ndarray]:
     """One query pass of Table II (:data:`TABLE2_PARTS`) against its scene's build (:func:`_part_source`),
@@ -394,10 +401,8 @@ def _table2_part(t2: Table2Config, e: ExperimentConfig, out: Path, part: str, ti
     true positions."""
     src, name = _part_source(t2, out, part)
     scene = t2.calibration_scene if src != out else t2.scene
-    if scene_label(e.scene) != scene_label(scene):
-        # the calibration place, with the test's FAB-MAP: the model trained for the test scene, shared
-        e = dataclasses.replace(e, scene=scene, compare=dataclasses.replace(
-            e.compare, fabmap_train_scene=e.compare.train_scene(t2.scene)))
+    if src != out:
+        e = _calibration_experiment(t2, e)
     db = Sequence.load(src / "rec" / "database")
     q = Sequence.load(src / "rec" / name)
     spacing = e.query_spacing_m if part in ("inside", "outside") else t2.calibration_spacing_m
@@ -455,7 +460,7 @@ def table2(out: str | Path, config: dict | None = None, progress: bool = True, l
         if scene_label(t2.calibration_scene) == scene_label(e.compare.train_scene(t2.scene)) and uses_fabmap(e.compare):
             raise ConfigError(f"calibration_scene: {t2.calibration_scene!r} is FAB-MAP's training scene too; give "
                               "another (experiment.compare.fabmap_train_scene or calibration_scene)")
-        ec = dataclasses.replace(e, scene=t2.calibration_scene)
+        ec = _calibration_experiment(t2, e)
         places.append((out / "calibration", ec, *_table2_recording(t2, calibration=True)))
     units, fresh = [], []
     for d, pe, rec, more, rc in places:

@@ -906,11 +906,12 @@ def _cached_scene(path: str, aliasing: float | None, satellite_gap: float | None
 def _saved_gap(meta: dict) -> None:
     """A saved scene's ``scene.json`` from before the satellite_gap knob: its tile was the ground's copy, gap 0
     (not today's default)."""
-    knobs = (meta.get("spec") or {}).get("knobs") if isinstance(meta.get("spec"), dict) else None
-    if isinstance(knobs, dict):
-        knobs.setdefault("satellite_gap", 0.0)
-    elif isinstance(meta.get("spec"), dict) and knobs is None:
-        meta["spec"]["knobs"] = {"satellite_gap": 0.0}
+    spec = meta.get("spec")
+    if isinstance(spec, dict):
+        if spec.get("knobs") is None:
+            spec["knobs"] = {}
+        if isinstance(spec["knobs"], dict):
+            spec["knobs"].setdefault("satellite_gap", 0.0)
 
 
 def own_satellite_gap(scene: str | os.PathLike) -> float:
@@ -920,7 +921,8 @@ def own_satellite_gap(scene: str | os.PathLike) -> float:
     if p.is_dir() and (p / "scene.json").is_file():
         meta = read_json(p / "scene.json", "scene")
         _saved_gap(meta)
-        return float(meta["spec"]["knobs"]["satellite_gap"])
+        knobs = (meta.get("spec") or {}).get("knobs") if isinstance(meta.get("spec"), dict) else None
+        return float(knobs["satellite_gap"]) if isinstance(knobs, dict) else 0.0   # damaged: Scene.load says so
     return float(load_spec(scene)[0].knobs.satellite_gap)
 
 
