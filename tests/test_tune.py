@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 
 from satloc.errors import ConfigError
-from satloc_env.experiments.tune import TuneConfig, pick_lowest, pick_smallest_within, tune
+from satloc_env.experiments.tune import TuneConfig, pick_lowest, pick_lowest_vo, pick_smallest_within, tune
 
 
 def rows(*spec):
@@ -30,11 +30,27 @@ def test_pick_lowest_breaks_ties_toward_the_current_default():
     assert pick_lowest(r, prefer=0.99)["value"] == 0.5   # not tied: the lower mean wins
 
 
+def test_pick_lowest_vo_takes_the_smallest_drift_then_fewer_failures_then_the_default():
+    r = [{"value": v, "trans_pct": t, "failed_steps": f} for v, t, f in
+         ((9, 0.30, 0), (15, 0.25, 2), (21, 0.25, 0))]
+    assert pick_lowest_vo(r)["value"] == 21
+    r[2]["failed_steps"] = 2
+    assert pick_lowest_vo(r)["value"] == 15 and pick_lowest_vo(r, prefer=21)["value"] == 21
+    with pytest.raises(ValueError):
+        pick_lowest_vo([])
+
+
 def test_tune_config_is_checked():
     with pytest.raises(ConfigError, match="lock_mode"):
         TuneConfig(lock_mode="full+align")
     with pytest.raises(ConfigError, match="ef_search"):
         TuneConfig(ef_search=())
+    with pytest.raises(ConfigError, match="lk_window_px"):
+        TuneConfig(vo_lk_window_px=(9, 10))   # an even window: the VOConfig refuses it before any work
+    with pytest.raises(ConfigError, match="detector"):
+        TuneConfig(vo_detector=("sift",))
+    with pytest.raises(ConfigError, match="contrast_threshold"):
+        TuneConfig(efm_contrast_threshold=(0.0,))
     with pytest.raises(ConfigError, match="unknown|bogus"):
         tune("/nonexistent/never-written", {"bogus": 1})
 
@@ -61,7 +77,9 @@ def test_tune_runs_each_grid_on_the_calibration_scene_and_applies_its_rules(tmp_
     exp = {"database_frames": 30, "query_frames": 4, "query_spacing_m": 6.0, "features": "rgb",
            "compare": {"fabmap": {"max_features": 150, "new_place_samples": 5}, "fabmap_train_frames": 6}}
     cfg = {"experiment": exp, "ef_search": [20, 96], "ef_mode": "go", "lock_mass": [0.0, 0.9],
-           "lock_mode": "go+track", "vocabulary_size": [20, 40], "contrast_threshold": [0.01, 0.04]}
+           "lock_mode": "go+track", "vocabulary_size": [20, 40], "contrast_threshold": [0.01, 0.04],
+           "efm_contrast_threshold": [0.005, 0.04], "vo_detector": ["gftt", "orb"], "vo_lk_window_px": [9, 15],
+           "vo_segment_m": 5.0}
     res = tune(tmp_path, cfg, progress=False, log=lambda m: None)
     saved = json.loads((tmp_path / "tune.json").read_text())
     assert saved["chosen"] == res["chosen"]
@@ -88,5 +106,23 @@ def test_tune_runs_each_grid_on_the_calibration_scene_and_applies_its_rules(tmp_
     for v in (20, 40):
         fm = FabMap.load(tmp_path / f"fabmap_vocabulary_size_{v}" / "fabmap" / "fabmap.npz")
         assert fm.config.vocabulary_size == v
+    from satloc.baselines.efm import EfmConfig
+    from satloc.vo import VOConfig
+
+    assert [r["value"] for r in by["efm.contrast_threshold"]] == [0.005, 0.04]
+    assert res["chosen"]["efm.contrast_threshold"] == pick_lowest(by["efm.contrast_threshold"],
+                                                                  EfmConfig().contrast_threshold)["value"]
+    vo = {}
+    for r in res["vo_rows"]:
+        vo.setdefault(r["setting"], []).append(r)
+        assert np.isfinite(r["trans_pct"]) and r["segments"] > 0
+    assert [r["value"] for r in vo["vo.detector"]] == ["gftt", "orb"]
+    assert res["chosen"]["vo.detector"] == pick_lowest_vo(vo["vo.detector"], VOConfig().detector)["value"]
+    if res["chosen"]["vo.detector"] == "gftt":   # the window only for the corner tracker
+        assert res["chosen"]["vo.lk_window_px"] == pick_lowest_vo(vo["vo.lk_window_px"], 9)["value"]
+        assert {r["value"] for r in vo["vo.lk_window_px"]} == {9, 15}
+    else:
+        assert "vo.lk_window_px" not in res["chosen"]
     md = (tmp_path / "tune.md").read_text()
+    assert "| vo.detector |" in md and "| efm.contrast_threshold |" in md
     assert md.count("| ef_search |") == 2 and f"**{res['chosen']['ef_search']}**" in md

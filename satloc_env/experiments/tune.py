@@ -10,7 +10,11 @@ The settings (issue 22 found each of them tuned on the scenes its tables report)
   candidate is scored): the value with the lowest mean error in ``lock_mode`` (:func:`pick_lowest`);
 * FAB-MAP's vocabulary size, then its SIFT contrast threshold at that size: the lowest mean error of
   ``fabmap`` (single images). FAB-MAP is trained on ``experiment.compare.fabmap_train_scene``, another
-  calibration scene.
+  calibration scene;
+* EFM's SIFT contrast threshold (``efm.contrast_threshold``): the lowest mean error of ``efm``;
+* the visual odometry's detector, then (for ``gftt``) its Lucas-Kanade window: the lowest mean translation
+  error over 50 m segments (KITTI's odometry metric, :func:`satloc.vo.odometry_drift`) of the calibration
+  query pass, every frame of it, against its true poses (:func:`pick_lowest_vo`).
 
 The default calibration scene is ``fcn_train/town_a`` (``scenes/fcn_train/town_a.yaml``) (FAB-MAP trained on ``town_b``): scenes that
 Table I, Table II and the sweep never test on (they test on ``city``, ``residential`` and ``loop``). They are
@@ -28,13 +32,15 @@ import dataclasses
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from satloc.baselines.efm import EfmConfig
 from satloc.baselines.fabmap import FabMapConfig
 from satloc.config import from_dict, to_dict
-from satloc.errors import ConfigError
+from satloc.errors import ConfigError, FormatError
 from satloc.localizer import LocalizerConfig
 from satloc.persist import write_json
 from satloc.satmap import SatelliteMap
 from satloc.track import TrackConfig
+from satloc.vo import VOConfig
 
 from .scene_run import (
     MODES,
@@ -72,6 +78,10 @@ class TuneConfig:
     lock_mode: str = "full+track+align"
     vocabulary_size: tuple[int, ...] = (500, 1000, 2000, 5000)
     contrast_threshold: tuple[float, ...] = (0.005, 0.01, 0.04)
+    efm_contrast_threshold: tuple[float, ...] = (0.0025, 0.005, 0.01, 0.04)
+    vo_detector: tuple[str, ...] = ("gftt", "orb")
+    vo_lk_window_px: tuple[int, ...] = (9, 15, 21)
+    vo_segment_m: float = 50.0
 
     def __post_init__(self):
         for name in ("ef_mode", "lock_mode"):
@@ -80,11 +90,19 @@ class TuneConfig:
         if "track" not in self.lock_mode.split("+"):
             raise ConfigError(f"lock_mode: expected a tracked mode (lock_mass acts on the tracker), got "
                               f"{self.lock_mode!r}")
-        for name in ("ef_search", "lock_mass", "vocabulary_size", "contrast_threshold"):
+        for name in ("ef_search", "lock_mass", "vocabulary_size", "contrast_threshold", "efm_contrast_threshold",
+                     "vo_detector", "vo_lk_window_px"):
             if not getattr(self, name):
                 raise ConfigError(f"{name}: expected a non-empty list of values, got []")
         if self.ef_tolerance_m < 0:
             raise ConfigError(f"ef_tolerance_m: expected >= 0, got {self.ef_tolerance_m}")
+        if not self.vo_segment_m > 0:
+            raise ConfigError(f"vo_segment_m: expected > 0, got {self.vo_segment_m}")
+        for d in self.vo_detector:   # every VO grid point a valid VOConfig (names the field at fault)
+            for w in self.vo_lk_window_px:
+                VOConfig(detector=d, lk_window_px=int(w))
+        for t in self.efm_contrast_threshold:
+            EfmConfig(contrast_threshold=float(t))
 
 
 def _merged(base: dict, over: dict) -> dict:
@@ -113,6 +131,27 @@ def pick_smallest_within(rows: list[dict], tolerance_m: float) -> dict:
     ref = max(rows, key=lambda r: r["value"])
     ok = [r for r in rows if r["mean_m"] <= ref["mean_m"] + tolerance_m and r["failure_rate"] <= ref["failure_rate"]]
     return min(ok, key=lambda r: r["value"])
+
+
+def pick_lowest_vo(rows: list[dict], prefer=None) -> dict:
+    """The VO row with the lowest ``trans_pct`` (mean translation error over the segments); fewer failed steps
+    break a tie, then ``prefer`` (the current default), then the first listed."""
+    if not rows:
+        raise ValueError("pick_lowest_vo: no rows")
+    best = min((r["trans_pct"], r["failed_steps"]) for r in rows)
+    tied = [r for r in rows if (r["trans_pct"], r["failed_steps"]) <= best]
+    return next((r for r in tied if r["value"] == prefer), tied[0])
+
+
+def _vo_row(setting: str, value, drift: dict, segment_m: float) -> dict:
+    seg = drift["segments"].get(f"{segment_m:g}")
+    if seg is None:
+        raise ConfigError(f"tune config: vo_segment_m: the calibration query pass ({drift['distance_m']} m) is "
+                          f"shorter than one {segment_m:g} m segment")
+    return {"setting": setting, "value": value, "trans_pct": float(seg["trans_pct"]),
+            "rot_deg_per_100m": float(seg["rot_deg_per_100m"]), "segments": int(seg["n"]),
+            "failed_steps": int(drift["failed_steps"]), "frames": int(drift["frames"]),
+            "distance_m": float(drift["distance_m"])}
 
 
 def _row(setting: str, value, s: dict) -> dict:
@@ -185,13 +224,57 @@ def tune(out: str | Path, config: dict | None = None, progress: bool = True, log
                    contrast_threshold=float(v)) for v in tc.contrast_threshold]
     chosen["fabmap.contrast_threshold"] = pick_lowest(grid, FabMapConfig().contrast_threshold)["value"]
     rows += grid
+
+    def efm(value: float) -> dict:
+        cc = dataclasses.replace(cfg.compare, efm=dataclasses.replace(cfg.compare.efm, contrast_threshold=value))
+        d = out / f"efm_contrast_threshold_{value}"
+        d.mkdir(parents=True, exist_ok=True)
+        return _row("efm.contrast_threshold", value, run_baseline("efm", cc, cfg.scene, db, q, sel, d, progress, log))
+
+    grid = [efm(float(v)) for v in tc.efm_contrast_threshold]
+    chosen["efm.contrast_threshold"] = pick_lowest(grid, EfmConfig().contrast_threshold)["value"]
+    rows += grid
+    chosen.update(_tune_vo(tc, q, out, vo_rows := [], progress))
     calibrated_on = (f"{cfg.scene} (revisit, {len(sel)} queries, {len(db)} database frames); FAB-MAP trained on "
                      f"{cfg.compare.train_scene(cfg.scene)}")
-    res = {"format": "tune", "calibrated_on": calibrated_on, "chosen": chosen, "rows": rows,
+    res = {"format": "tune", "calibrated_on": calibrated_on, "chosen": chosen, "rows": rows, "vo_rows": vo_rows,
            "config": to_dict(tc)}
     write_json(out / "tune.json", res)
     (out / "tune.md").write_text(tune_markdown(res))
     return res
+
+
+def _tune_vo(tc: TuneConfig, q, out: Path, rows: list, progress: bool) -> dict:
+    """The odometry's grid on every frame of the calibration query pass ``q`` (appended to ``rows``): the
+    detector at the default window, then the window at the chosen detector (``gftt`` only: ORB has no
+    window); each run cached in ``out/vo_<setting>_<value>.npz``."""
+    from satloc.persist import load_npz, save_npz
+    from satloc.vo import odometry_drift, visual_odometry
+
+    def run(setting: str, value, config: VOConfig) -> dict:
+        path = out / f"vo_{setting}_{value}.npz"
+        key = {"vo": to_dict(config), "frames": len(q), "name": q.name}
+        odo = None
+        if path.is_file():
+            try:
+                a, meta = load_npz(path, "visual_odometry")
+                odo = a["steps"] if meta.get("key") == key else None
+            except (FormatError, KeyError):   # damaged or foreign: measured again
+                odo = None
+        if odo is None:
+            odo = visual_odometry(q, config, progress)
+            save_npz(path, "visual_odometry", {"steps": odo}, {"key": key})
+        return _vo_row(f"vo.{setting}", value, odometry_drift(odo, q.poses, (tc.vo_segment_m,)), tc.vo_segment_m)
+
+    base = VOConfig()
+    grid = [run("detector", d, VOConfig(detector=d)) for d in tc.vo_detector]
+    chosen = {"vo.detector": pick_lowest_vo(grid, base.detector)["value"]}
+    rows += grid
+    if chosen["vo.detector"] == "gftt":
+        grid = [run("lk_window_px", int(w), VOConfig(lk_window_px=int(w))) for w in tc.vo_lk_window_px]
+        chosen["vo.lk_window_px"] = pick_lowest_vo(grid, base.lk_window_px)["value"]
+        rows += grid
+    return chosen
 
 
 def tune_markdown(res: dict) -> str:
@@ -204,6 +287,16 @@ def tune_markdown(res: dict) -> str:
         lines.append(f"| {r['setting']} | {v} | {r['mean_m']:.2f} [{r['ci95_low']:.2f}-{r['ci95_high']:.2f}] | "
                      f"{r['median_m']:.2f} | {100 * r['within_1m']:.0f} % | {100 * r['failure_rate']:.0f} % | "
                      f"{r['s_per_query']:.3f} |")
+    if res.get("vo_rows"):
+        r0 = res["vo_rows"][0]
+        lines += ["", (f"Visual odometry on every frame of the calibration query pass ({r0['frames']} frames, "
+                       f"{r0['distance_m']:.0f} m), against its true poses:"), "",
+                  "| setting | value | translation error % | heading deg / 100 m | segments | failed steps |",
+                  "|---|---|---|---|---|---|"]
+        for r in res["vo_rows"]:
+            v = f"**{r['value']}**" if res["chosen"].get(r["setting"]) == r["value"] else f"{r['value']}"
+            lines.append(f"| {r['setting']} | {v} | {r['trans_pct']:.3f} | {r['rot_deg_per_100m']:.3f} | "
+                         f"{r['segments']} | {r['failed_steps']} |")
     return "\n".join(lines) + "\n"
 
 
@@ -213,6 +306,7 @@ __all__ = [
     "TEST_SCENES",
     "TuneConfig",
     "pick_lowest",
+    "pick_lowest_vo",
     "pick_smallest_within",
     "tune",
     "tune_markdown",
