@@ -184,7 +184,10 @@ def test_vector_objects_need_a_georeferenced_image(tmp_path):
 def test_footprints_become_buildings_on_the_tile(scene):
     b = scene.layout.buildings
     assert len(b) == 4                                     # the one on the road is left out, with a warning
-    assert any("1 of 5 footprints cover the road and were left out (features 4)" in m for m in scene.caught)
+    assert any("of 5 footprints, 1 overlap the road: 1 left out, less than 25% of them off the road (features 4)"
+               in m for m in scene.caught)
+    assert scene.summary()["footprints"] == {"read": 5, "kept": 4, "trimmed": 0, "repaired": 0, "dropped": 1,
+                                             "outside_tile": 0}
     assert all(x.roof_from_ground for x in b)
     assert _building_at(scene, HOUSE_A).height == 12.0
     assert _building_at(scene, HOUSE_B).height == 4 * LEVEL_HEIGHT_M

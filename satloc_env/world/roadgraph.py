@@ -138,10 +138,13 @@ class Tour:
 
 
 # --- building the graph -----------------------------------------------------------------------------------
-def graph_from_lines(lines, widths, width_m: float, height_m: float, params: GraphParams = GraphParams()
-                     ) -> RoadGraph:
+def graph_from_lines(lines, widths, width_m: float, height_m: float, params: GraphParams = GraphParams(),
+                     layers=None) -> RoadGraph:
     """The road graph of centre lines in map metres (see the module docstring). ``widths``: per line, a road
-    width (metres) or an array of one per vertex."""
+    width (metres) or an array of one per vertex. ``layers``: per line, its vertical layer (OpenStreetMap's
+    ``layer``, bridges above, tunnels below; None: all on one): lines on different layers meet only where
+    one ends on the other's vertex, never where they cross, and a line end is snapped only to lines of its
+    own layer."""
     import networkx as nx
     import shapely
     from shapely.strtree import STRtree
@@ -149,8 +152,12 @@ def graph_from_lines(lines, widths, width_m: float, height_m: float, params: Gra
     params.check()
     m = params.edge_margin_m
     box = shapely.box(m, m, width_m - m, height_m - m)
-    src, src_w = [], []
-    for xy, w in zip(lines, widths):
+    lines = list(lines)
+    layers = np.zeros(len(lines), np.int64) if layers is None else np.asarray(layers, np.int64)
+    if layers.shape != (len(lines),):
+        raise RoadGraphError(f"layers: expected one per line ({len(lines)}), got {layers.shape}")
+    src, src_w, src_layer = [], [], []
+    for xy, w, layer in zip(lines, widths, layers):
         xy = np.asarray(xy, np.float64)
         wv = np.broadcast_to(np.asarray(w, np.float64), (len(xy),)).copy()
         keep = np.concatenate([[True], np.linalg.norm(np.diff(xy, axis=0), axis=1) > 1e-9])
@@ -162,13 +169,12 @@ def graph_from_lines(lines, widths, width_m: float, height_m: float, params: Gra
             pxy = np.asarray(shapely.get_coordinates(part), np.float64)
             src.append(pxy)
             src_w.append(np.interp(_project(xy, pxy), arc_length(xy), wv))
+            src_layer.append(int(layer))
     if not src:
         raise RoadGraphError(f"no road lies inside the tile (x in [{m:g}, {width_m - m:g}], y in [{m:g}, "
                              f"{height_m - m:g}] metres: the tile less edge_margin_m)")
-    src, src_w = _snap_ends(src, src_w, params.snap_m)
-    geoms = [shapely.LineString(xy) for xy in src]
-    noded = _line_parts(shapely.unary_union(shapely.MultiLineString(geoms)))
-    tree = STRtree(geoms)
+    src_layer = np.asarray(src_layer, np.int64)
+    src, src_w = _snap_ends(src, src_w, params.snap_m, src_layer)
     g = nx.MultiGraph()
     node_at: dict[tuple[int, int], int] = {}
 
@@ -179,14 +185,19 @@ def graph_from_lines(lines, widths, width_m: float, height_m: float, params: Gra
             g.add_node(node_at[key], xy=np.asarray(p, np.float64))
         return node_at[key]
 
-    for piece in noded:
-        xy = np.asarray(shapely.get_coordinates(piece), np.float64)
-        if len(xy) < 2 or shapely.length(piece) < 1e-6:
-            continue
-        j = int(tree.nearest(shapely.line_interpolate_point(piece, 0.5, normalized=True)))
-        w = np.interp(_project(src[j], xy), arc_length(src[j]), src_w[j])
-        u, v = node(xy[0]), node(xy[-1])
-        g.add_edge(u, v, xy=xy, w=w, length=float(arc_length(xy)[-1]), start=u)
+    for layer in np.unique(src_layer):   # each layer noded on its own: no junction where layers cross
+        idx = np.flatnonzero(src_layer == layer)
+        geoms = [shapely.LineString(src[i]) for i in idx]
+        noded = _line_parts(shapely.unary_union(shapely.MultiLineString(geoms)))
+        tree = STRtree(geoms)
+        for piece in noded:
+            xy = np.asarray(shapely.get_coordinates(piece), np.float64)
+            if len(xy) < 2 or shapely.length(piece) < 1e-6:
+                continue
+            j = int(idx[int(tree.nearest(shapely.line_interpolate_point(piece, 0.5, normalized=True)))])
+            w = np.interp(_project(src[j], xy), arc_length(src[j]), src_w[j])
+            u, v = node(xy[0]), node(xy[-1])   # layers meet where their lines share an end (1 cm)
+            g.add_edge(u, v, xy=xy, w=w, length=float(arc_length(xy)[-1]), start=u, layer=int(layer))
     rg = RoadGraph(g, float(width_m), float(height_m))
     _drop_stubs(rg, params.snap_m)
     _merge_degree_two(rg)
@@ -299,23 +310,35 @@ def _project(line: np.ndarray, pts: np.ndarray) -> np.ndarray:
     return cum[k] + t[np.arange(len(pts)), k] * np.sqrt(l2[k])
 
 
-def _snap_ends(lines: list[np.ndarray], widths: list[np.ndarray], tol: float
+def _snap_ends(lines: list[np.ndarray], widths: list[np.ndarray], tol: float, layers: np.ndarray | None = None
                ) -> tuple[list[np.ndarray], list[np.ndarray]]:
-    """Join each line end that lies within ``tol`` of another line (but does not touch it) to that line:
-    extend it to the closest point, a centimetre beyond, so that noding cuts the other line there. Returns
-    the lines and their per-vertex widths."""
+    """Join each line end that lies within ``tol`` of another line of its layer (but does not touch it) to
+    that line: extend it to the closest point, a centimetre beyond, so that noding cuts the other line there.
+    Returns the lines and their per-vertex widths. The candidates of each end come from a spatial index (a
+    shapely STRtree queried within ``tol``), so the work grows with the lines near each end, not with all
+    lines."""
     import shapely
+    from shapely.strtree import STRtree
 
     if tol <= 0 or len(lines) < 1:
         return lines, widths
+    layers = np.zeros(len(lines), np.int64) if layers is None else np.asarray(layers)
     geoms = [shapely.LineString(xy) for xy in lines]
+    tree = STRtree(geoms)
     out = [xy.copy() for xy in lines]
     wout = [w.copy() for w in widths]
+    ends = shapely.points(np.array([xy[e] for xy in lines for e in (0, -1)]))
+    near: dict[int, list[int]] = {}
+    for q, j in zip(*tree.query(ends, predicate="dwithin", distance=tol)):
+        near.setdefault(int(q), []).append(int(j))
     for i, xy in enumerate(lines):
-        for end in (0, -1):
-            p = shapely.Point(xy[end])
+        for n_end, end in enumerate((0, -1)):
+            p = ends[2 * i + n_end]
             best, best_d = None, tol
-            for j, g in enumerate(geoms):
+            for j in sorted(near.get(2 * i + n_end, ())):
+                if layers[j] != layers[i]:
+                    continue
+                g = geoms[j]
                 d = g.distance(p)
                 if j == i:   # the line's own far part may pass near its end (a loop)
                     far = shapely.LineString(xy[1:] if end == 0 else xy[:-1]) if len(xy) > 2 else None

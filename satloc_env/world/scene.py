@@ -434,6 +434,8 @@ class Scene:
         self.spec = spec
         self.layout = layout
         self.satmap = satmap
+        #: vector buildings' report (kept, trimmed, repaired, dropped footprints), for a scene built from them
+        self.footprints: dict | None = None
         self.alias_source = alias_source if alias_source is not None else np.zeros(0, int)
         try:
             self.routes = {k: Route(r.waypoints, r.closed, r.laps, name=f"routes.{k}", widths=r.widths)
@@ -457,6 +459,8 @@ class Scene:
                "cars": len(self.layout.cars)}
         if self.satmap.radiometry is not None:
             out["radiometry"] = self.satmap.radiometry
+        if self.footprints is not None:
+            out["footprints"] = dict(self.footprints)
         return out
 
     @functools.cached_property
@@ -609,6 +613,34 @@ class _ImageGround:
     roads: np.ndarray | None        # (H, W) bool road mask on the layout's raster, if any
     radiometry: dict | None = None  # how a georeferenced image became 8-bit RGB (SatelliteMap.radiometry)
     road_graph: Any = None          # the road graph of vector roads (satloc_env.world.roadgraph.RoadGraph), if any
+    footprints: dict | None = None  # vector buildings: how many footprints were kept, trimmed, repaired, dropped
+
+
+def _route_corridor(spec: SceneSpec, frame, shape: tuple[int, int], mpp: float, width_m: float) -> np.ndarray | None:
+    """(H, W) bool: the given routes (``waypoints`` in metres, ``lonlat`` through ``frame``) buffered by half
+    ``width_m``: the road of a scene that has no road data, where its buildings and trees must not stand;
+    None when no route gives its points."""
+    import shapely
+    from affine import Affine
+    from rasterio.features import rasterize
+
+    lines = []
+    for r in (spec.routes or {}).values():
+        if r.waypoints is not None:
+            xy = np.asarray(r.waypoints, np.float64).reshape(-1, 2)
+        elif r.lonlat is not None and frame is not None:
+            xy = frame.to_map(np.asarray(r.lonlat, np.float64).reshape(-1, 2))
+        else:
+            continue
+        if r.closed and len(xy) > 2:
+            xy = np.vstack([xy, xy[:1]])
+        if len(xy) >= 2:
+            lines.append(shapely.LineString(xy).buffer(width_m / 2))
+    if not lines:
+        return None
+    h, w = shape
+    return rasterize([(g, 1) for g in lines], out_shape=(h, w), transform=Affine(mpp, 0.0, 0.0, 0.0, -mpp, h * mpp),
+                     fill=0, dtype="uint8").astype(bool)
 
 
 def _image_layout(g: ImageGeneratorSpec, spec: SceneSpec, base: Path, where: str) -> _ImageGround:
@@ -676,7 +708,7 @@ def _image_layout(g: ImageGeneratorSpec, spec: SceneSpec, base: Path, where: str
             raise ConfigError(f"{where}: generator.labels: class id {raw.max()} >= {NUM_CLASSES}")
     from satloc.geodata.vectors import is_vector_file
 
-    if g.roads and is_vector_file(g.roads):
+    if g.roads and is_vector_file(base / g.roads):
         from .scene_roads import vector_roads
 
         road_graph, roads = vector_roads(base / g.roads, frame, rgb.shape[:2], mpp, g.road_width_m, spec.road_graph,
@@ -697,20 +729,24 @@ def _image_layout(g: ImageGeneratorSpec, spec: SceneSpec, base: Path, where: str
     elif labels is None:
         labels = np.full(rgb.shape[:2], CLASS_ID["road"], np.uint8)
     h, w = labels.shape
-    buildings, trees = [], []
+    buildings, trees, report = [], [], None
     if g.buildings or g.trees:
         from .scene_buildings import vector_buildings, vector_trees
 
         drivable = np.isin(labels, DRIVABLE)
+        if roads is None and not g.labels:   # no road data: the routes' own corridor is the road
+            corridor = _route_corridor(spec, frame, labels.shape, mpp, g.road_width_m)
+            if corridor is not None:
+                drivable = corridor
         if g.trees:
             trees, crowns = vector_trees(base / g.trees, frame, labels.shape, mpp, drivable, spec.seed, where)
             labels = np.where(crowns, CLASS_ID["tree"], labels).astype(np.uint8)
         if g.buildings:
-            buildings, fp_mask = vector_buildings(base / g.buildings, frame, labels.shape, mpp, drivable,
-                                                  g.building_height_m, spec.seed, where)
+            buildings, fp_mask, report = vector_buildings(base / g.buildings, frame, labels.shape, mpp, drivable,
+                                                          g.building_height_m, spec.seed, where)
             labels = np.where(fp_mask, CLASS_ID["building"], labels).astype(np.uint8)
     return _ImageGround(Layout(w * mpp, h * mpp, spec.ground_mpp, rgb, labels, buildings, trees), frame, roads,
-                        geo.radiometry if geo is not None else None, road_graph=road_graph)
+                        geo.radiometry if geo is not None else None, road_graph=road_graph, footprints=report)
 
 
 def _load_georeferenced(path: Path, g: ImageGeneratorSpec, mpp: float, where: str):
@@ -894,6 +930,7 @@ def build_scene(spec: SceneSpec, base_dir: Path | None = None, aliasing: float |
     scene = Scene(spec, lay, satmap, src, where=where)
     if graphs:
         scene.__dict__["road_graph"] = graphs[0]
+    scene.footprints = ground.footprints if ground is not None else None
     return scene
 
 

@@ -8,9 +8,13 @@ are read in the CRS their file declares, taken to the scene's frame through pypr
   else ``building:levels`` x 3 m, else drawn from ``generator.building_height_m`` (seeded by the scene's
   seed and the footprint's index, so a scene is the same on every load). The roof shows the imagery under
   the footprint (:attr:`satloc_env.world.layout.Building.roof_from_ground`); the walls come from the facade
-  painters (a style drawn per building). A footprint that covers road (1 m\\ :sup:`2` or more of the road
-  mask) would stand in the car's way: it is left out, with a :class:`satloc.SatlocWarning` naming the file
-  and the features.
+  painters (a style drawn per building). A footprint that overlaps the road (the drivable ground, vectorised
+  and widened by :data:`ROAD_CLEARANCE_M`) would stand in the car's way: it is **trimmed** by the road
+  (shapely), and left out only when less than :data:`MIN_KEPT_FRACTION` of it (or under 2 m\\ :sup:`2`)
+  remains. An invalid footprint (a self-intersecting ring) is repaired (``shapely.make_valid``). The scene
+  reports how many footprints it kept, trimmed, repaired and dropped (:meth:`Scene.summary`
+  ``footprints``), with a :class:`satloc.SatlocWarning` naming the file and the features it trimmed or
+  dropped.
 * **Trees** (``generator.trees``): a Point is one tree, its crown radius and height from the attributes
   (``diameter_crown`` / ``radius``, ``height``) or drawn (2-3.5 m, 6-11 m). A Polygon is a canopy area,
   filled with trees about :data:`CANOPY_SPACING_M` apart (jittered, seeded). A tree whose trunk stands on
@@ -33,7 +37,8 @@ from satloc.errors import ConfigError, SatlocWarning
 from .layout import Building, Tree
 from .scene_roads import read_vectors
 
-__all__ = ["CANOPY_SPACING_M", "MAX_TREES", "vector_buildings", "vector_trees"]
+__all__ = ["CANOPY_SPACING_M", "MAX_TREES", "MIN_KEPT_FRACTION", "ROAD_CLEARANCE_M", "road_polygons",
+           "vector_buildings", "vector_trees"]
 
 #: spacing of the trees that fill a canopy area, metres
 CANOPY_SPACING_M = 6.0
@@ -41,8 +46,12 @@ CANOPY_SPACING_M = 6.0
 MAX_TREES = 20000
 #: number of facade styles drawn from (satloc_env.world.meshes's painters)
 _FACADES = 8
-#: a footprint covering this much road (m^2) is left out
-_ROAD_OVERLAP_M2 = 1.0
+#: a footprint trimmed by the road is left out when less than this fraction of its area remains
+MIN_KEPT_FRACTION = 0.25
+#: a trimmed footprint keeps this far from the road's edge (metres): its walls stand off the drivable pixels
+ROAD_CLEARANCE_M = 0.5
+#: a footprint overlapping the road by less than this (m^2) counts as untouched (edge pixels, rounding)
+_TRIM_M2 = 0.5
 #: clipped footprint parts smaller than this (m^2) are dropped
 _MIN_PART_M2 = 2.0
 
@@ -64,12 +73,29 @@ def _listing(idx: list[int], n: int = 8) -> str:
     return ", ".join(map(str, idx[:n])) + (f" and {len(idx) - n} more" if len(idx) > n else "")
 
 
+def road_polygons(drivable: np.ndarray, mpp: float):
+    """The drivable pixels of the scene's raster (north up, origin at the south-west corner) as one shapely
+    geometry in map metres (``rasterio.features.shapes``)."""
+    import shapely
+    from affine import Affine
+    from rasterio.features import shapes
+
+    h = drivable.shape[0]
+    m = np.ascontiguousarray(drivable, np.uint8)
+    if not m.any():
+        return shapely.Polygon()
+    polys = [shapely.geometry.shape(g) for g, v in shapes(m, mask=m.astype(bool), connectivity=4,
+                                                          transform=Affine(mpp, 0.0, 0.0, 0.0, -mpp, h * mpp)) if v]
+    return shapely.union_all(polys)
+
+
 def vector_buildings(path: Path, frame, shape: tuple[int, int], mpp: float, drivable: np.ndarray,
                      height_range: tuple[float, float], seed: int, where: str
-                     ) -> tuple[list[Building], np.ndarray]:
+                     ) -> tuple[list[Building], np.ndarray, dict]:
     """The buildings of the footprint file ``path`` on the scene's tile (``shape`` pixels of ``mpp`` metres,
-    ``frame`` its GeoFrame) and the (H, W) bool mask of their footprints off the drivable ground (see the
-    module docstring)."""
+    ``frame`` its GeoFrame), the (H, W) bool mask of their footprints off the drivable ground and the report
+    ``{"read", "kept", "trimmed", "repaired", "dropped"}`` (footprints read from the file, inside the tile
+    untouched, trimmed by the road, repaired, left out; see the module docstring)."""
     import shapely
     from shapely.geometry import Polygon, box
 
@@ -78,29 +104,58 @@ def vector_buildings(path: Path, frame, shape: tuple[int, int], mpp: float, driv
     fps = read_vectors("buildings", read_footprints, path, frame, where)
     h, w = shape
     tile = box(0.0, 0.0, w * mpp, h * mpp)
+    road = road_polygons(drivable, mpp)
+    road = road.buffer(ROAD_CLEARANCE_M) if not road.is_empty else road
+    road_tree = shapely.STRtree(list(getattr(road, "geoms", [road]))) if not road.is_empty else None
     polys, heights, feature = [], [], []
+    trimmed, dropped, inside = set(), set(), set()
     for i, (ring, height) in enumerate(zip(fps.rings, fps.heights)):
         g = shapely.make_valid(Polygon(ring))
         g = g.intersection(tile)
         parts = [q for q in getattr(g, "geoms", [g]) if q.geom_type == "Polygon" and q.area >= _MIN_PART_M2]
+        if parts:
+            inside.add(i)
         for q in parts:
             q = Polygon(q.exterior).simplify(0.05, preserve_topology=True)
-            if q.geom_type == "Polygon" and q.area >= _MIN_PART_M2:
-                polys.append(q)
-                heights.append(height)
-                feature.append(i)
+            if q.geom_type != "Polygon" or q.area < _MIN_PART_M2:
+                continue
+            near = road_tree.query(q, predicate="intersects") if road_tree is not None else []
+            if len(near):
+                cut = q.difference(shapely.union_all(road_tree.geometries.take(near)))
+                if q.area - cut.area >= _TRIM_M2:
+                    trimmed.add(i)
+                    pieces = [c for c in getattr(cut, "geoms", [cut]) if c.geom_type == "Polygon"
+                              and c.area >= _MIN_PART_M2]
+                    if sum(c.area for c in pieces) < MIN_KEPT_FRACTION * q.area:
+                        dropped.add(i)
+                        continue
+                    for c in pieces:
+                        c = Polygon(c.exterior).simplify(0.05, preserve_topology=True)
+                        if c.geom_type == "Polygon" and c.area >= _MIN_PART_M2:
+                            polys.append(c)
+                            heights.append(height)
+                            feature.append(i)
+                    continue
+            polys.append(q)
+            heights.append(height)
+            feature.append(i)
+    standing = set(feature)
+    dropped = sorted(dropped - standing)     # every part of it was left out
+    trimmed = sorted(trimmed & standing)
+    report = {"read": len(fps.rings), "kept": len(standing - set(trimmed)), "trimmed": len(trimmed),
+              "repaired": int(fps.repaired), "dropped": len(dropped), "outside_tile": len(fps.rings) - len(inside)}
+    if trimmed or dropped:
+        msg = [f"{len(trimmed)} trimmed to the road's edge (features {_listing(trimmed)})"] if trimmed else []
+        if dropped:
+            msg.append(f"{len(dropped)} left out, less than {MIN_KEPT_FRACTION:.0%} of them off the road "
+                       f"(features {_listing(dropped)})")
+        warnings.warn(f"{where}: generator.buildings: {path}: of {len(fps.rings)} footprints, {len(trimmed) + len(dropped)} "
+                      f"overlap the road: {'; '.join(msg)}", SatlocWarning, stacklevel=2)
     ids = _ids_raster(polys, shape, mpp)
-    overlap = np.bincount(ids[drivable], minlength=len(polys) + 1)[1:] * mpp * mpp
-    blocked = sorted({feature[k] for k in np.flatnonzero(overlap >= _ROAD_OVERLAP_M2)})
-    if blocked:
-        warnings.warn(f"{where}: generator.buildings: {path}: {len(blocked)} of {len(fps.rings)} footprints cover "
-                      f"the road and were left out (features {_listing(blocked)})", SatlocWarning, stacklevel=2)
     lo, hi = (float(v) for v in height_range)
     out: list[Building] = []
     keep = np.zeros(len(polys) + 1, bool)
     for k, (q, height) in enumerate(zip(polys, heights)):
-        if feature[k] in blocked:
-            continue
         rng = np.random.default_rng([int(seed), 21, feature[k]])
         drawn_h, facade = float(rng.uniform(lo, hi)), int(rng.integers(0, _FACADES))
         ring = np.asarray(q.exterior.coords, np.float64)[:-1]
@@ -109,7 +164,7 @@ def vector_buildings(path: Path, frame, shape: tuple[int, int], mpp: float, driv
         out.append(Building(ring, float(height) if height is not None else drawn_h, facade, roof_from_ground=True))
         keep[k + 1] = True
     mask = keep[ids] & ~drivable
-    return out, mask
+    return out, mask, report
 
 
 def vector_trees(path: Path, frame, shape: tuple[int, int], mpp: float, drivable: np.ndarray, seed: int,

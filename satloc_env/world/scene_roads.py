@@ -39,7 +39,7 @@ def read_vectors(field: str, reader, path: Path, frame, where: str):
     from satloc.geodata.vectors import VECTOR_SUFFIXES, is_vector_file
 
     if not is_vector_file(path):
-        raise ConfigError(f"{where}: generator.{field}: {path} is not a vector file (expected one of "
+        raise ConfigError(f"{where}: generator.{field}: {path} is not a vector file GDAL opens (such as "
                           f"{', '.join(VECTOR_SUFFIXES)})")
     if frame is None:
         raise ConfigError(f"{where}: generator.{field}: {path} is a vector file, in map coordinates; the image is "
@@ -63,7 +63,7 @@ def vector_roads(path: Path, frame, shape: tuple[int, int], mpp: float, default_
     lines = read_vectors("roads", lambda p: read_road_lines(p, default_width_m), path, frame, where)
     h, w = shape
     try:
-        graph = graph_from_lines(lines.lines, lines.widths, w * mpp, h * mpp, params)
+        graph = graph_from_lines(lines.lines, lines.widths, w * mpp, h * mpp, params, lines.layers)
     except RoadGraphError as e:
         raise ConfigError(f"{where}: generator.roads: {path}: {e}") from e
     mask = rasterize_area(road_area(lines.lines, lines.widths, graph, params.curb_radius_m), shape, mpp)

@@ -1,0 +1,230 @@
+"""OpenStreetMap extracts as users bring them (issue 35): any vector file GDAL reads, found by opening it;
+OSM's tags (drivable classes only, oneway, bridge / tunnel / layer, lengths with units, building bases and
+roofs); footprints repaired, not dropped; road layers that do not meet where they cross; ends snapped
+through a spatial index.
+
+The OSM file is written here: an XML export over the GeoTIFF of ``test_roads`` (UTM 32N, 160 m x 120 m).
+"""
+from __future__ import annotations
+
+import numpy as np
+import pyproj
+import pytest
+import shapely
+import yaml
+from test_roads import E0, N0, RES, UTM, image
+
+from satloc import FormatError, SatlocWarning
+from satloc.geodata.vectors import (
+    is_vector_file,
+    parse_length,
+    read_footprints,
+    read_road_lines,
+    read_trees,
+    road_layer,
+    road_oneway,
+)
+from satloc_env.world.roadgraph import GraphParams, _snap_ends, graph_from_lines
+from satloc_env.world.scene import load_scene
+
+TO_LONLAT = pyproj.Transformer.from_crs(UTM, "EPSG:4326", always_xy=True)
+
+# ways in metres east / north of (E0, N0): (node list, tags)
+NODES = {
+    1: (5.0, 60.0), 2: (155.0, 60.0),                                       # main street, west to east
+    3: (80.0, 5.0), 4: (80.0, 45.0), 5: (80.0, 75.0), 6: (80.0, 115.0),     # a road south to north ...
+    7: (20.0, 95.0), 8: (140.0, 95.0), 9: (140.0, 103.0), 10: (20.0, 103.0),   # a one-way pair
+    11: (10.0, 10.0), 12: (10.0, 110.0),                                    # a footway
+    13: (20.0, 20.0), 14: (150.0, 22.0),                                    # a railway
+    20: (30.0, 30.0), 21: (50.0, 30.0), 22: (50.0, 45.0), 23: (30.0, 45.0),  # a house
+    24: (100.0, 30.0), 25: (120.0, 45.0), 26: (120.0, 30.0), 27: (100.0, 45.0),  # a bow tie
+}
+WAYS = [
+    ([1, 2], {"highway": "residential", "width": "7,5"}),
+    ([3, 4], {"highway": "primary", "lanes": "2"}),
+    ([4, 5], {"highway": "primary", "lanes": "2", "bridge": "yes", "layer": "1"}),   # ... over the main street
+    ([5, 6], {"highway": "primary", "lanes": "2"}),
+    ([7, 8], {"highway": "residential", "oneway": "yes"}),
+    ([9, 10], {"highway": "residential", "oneway": "-1"}),
+    ([11, 12], {"highway": "footway"}),
+    ([13, 14], {"railway": "rail"}),
+    ([20, 21, 22, 23, 20], {"building": "house", "height": "24 ft", "roof:shape": "gabled", "min_height": "3"}),
+    ([24, 25, 26, 27, 24], {"building": "yes", "building:levels": "2"}),
+]
+TREE = ((65.0, 85.0), {"natural": "tree", "height": "9,5"})
+
+
+def osm_xml(nodes=NODES, ways=WAYS) -> str:
+    def node(i, xy, tags=None):
+        lon, lat = TO_LONLAT.transform(E0 + xy[0], N0 + xy[1])
+        inner = "".join(f'<tag k="{k}" v="{v}"/>' for k, v in (tags or {}).items())
+        return f'  <node id="{i}" lat="{lat:.8f}" lon="{lon:.8f}">{inner}</node>\n'
+
+    out = ['<?xml version="1.0" encoding="UTF-8"?>\n<osm version="0.6" generator="satloc tests">\n']
+    out += [node(i, xy) for i, xy in nodes.items()]
+    out.append(node(99, *TREE))
+    for w, (refs, tags) in enumerate(ways):
+        nds = "".join(f'<nd ref="{r}"/>' for r in refs)
+        tg = "".join(f'<tag k="{k}" v="{v}"/>' for k, v in tags.items())
+        out.append(f'  <way id="{100 + w}">{nds}{tg}</way>\n')
+    out.append("</osm>\n")
+    return "".join(out)
+
+
+@pytest.fixture(scope="module")
+def osm(tmp_path_factory):
+    d = tmp_path_factory.mktemp("osm")
+    (d / "export.osm").write_text(osm_xml())
+    return d / "export.osm"
+
+
+def test_lengths_with_units():
+    assert parse_length("7,5") == 7.5 and parse_length("7.5 m") == 7.5 and parse_length(6) == 6.0
+    assert parse_length("24 ft") == pytest.approx(7.3152) and parse_length("24'") == pytest.approx(7.3152)
+    assert parse_length("23'6\"") == pytest.approx(23 * 0.3048 + 6 * 0.0254)
+    assert parse_length("350 cm") == pytest.approx(3.5)
+    for bad in ("wide", "2;3", "", None, "7 furlongs", float("nan")):
+        assert parse_length(bad) is None
+
+
+def test_oneway_and_layer_tags():
+    assert road_oneway({"oneway": "yes"}) == 1 and road_oneway({"oneway": "-1"}) == -1
+    assert road_oneway({"highway": "motorway"}) == 1 and road_oneway({"junction": "roundabout"}) == 1
+    assert road_oneway({"highway": "motorway", "oneway": "no"}) == 0 and road_oneway({}) == 0
+    assert road_layer({"layer": "2"}) == 2 and road_layer({"bridge": "viaduct"}) == 1
+    assert road_layer({"tunnel": "yes"}) == -1 and road_layer({"layer": "-1", "bridge": "yes"}) == -1
+    assert road_layer({"bridge": "no"}) == 0
+
+
+def test_an_osm_export_is_roads_buildings_and_trees(osm):
+    roads = read_road_lines(osm)
+    # the footway and the railway are not roads for cars; the six car ways are
+    assert len(roads.lines) == 6
+    assert roads.widths.tolist() == [7.5, 7.0, 7.0, 7.0, 7.0, 7.0]
+    assert roads.oneway.tolist() == [0, 0, 0, 0, 1, -1]
+    assert roads.layers.tolist() == [0, 0, 1, 0, 0, 0]
+    # asked for, the footway is a road too
+    assert len(read_road_lines(osm, classes={"residential", "primary", "footway"}).lines) == 7
+    with pytest.raises(FormatError, match=r"highway classes \(.*footway: 1.*\) are none of the road classes"):
+        read_road_lines(osm, classes={"motorway"})
+    fp = read_footprints(osm)
+    assert len(fp.rings) == 3   # the house, and the bow tie repaired into its two triangles
+    assert fp.repaired == 1
+    house = int(np.argmax([len(r) == 4 for r in fp.rings]))
+    assert fp.heights[house] == pytest.approx(24 * 0.3048) and fp.bases[house] == 3.0
+    assert fp.roofs[house] == "gabled" and sorted(fp.roofs) == ["flat", "flat", "gabled"]
+    assert sorted(h for h in fp.heights if h != fp.heights[house]) == [6.0, 6.0]
+    t = read_trees(osm)   # the OSM nodes of the ways are not trees; the natural=tree node is
+    assert len(t.points) == 1 and t.point_heights == [9.5] and not t.canopies
+
+
+def test_a_vector_file_is_found_by_opening_it(osm, tmp_path):
+    xml = tmp_path / "export.xml"              # an OSM export without the .osm ending
+    xml.write_bytes(osm.read_bytes())
+    noext = tmp_path / "roads"
+    noext.write_bytes(osm.read_bytes())
+    assert is_vector_file(xml) and is_vector_file(noext) and is_vector_file(tmp_path / "missing.fgb")
+    image(tmp_path)
+    assert not is_vector_file(tmp_path / "tile.tif") and not is_vector_file(tmp_path / "missing.xml")
+    (tmp_path / "notes.txt").write_text("not vectors")
+    assert not is_vector_file(tmp_path / "notes.txt")
+    assert len(read_road_lines(xml).lines) == 6
+
+
+@pytest.mark.parametrize("driver, name", [("FlatGeobuf", "roads.fgb"), ("KML", "roads.kml")])
+def test_other_gdal_formats(osm, tmp_path, driver, name):
+    from pyogrio.raw import write
+
+    roads = read_road_lines(osm)
+    geoms = np.array([shapely.to_wkb(shapely.LineString(xy)) for xy in roads.lines], dtype=object)
+    hw = np.array(["residential"] * len(geoms), dtype=object)
+    write(str(tmp_path / name), geoms, [hw], ["highway"], driver=driver, crs="EPSG:4326",
+          geometry_type="LineString")
+    got = read_road_lines(tmp_path / name)
+    assert len(got.lines) == 6
+    for a in got.lines:   # FlatGeobuf orders the features by its spatial index
+        assert min(np.abs(a[:, :2] - b).max() if a.shape == b.shape else 1.0 for b in roads.lines) < 1e-6
+
+
+def test_a_bridge_is_no_junction(osm):
+    roads = read_road_lines(osm).to_crs(UTM)
+    lines = [xy - [E0, N0] for xy in roads.lines[:4]]      # the main street and the road over it
+    crossing = np.array([80.0, 60.0])
+    flat = graph_from_lines(lines, roads.widths[:4], 160, 120, GraphParams())
+    layered = graph_from_lines(lines, roads.widths[:4], 160, 120, GraphParams(), roads.layers[:4])
+
+    def junctions(rg):
+        return [n for n in rg.graph.nodes if rg.graph.degree(n) >= 3
+                and np.linalg.norm(rg.graph.nodes[n]["xy"] - crossing) < 1.0]
+
+    assert len(junctions(flat)) == 1        # without layers the crossing is a four-way junction
+    assert junctions(layered) == []         # with them the bridge passes over: two roads, no junction
+    import networkx as nx
+
+    assert nx.number_connected_components(layered.graph) == 2
+    assert layered.length_m == pytest.approx(flat.length_m, rel=1e-6)
+
+
+def test_snapping_uses_only_nearby_lines_of_the_same_layer():
+    a = np.array([[0.0, 0.0], [100.0, 0.0]])
+    b = np.array([[50.0, 1.5], [50.0, 50.0]])          # ends 1.5 m from a: snapped onto it
+    out, _ = _snap_ends([a, b], [np.full(2, 7.0), np.full(2, 7.0)], 2.0)
+    assert np.allclose(out[1][0], [50.0, -0.01], atol=1e-6) and np.array_equal(out[0], a)
+    out, _ = _snap_ends([a, b], [np.full(2, 7.0), np.full(2, 7.0)], 2.0, np.array([0, 1]))
+    assert np.array_equal(out[1], b)                    # on another layer: left as it is
+
+
+def test_a_scene_from_one_osm_export(osm, tmp_path):
+    """One OSM file named without its ending serves as the roads, the buildings and the trees of a scene."""
+    (tmp_path / "map").write_bytes(osm.read_bytes())
+    p = tmp_path / "osm.yaml"
+    p.write_text(yaml.safe_dump({"name": "osm", "generator": {
+        "type": "image", "image": image(tmp_path), "roads": "map", "buildings": "map", "trees": "map"},
+        "meters_per_pixel": RES, "ground_mpp": RES}))
+    sc = load_scene(p)
+    assert len(sc.layout.trees) >= 1 and sc.routes["main"].length > 100
+    assert len(sc.layout.buildings) >= 1
+
+
+# a shop whose footprint reaches 4 m into the main street (y 56.25-63.75 m): trimmed, not dropped
+SHOP_NODES = {30: (40.0, 58.0), 31: (60.0, 58.0), 32: (60.0, 75.0), 33: (40.0, 75.0)}
+SHOP = ([30, 31, 32, 33, 30], {"building": "retail", "height": "8"})
+
+
+def _scene(tmp_path, gen: dict, routes=None, nodes=NODES, ways=WAYS):
+    (tmp_path / "map.osm").write_text(osm_xml(nodes, ways))
+    d = {"name": "osm", "generator": {"type": "image", "image": image(tmp_path), **gen},
+         "meters_per_pixel": RES, "ground_mpp": RES}
+    if routes:
+        d["routes"] = routes
+    p = tmp_path / "s.yaml"
+    p.write_text(yaml.safe_dump(d))
+    return load_scene(p)
+
+
+def test_a_footprint_over_the_road_is_trimmed_by_it(tmp_path):
+    with pytest.warns(SatlocWarning, match=r"of 4 footprints, 1 overlap the road: 1 trimmed to the road's edge"):
+        sc = _scene(tmp_path, {"roads": "map.osm", "buildings": "map.osm"}, nodes={**NODES, **SHOP_NODES},
+                    ways=[*WAYS, SHOP])
+    rep = sc.summary()["footprints"]
+    assert rep == {"read": 4, "kept": 3, "trimmed": 1, "repaired": 1, "dropped": 0, "outside_tile": 0}
+    main_y = sc.satmap.frame.to_map(np.array(TO_LONLAT.transform(E0 + 50.0, N0 + 60.0))[None])[0, 1]
+    shop = [b for b in sc.layout.buildings if shapely.Polygon(b.footprint).contains(
+        shapely.Point(sc.satmap.frame.to_map(np.array(TO_LONLAT.transform(E0 + 50.0, N0 + 70.0))[None])[0]))]
+    assert len(shop) == 1
+    ys = shop[0].footprint[:, 1]
+    assert ys.min() > main_y + 7.5 / 2          # off the road's surface
+    area = shapely.Polygon(shop[0].footprint).area
+    assert 0.4 * 340 < area < 0.75 * 340        # most of the north part stands: 20 m x ~11 m of 20 x 17
+    assert sc.layout.buildings and all(b.height > 0 for b in sc.layout.buildings)
+
+
+def test_without_road_data_the_routes_corridor_is_the_road(tmp_path):
+    """No roads: and no labels: a footprint is trimmed by the given route's corridor only, not dropped because
+    the whole tile counted as road (every one of them was, before)."""
+    route = {"main": {"waypoints": [[5.0, 60.0], [155.0, 60.0]]}}
+    with pytest.warns(SatlocWarning, match="1 trimmed to the road's edge"):
+        sc = _scene(tmp_path, {"buildings": "map.osm"}, routes=route, nodes={**NODES, **SHOP_NODES},
+                    ways=[*WAYS, SHOP])
+    assert sc.summary()["footprints"]["dropped"] == 0
+    assert len(sc.layout.buildings) == 4        # the house, the bow tie's two halves and the trimmed shop
