@@ -117,12 +117,9 @@ def parse_length(v) -> float | None:
     """A length in metres from an attribute: a number (metres), or a text with a decimal point or comma and an
     optional unit (m, cm, km, mi, ft / feet / ', in / inch / ", or 23'6" in feet and inches); None when it is
     none of these (``"wide"``, ``"2;3"``, an empty value)."""
-    if v is None or isinstance(v, bool):
-        return None
-    if isinstance(v, (int, float, np.integer, np.floating)):
-        f = float(v)
-        return f if math.isfinite(f) else None
-    s = str(v)
+    s = _text_or_number(v)
+    if not isinstance(s, str):
+        return s
     m = _FEET_INCHES.match(s)
     if m:
         return float(m.group(1)) * 0.3048 + float(m.group(2)) * 0.0254
@@ -201,13 +198,20 @@ def road_width(attrs: dict, default_width_m: float) -> float:
     return float(default_width_m) if w is None else w
 
 
-def _number(v, first_of_list: bool = False) -> float | None:
+def _text_or_number(v) -> str | float | None:
+    """An attribute as a finite number (None for NaN, infinities, booleans and None), or else as text."""
     if v is None or isinstance(v, bool):
         return None
     if isinstance(v, (int, float, np.integer, np.floating)):
         f = float(v)
         return f if math.isfinite(f) else None
-    s = str(v)
+    return str(v)
+
+
+def _number(v, first_of_list: bool = False) -> float | None:
+    s = _text_or_number(v)
+    if not isinstance(s, str):
+        return s
     if first_of_list:
         s = s.split(";")[0]
     m = _NUMBER.match(s)
