@@ -103,7 +103,7 @@ def test_sixteen_bit_rgba(tmp_path, ground):
     alpha = np.full(rgb.shape[:2], 65535, np.uint16)
     alpha[:, : w // 2] = 0
     path = write_raster(tmp_path / "rgba16.tif", np.concatenate([a16, alpha[None]]), tr, photometric="RGB",
-                        alpha="UNASSOCIATED")
+                        alpha="YES")   # unassociated alpha: ExtraSamples says so
     sm, caught = _load(path)
     assert not caught and sm.radiometry["alpha_band"] == 4 and sm.radiometry["bands"] == [1, 2, 3]
     assert all(hi <= 5700 for _, hi in sm.radiometry["levels"])
@@ -210,6 +210,35 @@ def test_four_bands_whose_fourth_is_not_alpha(tmp_path, ground):
                         colorinterp=[ColorInterp.red, ColorInterp.green, ColorInterp.blue, ColorInterp.nir])
     sm, caught = _load(path)
     assert not caught and sm.radiometry["alpha_band"] is None and _spans_most(sm.image)
+
+
+def test_a_fourth_band_the_file_leaves_undefined_is_not_alpha(tmp_path, ground):
+    """RGB + NIR as orthophotos come (uint16, ExtraSamples unspecified: GDAL calls band 4 undefined): read as
+    RGB with a one-line warning naming the choice and how to change it; alpha: 4 makes it alpha."""
+    import rasterio
+
+    tr, rgb = ground
+    b = _bands(rgb).astype(np.uint16) * 16
+    nir = np.zeros_like(b[0])                                 # as alpha, it would make everything black
+    nir[:, : nir.shape[1] // 2] = 65535
+    path = write_raster(tmp_path / "rgbn16.tif", np.concatenate([b, nir[None]]), tr, photometric="RGB")
+    with rasterio.open(path) as ds:
+        assert ds.colorinterp[3] == ColorInterp.undefined
+    sm, caught = _load(path)
+    assert sm.radiometry["alpha_band"] is None and _spans_most(sm.image)
+    assert len(caught) == 1 and "band 4 of 4 is read as an extra band" in str(caught[0].message)
+    assert "set alpha: 4" in str(caught[0].message)
+    as_alpha, _ = _load(path, radiometry=Radiometry(alpha=4))
+    assert as_alpha.radiometry["alpha_band"] == 4
+    west = as_alpha.image[:, : as_alpha.image.shape[1] // 3]
+    east = as_alpha.image[:, -as_alpha.image.shape[1] // 3:]
+    assert east.max() == 0 and west.mean() > 20          # composited over black where "alpha" is 0
+    none, caught = _load(path, radiometry=Radiometry(alpha="none"))
+    assert none.radiometry["alpha_band"] is None and not caught
+    with pytest.raises(ConfigError, match="alpha: .* has 4 bands, so band 5 does not exist"):
+        _load(path, radiometry=Radiometry(alpha=5))
+    with pytest.raises(ConfigError, match="alpha: expected 'auto'"):
+        Radiometry(alpha="yes")
 
 
 def test_explicit_stretch(tmp_path, ground):

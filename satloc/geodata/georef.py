@@ -237,7 +237,7 @@ def write_geotiff(path: str | os.PathLike, image: np.ndarray, transform, crs=Non
     if bands.shape[0] >= 3:
         profile["photometric"] = "RGB"
     if bands.shape[0] == 4:
-        profile["alpha"] = "UNASSOCIATED"
+        profile["alpha"] = "YES"   # GDAL: unassociated alpha (ExtraSamples)
     with atomic_path(path, suffix=path.suffix or ".tif") as tmp, _quiet(), rasterio.Env(GDAL_PAM_ENABLED="NO"):
         with rasterio.open(tmp, "w", **profile) as dst:
             dst.write(bands)

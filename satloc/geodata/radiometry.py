@@ -9,15 +9,18 @@ samples become the 8-bit RGB of a :class:`~satloc.satmap.SatelliteMap` (the read
 are red, green and blue). Without it:
 
 * 1 band: grey (a palette band is expanded through its colour table, whose alpha is the pixel's alpha);
-* 2 bands: grey + alpha (the 2nd band is alpha unless GDAL's colour interpretation names it something
-  other than alpha or undefined);
+* 2 bands: grey, and the 2nd band is alpha where the file says so;
 * 3 bands: red, green, blue;
-* 4 bands: red, green, blue + alpha, with the same proviso for the 4th band (an RGB + NIR image whose 4th
-  band GDAL calls ``nir`` is read as RGB);
+* 4 bands: red, green, blue, and the 4th band is alpha where the file says so;
 * more: the bands GDAL interprets as red, green and blue; without that interpretation the load stops with
   a :class:`~satloc.errors.ConfigError` asking for ``bands``.
 
-The band GDAL interprets as alpha is the alpha channel in every case (with ``bands`` too).
+**Alpha** (:attr:`Radiometry.alpha`): ``"auto"`` (the default) is the band the file marks as alpha (GDAL's
+colour interpretation ``alpha``: a TIFF's ExtraSamples, a PNG's alpha channel), in every case (with
+``bands`` too). A 2nd or 4th band the file leaves undefined (a TIFF with ExtraSamples "unspecified", as
+RGB + near-infrared orthophotos are written) is *not* alpha: it is read as an extra band and left aside,
+with a one-line :class:`~satloc.errors.SatlocWarning` naming the choice and how to change it (``alpha: 4``).
+``alpha`` may name the band (an int) or be ``None`` (no alpha, even where the file marks one).
 
 **Invalid pixels**: GDAL's nodata (a pixel whose selected bands all hold their band's nodata value), its
 per-dataset mask (a TIFF's internal mask, a ``.msk`` sidecar), NaN or infinite samples, and alpha 0. They
@@ -78,17 +81,28 @@ class Radiometry:
 
     bands: tuple[int, ...] | None = None
     stretch: str | tuple = "auto"
+    alpha: str | int | None = "auto"
 
     def __post_init__(self):
         object.__setattr__(self, "bands", _check_bands(self.bands))
         object.__setattr__(self, "stretch", _check_stretch(self.stretch))
+        a = self.alpha
+        if isinstance(a, str) and a.lower() == "none":
+            object.__setattr__(self, "alpha", None)
+        elif not (a is None or a == "auto" or (_is_int(a) and a >= 1)):
+            raise ConfigError(f"alpha: expected 'auto' (the band the file marks as alpha), a band number counted "
+                              f"from 1, or none; got {a!r}")
 
     def to_dict(self) -> dict:
-        """``{"bands": [...] | None, "stretch": "auto" | "none" | [low, high] | [[low, high], ...]}``."""
+        """``{"bands": [...] | None, "stretch": "auto" | "none" | [low, high] | [[low, high], ...]}``, and
+        ``"alpha"`` where it is not ``"auto"``."""
         s = self.stretch
         if not isinstance(s, str):
             s = [list(p) for p in s] if isinstance(s[0], tuple) else list(s)
-        return {"bands": list(self.bands) if self.bands is not None else None, "stretch": s}
+        out = {"bands": list(self.bands) if self.bands is not None else None, "stretch": s}
+        if self.alpha != "auto":
+            out["alpha"] = self.alpha
+        return out
 
 
 def _is_int(v: Any) -> bool:
@@ -172,7 +186,21 @@ def plan_bands(ds, path, rad: Radiometry) -> BandPlan:
                               f"exist (bands are numbered from 1, as GDAL counts)")
         colour = rad.bands
     else:
-        colour, alpha = _default_bands(ci, count, alpha, path)
+        colour = _default_bands(ci, count, path)
+    if rad.alpha == "auto":
+        extra = {2: 2, 4: 4}.get(count) if len(colour) == count - 1 else None
+        if alpha is None and extra is not None and extra not in colour and ci[extra - 1] == ColorInterp.undefined:
+            warnings.warn(f"{path}: band {extra} of {count} is read as an extra band (such as near infrared), not "
+                          f"as alpha: the file does not mark it as alpha (GDAL colour interpretation undefined); "
+                          f"if it is alpha, set alpha: {extra} (generator.alpha in a scene file)", SatlocWarning,
+                          stacklevel=3)
+    elif rad.alpha is None:
+        alpha = None
+    else:
+        if rad.alpha > count:
+            raise ConfigError(f"alpha: {path} has {count} band{'s' * (count != 1)}, so band {rad.alpha} does not "
+                              f"exist (bands are numbered from 1, as GDAL counts)")
+        alpha = int(rad.alpha)
     if alpha in colour:
         alpha = None
     kinds = {np.dtype(ds.dtypes[b - 1]).kind for b in colour + ((alpha,) if alpha else ())}
@@ -208,22 +236,17 @@ def expand_palette(table: np.ndarray, band: np.ndarray) -> np.ndarray:
     return table[np.clip(band, 0, len(table) - 1).astype(np.intp)]
 
 
-def _default_bands(ci: list, count: int, alpha: int | None, path) -> tuple[tuple[int, ...], int | None]:
-    """The colour bands and alpha band of an image read without ``bands`` (see the module docstring)."""
+def _default_bands(ci: list, count: int, path) -> tuple[int, ...]:
+    """The colour bands of an image read without ``bands`` (see the module docstring)."""
     from rasterio.enums import ColorInterp
 
-    def unnamed(band: int) -> bool:  # GDAL calls it alpha or nothing: an alpha channel
-        return ci[band - 1] in (ColorInterp.alpha, ColorInterp.undefined)
-
-    if count == 1:
-        return (1,), None
-    if count == 2:
-        return (1,), alpha or (2 if unnamed(2) else None)
+    if count in (1, 2):
+        return (1,)
     rgb = [ci.index(c) + 1 for c in (ColorInterp.red, ColorInterp.green, ColorInterp.blue) if c in ci]
     if len(rgb) == 3:
-        return tuple(rgb), alpha or (4 if count == 4 and 4 not in rgb and unnamed(4) else None)
+        return tuple(rgb)
     if count in (3, 4):
-        return (1, 2, 3), alpha or (4 if count == 4 and unnamed(4) else None)
+        return (1, 2, 3)
     names = ", ".join(c.name for c in ci)
     raise ConfigError(f"bands: {path} has {count} bands ({names}) and GDAL names none of them red, green and "
                       f"blue; choose them with bands: [r, g, b] (e.g. [3, 2, 1]), or one band for grey, "

@@ -148,6 +148,7 @@ class ImageGeneratorSpec:
     region: tuple[float, float, float, float] | None = None   #: lon_min, lat_min, lon_max, lat_max (degrees)
     bands: Any = None            #: [r, g, b] or [grey], numbered from 1 (satloc.geodata.radiometry.Radiometry.bands)
     stretch: Any = "auto"        #: auto, none, [low, high] or [[low, high], ...] (Radiometry.stretch)
+    alpha: Any = "auto"          #: auto (the band the file marks as alpha), a band number, or none (Radiometry.alpha)
     road_width_m: float = 7.0    #: width of vector roads whose attributes give none (width, lanes, lane_number)
     buildings: str | None = None  #: building footprints (vector file), extruded (satloc_env.world.scene_buildings)
     trees: str | None = None      #: trees: points or canopy polygons (vector file)
@@ -165,7 +166,7 @@ class ImageGeneratorSpec:
         """The :class:`satloc.geodata.radiometry.Radiometry` of ``bands`` and ``stretch``."""
         from satloc.geodata.radiometry import Radiometry
 
-        return Radiometry(self.bands, self.stretch)
+        return Radiometry(self.bands, self.stretch, self.alpha)
 
     def files(self, base: Path) -> list[tuple[str, Path]]:
         """(field, path) of every existing file the generator reads: the image, its world file and ``.prj``
@@ -667,7 +668,7 @@ def _image_layout(g: ImageGeneratorSpec, spec: SceneSpec, base: Path, where: str
             if getattr(g, k) is not None:
                 raise ConfigError(f"{where}: generator.{k}: {img_path} is not georeferenced (no geotransform "
                                   f"and no world file beside it), so it has no place on Earth to apply {k} to")
-        for k, default in (("bands", None), ("stretch", "auto")):
+        for k, default in (("bands", None), ("stretch", "auto"), ("alpha", "auto")):
             if getattr(g, k) != default:
                 raise ConfigError(f"{where}: generator.{k}: {img_path} is not georeferenced, so it is read as an "
                                   f"8-bit picture as it is; {k} applies to georeferenced imagery only")
@@ -762,7 +763,7 @@ def _load_georeferenced(path: Path, g: ImageGeneratorSpec, mpp: float, where: st
         except ConfigError as e:
             msg = str(e)
             field = "region" if msg.startswith("region") and g.region is not None else next(
-                (k for k in ("crs", "bands", "stretch") if msg.startswith(k + ":")), "image")
+                (k for k in ("crs", "bands", "stretch", "alpha") if msg.startswith(k + ":")), "image")
             raise ConfigError(f"{where}: generator.{field}: {msg}") from e
 
     if g.region is None:                                  # the largest north-up rectangle in the footprint
