@@ -142,6 +142,20 @@ def test_config_errors_and_reset_options():
     env.close()
 
 
+def test_make_refuses_a_route_the_autopilot_cannot_drive():
+    """gym.make checks the route at its lane offset as `satloc scene` does (the same message), before any
+    episode; a reset option that moves the car off the road is refused the same way, nothing changed."""
+    msg = r"SatLocEnv scene 'city': routes\.main: the autopilot leaves the road at .* lane offset -9 m"
+    with pytest.raises(ConfigError, match=msg):
+        gym.make("satloc/SatLoc-v0", scene="city", localizer=None, lane_offset_m=-9.0)
+    env = gym.make("satloc/SatLoc-v0", scene="city", localizer=None)
+    with pytest.raises(ConfigError, match=r"the autopilot leaves the road .* lane offset 9 m"):
+        env.reset(seed=0, options={"lane_offset_m": 9.0})
+    env.reset(seed=0)
+    assert env.unwrapped.pilot.offset == -1.75
+    env.close()
+
+
 def default_keys():
     return set(satloc_env.SatLocEnv.default_config())
 

@@ -469,6 +469,24 @@ class LocalizationState:
         return out
 
 
+#: (scene, route, lane offset, speed, dt) drives already checked in this process (weakly keyed by the scene)
+_DRIVABLE: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
+
+
+def check_drivable(scene: Scene, route: str, lane_offset_m: float, speed_mps: float, dt: float, where: str) -> None:
+    """:func:`satloc_env.envs.drivecheck.check_route` once per scene, route, lane offset, speed and step in
+    this process (a vector env's sub-environments share it): the autopilot can drive the route at that lane
+    offset without leaving the road, else the ConfigError ``satloc scene`` gives."""
+    from .drivecheck import check_route
+
+    done = _DRIVABLE.setdefault(scene, set())
+    key = (route, float(lane_offset_m), float(speed_mps), float(dt))
+    if key in done:
+        return
+    check_route(scene, route, lane_offset_m, max(float(speed_mps), 1.0), dt, where=where)
+    done.add(key)
+
+
 def check_localizer_camera(localizer, camera: StereoCamera, what: str, source: str = "the localizer") -> None:
     """Refuse a localizer built for another camera than ``camera`` (``what`` names where it comes from, ``source``
     the localizer); the message gives both cameras' differing fields."""
@@ -622,14 +640,22 @@ class SatLocEnv(SharedSpecMixin, gym.Env):
             self.localizer = load_cached_localizer(self.config.localizer, self.config.localizer_mode,
                                                    self.config.localizer_refine)
             self._loc_identity = build_identity(self.config.localizer)
+        key = (self.config.scene, self.config.aliasing, self.config.satellite_gap)
+        scene = load_scene(*key)
         if self.localizer is not None:
             self._check_localizer_camera()
             # a localizer of another scene fails here, when the env is made, not at the first reset
-            key = (self.config.scene, self.config.aliasing, self.config.satellite_gap)
-            scene = load_scene(*key)
             self._check_localizer_map(scene)
-            self._preloaded = (key, scene)
+        # a route the autopilot cannot drive fails here too, as `satloc scene` says it
+        self._check_route(scene, self.config)
+        self._preloaded = (key, scene)
         self._loc.track = self.config.localizer_track
+
+    def _check_route(self, scene: Scene, cfg: EnvConfig) -> None:
+        route = cfg.route or scene.spec.database_route
+        if route not in scene.routes:
+            raise ConfigError(f"route: {route!r} is not a route of scene {scene.name!r} ({sorted(scene.routes)})")
+        check_drivable(scene, route, cfg.lane_offset_m, cfg.speed_mps, cfg.dt, f"SatLocEnv scene {scene.name!r}")
 
     # --- localization state (kept in self._loc, shared code with the replay environment) ----------------
     @property
@@ -737,8 +763,7 @@ class SatLocEnv(SharedSpecMixin, gym.Env):
         self._ensure_scene(cfg)
         scene = self.scene
         route_name = cfg.route or scene.spec.database_route
-        if route_name not in scene.routes:
-            raise ConfigError(f"route: {route_name!r} is not a route of scene {scene.name!r} ({sorted(scene.routes)})")
+        self._check_route(scene, cfg)   # reset options may change the route, its lane or the speed
         route = scene.routes[route_name]
         if not cfg.random_start and cfg.start_s_m > route.length:
             raise ConfigError(f"start_s_m: expected a position along route {route_name!r} of scene {scene.name!r}, in "
