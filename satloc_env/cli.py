@@ -228,6 +228,11 @@ def cmd_bench(args) -> int:
 
         for row in bench_active(args.scene or "active_grid", args.episodes):
             print(json.dumps(row), flush=True)
+    elif args.what == "osm":
+        from satloc_env.experiments.bench import bench_osm
+
+        for row in bench_osm(tuple(args.ways), args.work or None):
+            print(json.dumps(row), flush=True)
     elif args.what == "vo":
         from satloc_env.experiments.bench import bench_vo
 
@@ -460,7 +465,7 @@ def build_parser() -> argparse.ArgumentParser:
     r.set_defaults(func=cmd_record)
 
     b = sub.add_parser("bench", help="print benchmark figures as JSON lines")
-    b.add_argument("what", choices=["env", "localize", "vo", "active"])
+    b.add_argument("what", choices=["env", "localize", "vo", "active", "osm"])
     b.add_argument("--resolution", choices=["half", "full"], default="half")
     b.add_argument("--steps", type=int, default=2000, help="env: steps timed (of all cars together)")
     b.add_argument("--num-envs", type=int, nargs="+", default=[1],
@@ -469,12 +474,14 @@ def build_parser() -> argparse.ArgumentParser:
     b.add_argument("--scene", default=None, help="env: city; localize: loop (the longest route); vo: residential; "
                                                  "active: the active map (active_grid)")
     b.add_argument("--episodes", type=int, default=20, help="active: episodes per agent")
+    b.add_argument("--ways", type=int, nargs="+", default=[1000, 10000],
+                   help="osm: sizes of the synthetic OpenStreetMap extracts loaded (ways)")
     b.add_argument("--sizes-km", type=float, nargs="+", default=[0.25, 1.0, 4.0], help="localize: database sizes")
     b.add_argument("--queries", type=int, default=40, help="localize: queries timed per size")
     b.add_argument("--frames", type=int, default=250,
                    help="vo: frames of the simulated drive (one per simulator step, 0.8 m at 8 m/s)")
     b.add_argument("--kitti", help="vo: a KITTI raw drive folder (default: the excerpt in ../shared/realdata)")
-    b.add_argument("--work", help="localize, vo: folder for recordings and builds (reused; default: a temp dir)")
+    b.add_argument("--work", help="localize, vo, osm: folder for recordings and builds (reused; default: a temp dir)")
     b.add_argument("--device", default="auto", help=f"localize: {DEVICE_HELP}")
     b.add_argument("--quiet", action="store_true")
     b.set_defaults(func=cmd_bench)

@@ -228,3 +228,15 @@ def test_without_road_data_the_routes_corridor_is_the_road(tmp_path):
                     ways=[*WAYS, SHOP])
     assert sc.summary()["footprints"]["dropped"] == 0
     assert len(sc.layout.buildings) == 4        # the house, the bow tie's two halves and the trimmed shop
+
+
+def test_bench_osm_loads_a_synthetic_extract_into_one_graph(tmp_path):
+    """`satloc bench osm`'s extract (a street grid, one way per block side) becomes a graph with one edge per
+    way, but for the grid's corners, whose two sides merge (the figures it prints are timings: not tested)."""
+    from satloc_env.experiments.bench import bench_osm
+
+    (row,) = bench_osm((200,), tmp_path)
+    assert row["ways"] == 180 and row["side_m"] == 540.0         # k = 9 blocks a side: 2 k (k + 1) ways
+    assert row["graph_edges"] == 180 - 4
+    assert row["graph_km"] == pytest.approx(180 * 60 / 1000, rel=0.05)
+    assert all(row[k] >= 0 for k in ("read_s", "to_crs_s", "graph_s", "total_s"))

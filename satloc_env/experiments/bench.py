@@ -328,3 +328,61 @@ def bench_active(map: str = "active_grid", episodes: int = 20, agents: tuple[str
                      "decisions_per_s": round(dec / dt, 1), "ms_per_decision": round(1000 * dt / max(dec, 1), 1),
                      "agent_ms": round(1000 * sum(e["act_s"] for e in eps) / max(dec, 1), 1)})
     return rows
+
+
+def synthetic_osm(path, ways: int = 10_000, seed: int = 0, pitch_m: float = 60.0, lat0: float = 48.0,
+                  lon0: float = 11.0) -> tuple[int, float]:
+    """Write an OpenStreetMap XML extract of about ``ways`` residential ways (at most that many): a street grid
+    of blocks ``pitch_m`` apart, each way one block's side (as OSM cuts ways at junctions), the nodes jittered
+    by 3 m (seeded). Returns (ways written, the grid's side in metres)."""
+    import math
+
+    k = max(1, int((-2 + math.sqrt(4 + 8 * ways)) // 4))      # 2 k (k + 1) ways <= ways
+    rng = np.random.default_rng(seed)
+    jit = rng.normal(0.0, 3.0, (k + 1, k + 1, 2))
+    m_lat = 111_320.0
+    m_lon = m_lat * math.cos(math.radians(lat0))
+    nid = {(i, j): i * (k + 1) + j + 1 for i in range(k + 1) for j in range(k + 1)}
+    edges = [((i, j), (i, j + 1)) for i in range(k + 1) for j in range(k)] + \
+        [((i, j), (i + 1, j)) for j in range(k + 1) for i in range(k)]
+    with open(path, "w") as f:
+        f.write('<?xml version="1.0" encoding="UTF-8"?>\n<osm version="0.6" generator="satloc bench osm">\n')
+        for (i, j), n in nid.items():
+            x, y = i * pitch_m + jit[i, j, 0], j * pitch_m + jit[i, j, 1]
+            f.write(f'  <node id="{n}" lat="{lat0 + y / m_lat:.7f}" lon="{lon0 + x / m_lon:.7f}"/>\n')
+        for w, (a, b) in enumerate(edges):
+            f.write(f'  <way id="{w + 1}"><nd ref="{nid[a]}"/><nd ref="{nid[b]}"/>'
+                    '<tag k="highway" v="residential"/></way>\n')
+        f.write("</osm>\n")
+    return len(edges), k * pitch_m
+
+
+def bench_osm(ways: tuple[int, ...] = (1_000, 10_000), work=None) -> Iterator[dict]:
+    """Loading an OpenStreetMap extract's roads: for each size, a synthetic extract (:func:`synthetic_osm`)
+    read (GDAL's OSM driver, :func:`satloc.geodata.vectors.read_road_lines`), taken to UTM, and made a road
+    graph (:func:`satloc_env.world.roadgraph.graph_from_lines`: clipping, snapping ends through a spatial
+    index, noding, merging); seconds for each stage and in all."""
+    import tempfile
+
+    from satloc.geodata.vectors import read_road_lines
+    from satloc_env.world.roadgraph import GraphParams, graph_from_lines
+
+    work = Path(work) if work else Path(tempfile.mkdtemp(prefix="satloc_bench_osm_"))
+    work.mkdir(parents=True, exist_ok=True)
+    for n in ways:
+        path = work / f"grid_{n}.osm"
+        written, side = synthetic_osm(path, n)
+        t0 = time.perf_counter()
+        roads = read_road_lines(path)
+        t1 = time.perf_counter()
+        utm = roads.to_crs("EPSG:32632")
+        t2 = time.perf_counter()
+        low = np.min([xy.min(axis=0) for xy in utm.lines], axis=0) - 10.0     # the tile: the lines' extent
+        high = np.max([xy.max(axis=0) for xy in utm.lines], axis=0) + 10.0    # and 10 m (UTM is not lon/lat)
+        lines = [xy - low for xy in utm.lines]
+        graph = graph_from_lines(lines, utm.widths, *(high - low), GraphParams(), utm.layers)
+        t3 = time.perf_counter()
+        yield {"bench": "osm", "ways": written, "side_m": side, "file_mb": round(path.stat().st_size / 2**20, 1),
+               "read_s": round(t1 - t0, 2), "to_crs_s": round(t2 - t1, 2), "graph_s": round(t3 - t2, 2),
+               "total_s": round(t3 - t0, 2), "graph_edges": graph.graph.number_of_edges(),
+               "graph_km": round(graph.length_m / 1000, 1), "load_avg_1m": round(os.getloadavg()[0], 2)}
