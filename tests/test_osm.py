@@ -240,3 +240,58 @@ def test_bench_osm_loads_a_synthetic_extract_into_one_graph(tmp_path):
     assert row["graph_edges"] == 180 - 4
     assert row["graph_km"] == pytest.approx(180 * 60 / 1000, rel=0.05)
     assert all(row[k] >= 0 for k in ("read_s", "to_crs_s", "graph_s", "total_s"))
+
+
+def _write_dsm(path, crs: str, ground: float, objects: list[tuple[list, float]], res: float = 0.5):
+    """A surface model over the test tile in ``crs``: ``ground`` everywhere (a gentle slope of 1 m per 100 m to
+    the east, which the ring around each footprint absorbs), each (local-metres polygon, height) above it."""
+    import rasterio
+    from affine import Affine
+    from rasterio.features import rasterize
+
+    to = pyproj.Transformer.from_crs(UTM, crs, always_xy=True)
+    x0, y0 = to.transform(E0 - 20, N0 - 20)
+    x1, y1 = to.transform(E0 + 180, N0 + 140)
+    w, h = int((x1 - x0) / res), int((y1 - y0) / res)
+    tr = Affine(res, 0, x0, 0, -res, y1)
+    cols = np.arange(w) * res + x0
+    z = np.tile(ground + (cols - x0) / 100.0, (h, 1)).astype(np.float32)
+    for ring, height in objects:
+        xy = np.asarray(ring) + [E0, N0]
+        poly = shapely.Polygon(np.stack(to.transform(xy[:, 0], xy[:, 1]), 1))
+        inside = rasterize([(poly, 1)], out_shape=(h, w), transform=tr, fill=0, dtype="uint8").astype(bool)
+        z[inside] += height
+    z[:5, :5] = -9999.0   # nodata in a corner
+    with rasterio.open(path, "w", driver="GTiff", width=w, height=h, count=1, dtype="float32", crs=crs,
+                       transform=tr, nodata=-9999.0) as ds:
+        ds.write(z, 1)
+    return path
+
+
+@pytest.mark.parametrize("kind, ground", [("dsm", 312.0), ("ndsm", 0.0)])
+def test_heights_from_a_surface_model_in_another_crs(tmp_path, kind, ground):
+    """generator.heights: a DSM (terrain at 312 m) or an nDSM in Web Mercator sets the house's height (its
+    attribute says 24 ft) and the tree's; footprints outside the model keep their attributes."""
+    house = [NODES[i] for i in (20, 21, 22, 23)]
+    tree = shapely.Point(TREE[0]).buffer(2.5)
+    _write_dsm(tmp_path / "dsm.tif", "EPSG:3857", ground, [(house, 12.5), (list(tree.exterior.coords), 14.0)])
+    sc = _scene(tmp_path, {"roads": "map.osm", "buildings": "map.osm", "trees": "map.osm", "heights": "dsm.tif"})
+    centre = sc.satmap.frame.to_map(np.array(TO_LONLAT.transform(E0 + 40.0, N0 + 37.5))[None])[0]
+    (b,) = [b for b in sc.layout.buildings if shapely.Polygon(b.footprint).contains(shapely.Point(centre))]
+    # Web Mercator's scale at 49 degrees: the model's 0.5 m pixels are 0.33 m on the ground
+    assert b.height == pytest.approx(12.5, abs=0.5)
+    assert sc.summary()["footprints"]["heights_from_raster"] == 1   # the bow tie stands on bare ground there:
+    assert sorted(x.height for x in sc.layout.buildings if x is not b) == [6.0, 6.0]   # its 2 levels
+    (t,) = sc.layout.trees
+    assert t.canopy_top == pytest.approx(14.0, abs=0.5)
+
+
+def test_a_height_raster_needs_objects_and_a_crs(tmp_path):
+    from satloc import ConfigError
+
+    _write_dsm(tmp_path / "dsm.tif", "EPSG:3857", 0.0, [])
+    with pytest.raises(ConfigError, match="generator.heights: a height raster sets the heights of buildings"):
+        _scene(tmp_path, {"roads": "map.osm", "heights": "dsm.tif"})
+    (tmp_path / "bad.tif").write_text("not a raster")
+    with pytest.raises(ConfigError, match=r"generator\.heights: .*bad\.tif: not a readable raster"):
+        _scene(tmp_path, {"roads": "map.osm", "buildings": "map.osm", "heights": "bad.tif"})

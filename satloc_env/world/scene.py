@@ -153,6 +153,7 @@ class ImageGeneratorSpec:
     buildings: str | None = None  #: building footprints (vector file), extruded (satloc_env.world.scene_buildings)
     trees: str | None = None      #: trees: points or canopy polygons (vector file)
     building_height_m: tuple[float, float] = (5.0, 9.0)   #: height range of footprints whose attributes give none
+    heights: str | None = None    #: a DSM / nDSM GeoTIFF (any CRS): building and tree heights where it covers them
 
     def __post_init__(self):
         self.radiometry   # bad bands or stretch: ConfigError naming the field
@@ -176,7 +177,8 @@ class ImageGeneratorSpec:
         img = base / self.image
         out = [("image", img)]
         out += [("image_sidecar", p) for p in input_files(img)[1:]]
-        out += [(k, base / getattr(self, k)) for k in ("labels", "roads", "buildings", "trees") if getattr(self, k)]
+        out += [(k, base / getattr(self, k)) for k in ("labels", "roads", "buildings", "trees", "heights")
+                if getattr(self, k)]
         from satloc.geodata.vectors import vector_files
 
         for k in ("roads", "buildings", "trees"):
@@ -731,8 +733,13 @@ def _image_layout(g: ImageGeneratorSpec, spec: SceneSpec, base: Path, where: str
         labels = np.full(rgb.shape[:2], CLASS_ID["road"], np.uint8)
     h, w = labels.shape
     buildings, trees, report = [], [], None
+    if g.heights and not (g.buildings or g.trees):
+        raise ConfigError(f"{where}: generator.heights: a height raster sets the heights of buildings and trees; "
+                          f"give generator.buildings or generator.trees too")
     if g.buildings or g.trees:
-        from .scene_buildings import vector_buildings, vector_trees
+        from .scene_buildings import height_raster, vector_buildings, vector_trees
+
+        surface = height_raster(base / g.heights, frame, where) if g.heights else None
 
         drivable = np.isin(labels, DRIVABLE)
         if roads is None and not g.labels:   # no road data: the routes' own corridor is the road
@@ -740,11 +747,12 @@ def _image_layout(g: ImageGeneratorSpec, spec: SceneSpec, base: Path, where: str
             if corridor is not None:
                 drivable = corridor
         if g.trees:
-            trees, crowns = vector_trees(base / g.trees, frame, labels.shape, mpp, drivable, spec.seed, where)
+            trees, crowns = vector_trees(base / g.trees, frame, labels.shape, mpp, drivable, spec.seed, where,
+                                         surface)
             labels = np.where(crowns, CLASS_ID["tree"], labels).astype(np.uint8)
         if g.buildings:
             buildings, fp_mask, report = vector_buildings(base / g.buildings, frame, labels.shape, mpp, drivable,
-                                                          g.building_height_m, spec.seed, where)
+                                                          g.building_height_m, spec.seed, where, surface)
             labels = np.where(fp_mask, CLASS_ID["building"], labels).astype(np.uint8)
     return _ImageGround(Layout(w * mpp, h * mpp, spec.ground_mpp, rgb, labels, buildings, trees), frame, roads,
                         geo.radiometry if geo is not None else None, road_graph=road_graph, footprints=report)

@@ -14,7 +14,8 @@ are read in the CRS their file declares, taken to the scene's frame through pypr
   remains. An invalid footprint (a self-intersecting ring) is repaired (``shapely.make_valid``). The scene
   reports how many footprints it kept, trimmed, repaired and dropped (:meth:`Scene.summary`
   ``footprints``), with a :class:`satloc.SatlocWarning` naming the file and the features it trimmed or
-  dropped.
+  dropped. With ``generator.heights`` (a DSM or nDSM, :mod:`satloc.geodata.heights`) the surface model's
+  height comes first where it covers a footprint, and over each tree's crown.
 * **Trees** (``generator.trees``): a Point is one tree, its crown radius and height from the attributes
   (``diameter_crown`` / ``radius``, ``height``) or drawn (2-3.5 m, 6-11 m). A Polygon is a canopy area,
   filled with trees about :data:`CANOPY_SPACING_M` apart (jittered, seeded). A tree whose trunk stands on
@@ -37,8 +38,8 @@ from satloc.errors import ConfigError, SatlocWarning
 from .layout import Building, Tree
 from .scene_roads import read_vectors
 
-__all__ = ["CANOPY_SPACING_M", "MAX_TREES", "MIN_KEPT_FRACTION", "ROAD_CLEARANCE_M", "road_polygons",
-           "vector_buildings", "vector_trees"]
+__all__ = ["CANOPY_SPACING_M", "MAX_TREES", "MIN_KEPT_FRACTION", "ROAD_CLEARANCE_M", "height_raster",
+           "road_polygons", "vector_buildings", "vector_trees"]
 
 #: spacing of the trees that fill a canopy area, metres
 CANOPY_SPACING_M = 6.0
@@ -73,6 +74,21 @@ def _listing(idx: list[int], n: int = 8) -> str:
     return ", ".join(map(str, idx[:n])) + (f" and {len(idx) - n} more" if len(idx) > n else "")
 
 
+def height_raster(path: Path, frame, where: str):
+    """The :class:`satloc.geodata.heights.HeightRaster` of ``generator.heights`` reached from the scene's metres
+    (``frame``, its GeoFrame); ConfigError naming the field and the file."""
+    from satloc.errors import FormatError
+    from satloc.geodata.heights import HeightRaster
+
+    if frame is None:
+        raise ConfigError(f"{where}: generator.heights: {path}: the image is not georeferenced, so a height raster "
+                          f"has no place on it")
+    try:
+        return HeightRaster(path, frame.crs)
+    except FormatError as e:
+        raise ConfigError(f"{where}: generator.heights: {e}") from e
+
+
 def road_polygons(drivable: np.ndarray, mpp: float):
     """The drivable pixels of the scene's raster (north up, origin at the south-west corner) as one shapely
     geometry in map metres (``rasterio.features.shapes``)."""
@@ -90,12 +106,14 @@ def road_polygons(drivable: np.ndarray, mpp: float):
 
 
 def vector_buildings(path: Path, frame, shape: tuple[int, int], mpp: float, drivable: np.ndarray,
-                     height_range: tuple[float, float], seed: int, where: str
+                     height_range: tuple[float, float], seed: int, where: str, surface=None
                      ) -> tuple[list[Building], np.ndarray, dict]:
     """The buildings of the footprint file ``path`` on the scene's tile (``shape`` pixels of ``mpp`` metres,
     ``frame`` its GeoFrame), the (H, W) bool mask of their footprints off the drivable ground and the report
     ``{"read", "kept", "trimmed", "repaired", "dropped"}`` (footprints read from the file, inside the tile
-    untouched, trimmed by the road, repaired, left out; see the module docstring)."""
+    untouched, trimmed by the road, repaired, left out; see the module docstring). ``surface``: a
+    :class:`satloc.geodata.heights.HeightRaster` whose heights come first where it covers a footprint (the
+    report's ``heights_from_raster``)."""
     import shapely
     from shapely.geometry import Polygon, box
 
@@ -151,6 +169,12 @@ def vector_buildings(path: Path, frame, shape: tuple[int, int], mpp: float, driv
                        f"(features {_listing(dropped)})")
         warnings.warn(f"{where}: generator.buildings: {path}: of {len(fps.rings)} footprints, {len(trimmed) + len(dropped)} "
                       f"overlap the road: {'; '.join(msg)}", SatlocWarning, stacklevel=2)
+    if surface is not None:   # the surface model's heights first, where it has them
+        whole = {i: shapely.make_valid(Polygon(fps.rings[i])) for i in sorted(set(feature))}
+        everything = shapely.union_all(list(whole.values()))
+        measured = {i: surface.height(g, everything.difference(g.buffer(0.01))) for i, g in whole.items()}
+        heights = [measured[f] if measured[f] is not None else h for f, h in zip(feature, heights)]
+        report["heights_from_raster"] = sum(v is not None for v in measured.values())
     ids = _ids_raster(polys, shape, mpp)
     lo, hi = (float(v) for v in height_range)
     out: list[Building] = []
@@ -168,9 +192,10 @@ def vector_buildings(path: Path, frame, shape: tuple[int, int], mpp: float, driv
 
 
 def vector_trees(path: Path, frame, shape: tuple[int, int], mpp: float, drivable: np.ndarray, seed: int,
-                 where: str) -> tuple[list[Tree], np.ndarray]:
+                 where: str, surface=None) -> tuple[list[Tree], np.ndarray]:
     """The trees of the file ``path`` on the scene's tile and the (H, W) bool mask of their crowns off the
-    drivable ground (see the module docstring)."""
+    drivable ground (see the module docstring); ``surface``: a height raster whose heights (over each crown)
+    come first where it has them."""
     from shapely import contains_xy
     from shapely.geometry import Polygon, box
 
@@ -218,6 +243,11 @@ def vector_trees(path: Path, frame, shape: tuple[int, int], mpp: float, drivable
     crowns = np.zeros(shape, bool)
     for k in np.flatnonzero(inside & ~on_road):
         (x, y), r, ht = xy_arr[k], float(radius[k]), float(height[k])
+        if surface is not None:
+            from shapely.geometry import Point
+
+            measured = surface.height(Point(x, y).buffer(max(r, 1.0)))
+            ht = measured if measured is not None else ht
         r = min(r, 0.45 * ht)
         bottom = ht * float(rng.uniform(0.3, 0.45))
         trees.append(Tree((float(x), float(y)), r, bottom, ht, int(rng.integers(0, 4))))
