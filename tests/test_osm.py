@@ -181,9 +181,13 @@ def test_a_scene_from_one_osm_export(osm, tmp_path):
     p.write_text(yaml.safe_dump({"name": "osm", "generator": {
         "type": "image", "image": image(tmp_path), "roads": "map", "buildings": "map", "trees": "map"},
         "meters_per_pixel": RES, "ground_mpp": RES}))
-    sc = load_scene(p)
+    with pytest.warns(SatlocWarning, match=r"routes: the derived tour drives \d+ % of the road network"):
+        sc = load_scene(p)
     assert len(sc.layout.trees) >= 1 and sc.routes["main"].length > 100
     assert len(sc.layout.buildings) >= 1
+    # the tour drives the main street; the road over its bridge and the one-way pair are parts of their own
+    tour = sc.summary()["tour"]
+    assert 0.2 < tour["coverage"] < 0.5 and tour["network_km"] > 0.4
 
 
 # a shop whose footprint reaches 4 m into the main street (y 56.25-63.75 m): trimmed, not dropped
@@ -295,3 +299,88 @@ def test_a_height_raster_needs_objects_and_a_crs(tmp_path):
     (tmp_path / "bad.tif").write_text("not a raster")
     with pytest.raises(ConfigError, match=r"generator\.heights: .*bad\.tif: not a readable raster"):
         _scene(tmp_path, {"roads": "map.osm", "buildings": "map.osm", "heights": "bad.tif"})
+
+
+# one-way streets: a block (two-way bottom, right and left sides), its top one-way westwards as drawn, and a
+# middle street drawn southwards but one-way northwards (oneway=-1)
+BLOCK_LINES = [np.array(p, np.float64) + 10 for p in (
+    [(0, 0), (100, 0)], [(100, 0), (100, 60)], [(100, 60), (0, 60)], [(0, 60), (0, 0)], [(50, 60), (50, 0)])]
+BLOCK_ONEWAY = [0, 0, 1, 0, -1]
+
+
+def _block_graph():
+    return graph_from_lines(BLOCK_LINES, [7.0] * 5, 120, 80, GraphParams(), oneway=BLOCK_ONEWAY)
+
+
+def test_one_way_streets_keep_their_direction_in_the_graph():
+    from satloc_env.world.roadgraph import allowed
+
+    rg = _block_graph()
+    g = rg.graph
+    ones = [(u, v, k) for u, v, k, d in g.edges(keys=True, data=True) if d["oneway"]]
+    assert len(ones) == 3      # the top street, cut by the middle one, and the middle street
+    for u, v, k in ones:
+        d = g.edges[u, v, k]
+        xy = d["xy"]           # stored from the node it may be driven from
+        if abs(xy[0, 0] - xy[-1, 0]) < 1:           # the middle street: northwards only
+            assert xy[-1, 1] > xy[0, 1]
+        else:                                        # the top: westwards only
+            assert xy[-1, 0] < xy[0, 0]
+        assert allowed(g, d["start"], v if d["start"] == u else u, k)
+        assert not allowed(g, v if d["start"] == u else u, d["start"], k)
+
+
+def test_tours_drive_one_way_streets_their_way_and_cover_every_road():
+    from satloc_env.world.roadgraph import allowed, covering_tour
+
+    rg = _block_graph()
+    g = rg.graph
+    main, revisit = covering_tour(rg, None, 0.5, GraphParams())
+    assert main.closed and revisit.closed and main.coverage == pytest.approx(1.0)
+    directions = []
+    for tour in (main, revisit):
+        assert all(allowed(g, u, v, k) for u, v, k in tour.steps)          # never against a one-way street
+        assert {frozenset((u, v, k)) for u, v, k in tour.steps} >= {frozenset(e) for e in g.edges(keys=True)}
+        directions.append({(u, v, k) for u, v, k in tour.steps})
+        # consecutive steps join up
+        assert all(a[1] == b[0] for a, b in zip(tour.steps, tour.steps[1:] + tour.steps[:1]))
+    two_way = [(u, v, k) for u, v, k, d in g.edges(keys=True, data=True) if not d["oneway"]]
+    for u, v, k in two_way:   # the revisit drives every two-way road the other way from a drive of the tour
+        assert any((b, a, k) in directions[0] for a, b, kk in directions[1] if kk == k and {a, b} == {u, v})
+    # the tour goes with the one-way streets' flow: no longer than its revisit
+    length = lambda t: sum(g.edges[u, v, k]["length"] for u, v, k in t.steps)   # noqa: E731
+    assert length(main) <= length(revisit)
+
+
+def test_snapped_routes_go_round_one_way_streets():
+    from satloc_env.world.roadgraph import snapped_route
+
+    rg = _block_graph()
+    # from the top's east end to its west end: westwards along it, 100 m
+    xy, _ = snapped_route(rg, np.array([[105.0, 70.0], [15.0, 70.0]]), False, GraphParams())
+    assert np.max(xy[:, 1]) < 72 and np.min(xy[:, 1]) > 68
+    # the other way round it may not: it goes round the block (down, along the bottom, up the right side)
+    xy, _ = snapped_route(rg, np.array([[15.0, 70.0], [105.0, 70.0]]), False, GraphParams())
+    assert np.min(xy[:, 1]) < 15
+    from satloc_env.world.roadgraph import RoadGraphError, graph_from_lines as gfl
+
+    trap = gfl([BLOCK_LINES[0]], [7.0], 120, 80, GraphParams(), oneway=[1])
+    with pytest.raises(RoadGraphError, match=r"\[1\]: no way leads there .* one-way"):
+        snapped_route(trap, np.array([[100.0, 10.0], [20.0, 10.0]]), False, GraphParams())
+
+
+def test_shipped_suburb_tour_honours_its_one_way_turning_circles():
+    """suburb_utm's turning circles are mapped oneway=yes (junction=circular): its open tour (both ends of the
+    main road stop at the tile's edge) drives each circle its way and covers the whole network."""
+    from satloc_env.world.roadgraph import allowed, covering_tour, has_oneway
+    from satloc_env.world.scene import DRIVABLE
+
+    sc = load_scene("suburb_utm")
+    g = sc.road_graph.graph
+    assert has_oneway(g)
+    main, revisit = covering_tour(sc.road_graph, np.isin(sc.layout.ground_labels, DRIVABLE), sc.layout.ground_mpp,
+                                  sc.spec.road_graph)
+    assert not main.closed and main.coverage == pytest.approx(1.0) and sc.summary()["tour"]["coverage"] == 1.0
+    for t in (main, revisit):
+        assert all(allowed(g, u, v, k) for u, v, k in t.steps)
+    assert main.steps[0][0] == revisit.steps[-1][1] and main.steps[-1][1] == revisit.steps[0][0]

@@ -386,10 +386,12 @@ def test_recording_and_experiments_check_before_any_work(scene_dir, tmp_path, mo
 
 def test_recorder_reports_leaving_the_road_as_a_config_error(scene_dir, tmp_path):
     """Where a pass is recorded without the check (record_pass alone), leaving the road is still a
-    ConfigError naming the route and the point, not a RuntimeError."""
+    ConfigError naming the route and the point, not a RuntimeError (the env, made on a drivable route,
+    refuses the other one when the pass's reset asks for it)."""
     from satloc_env.envs.record import PassConfig, make_env, record_pass
 
-    bad = write_scene(scene_dir, OFF_ROAD, "off.yaml")
+    routes = {**OFF_ROAD, "ok": {"waypoints": [[10, 60], [150, 60]]}}
+    bad = write_scene(scene_dir, routes, "off_ok.yaml", database_route="ok", query_route="ok")
     env = make_env(scene=str(bad), localizer=None, depth=False)
     try:
         with pytest.raises(ConfigError, match=OFF_MSG):

@@ -48,8 +48,9 @@ from .route import REFERENCE_ROAD_M
 if TYPE_CHECKING:
     import networkx as nx
 
-__all__ = ["GraphParams", "RoadGraph", "RoadGraphError", "Tour", "covering_tour", "graph_from_lines",
-           "graph_from_mask", "lane_widths", "rasterize_area", "road_area", "snapped_route"]
+__all__ = ["GraphParams", "RoadGraph", "RoadGraphError", "Tour", "allowed", "arc_graph", "covering_tour",
+           "graph_from_lines", "graph_from_mask", "has_oneway", "lane_widths", "rasterize_area", "road_area",
+           "snapped_route"]
 
 #: the coarsest resolution a road mask is thinned at (metres per pixel)
 GRAPH_MPP = 0.2
@@ -139,12 +140,13 @@ class Tour:
 
 # --- building the graph -----------------------------------------------------------------------------------
 def graph_from_lines(lines, widths, width_m: float, height_m: float, params: GraphParams = GraphParams(),
-                     layers=None) -> RoadGraph:
+                     layers=None, oneway=None) -> RoadGraph:
     """The road graph of centre lines in map metres (see the module docstring). ``widths``: per line, a road
     width (metres) or an array of one per vertex. ``layers``: per line, its vertical layer (OpenStreetMap's
     ``layer``, bridges above, tunnels below; None: all on one): lines on different layers meet only where
     one ends on the other's vertex, never where they cross, and a line end is snapped only to lines of its
-    own layer."""
+    own layer. ``oneway``: per line, +1 (drivable in its drawn direction only), -1 (against it) or 0 (both;
+    None: all 0): each edge's ``oneway`` is then 1 where it may be driven only from its ``start`` node."""
     import networkx as nx
     import shapely
     from shapely.strtree import STRtree
@@ -156,8 +158,11 @@ def graph_from_lines(lines, widths, width_m: float, height_m: float, params: Gra
     layers = np.zeros(len(lines), np.int64) if layers is None else np.asarray(layers, np.int64)
     if layers.shape != (len(lines),):
         raise RoadGraphError(f"layers: expected one per line ({len(lines)}), got {layers.shape}")
-    src, src_w, src_layer = [], [], []
-    for xy, w, layer in zip(lines, widths, layers):
+    oneway = np.zeros(len(lines), np.int64) if oneway is None else np.sign(np.asarray(oneway, np.int64))
+    if oneway.shape != (len(lines),):
+        raise RoadGraphError(f"oneway: expected one per line ({len(lines)}), got {oneway.shape}")
+    src, src_w, src_layer, src_oneway = [], [], [], []
+    for xy, w, layer, one in zip(lines, widths, layers, oneway):
         xy = np.asarray(xy, np.float64)
         wv = np.broadcast_to(np.asarray(w, np.float64), (len(xy),)).copy()
         keep = np.concatenate([[True], np.linalg.norm(np.diff(xy, axis=0), axis=1) > 1e-9])
@@ -170,6 +175,7 @@ def graph_from_lines(lines, widths, width_m: float, height_m: float, params: Gra
             src.append(pxy)
             src_w.append(np.interp(_project(xy, pxy), arc_length(xy), wv))
             src_layer.append(int(layer))
+            src_oneway.append(int(one))
     if not src:
         raise RoadGraphError(f"no road lies inside the tile (x in [{m:g}, {width_m - m:g}], y in [{m:g}, "
                              f"{height_m - m:g}] metres: the tile less edge_margin_m)")
@@ -195,9 +201,14 @@ def graph_from_lines(lines, widths, width_m: float, height_m: float, params: Gra
             if len(xy) < 2 or shapely.length(piece) < 1e-6:
                 continue
             j = int(idx[int(tree.nearest(shapely.line_interpolate_point(piece, 0.5, normalized=True)))])
-            w = np.interp(_project(src[j], xy), arc_length(src[j]), src_w[j])
+            along = _project(src[j], xy)
+            w = np.interp(along, arc_length(src[j]), src_w[j])
+            one = src_oneway[j] * (1 if along[-1] >= along[0] else -1)   # the piece's own direction
+            if one < 0:                       # stored from the node it may be driven from
+                xy, w = xy[::-1].copy(), w[::-1].copy()
             u, v = node(xy[0]), node(xy[-1])   # layers meet where their lines share an end (1 cm)
-            g.add_edge(u, v, xy=xy, w=w, length=float(arc_length(xy)[-1]), start=u, layer=int(layer))
+            g.add_edge(u, v, xy=xy, w=w, length=float(arc_length(xy)[-1]), start=u, layer=int(layer),
+                       oneway=int(one != 0))
     rg = RoadGraph(g, float(width_m), float(height_m))
     _drop_stubs(rg, params.snap_m)
     _merge_degree_two(rg)
@@ -393,7 +404,12 @@ def _contract(rg: RoadGraph, u, v, k) -> None:
         if other == v:
             other = u
             xy[-1] = pu
-        g.add_edge(u, other, xy=xy, w=w, length=float(arc_length(xy)[-1]), start=u)
+        one = int(d.get("oneway", 0))
+        if one and d["start"] != v:           # a one-way road towards v: it now ends at u, driven from other
+            g.add_edge(other, u, xy=xy[::-1].copy(), w=w[::-1].copy(), length=float(arc_length(xy)[-1]),
+                       start=other, oneway=1)
+            continue
+        g.add_edge(u, other, xy=xy, w=w, length=float(arc_length(xy)[-1]), start=u, oneway=one)
     g.remove_node(v)
 
 
@@ -409,11 +425,20 @@ def _merge_degree_two(rg: RoadGraph) -> None:
         (a1, b1, k1), (a2, b2, k2) = es
         p = b1 if a1 == n else a1
         q = b2 if a2 == n else a2
+        d1, d2 = g.edges[a1, b1, k1], g.edges[a2, b2, k2]
+        o1, o2 = int(d1.get("oneway", 0)), int(d2.get("oneway", 0))
+        if o1 != o2:
+            continue          # a one-way road goes on as a two-way one: the node stays
+        if o1:
+            if d1["start"] == n and d2["start"] == q:     # driven q -> n -> p: merge it from q
+                p, q, k1, k2 = q, p, k2, k1
+            elif not (d1["start"] == p and d2["start"] == n):
+                continue      # both one-way towards n, or both away from it: no way through
         x1, w1 = rg.edge_xy(p, n, k1)
         x2, w2 = rg.edge_xy(n, q, k2)
         xy, w = np.vstack([x1, x2[1:]]), np.concatenate([w1, w2[1:]])
         g.remove_node(n)
-        g.add_edge(p, q, xy=xy, w=w, length=float(arc_length(xy)[-1]), start=p)
+        g.add_edge(p, q, xy=xy, w=w, length=float(arc_length(xy)[-1]), start=p, oneway=o1)
 
 
 def _skeleton_chains(skel: np.ndarray) -> list[np.ndarray]:
@@ -561,6 +586,9 @@ def covering_tour(rg: RoadGraph, drivable: np.ndarray | None, mpp: float, params
         np.pad(np.asarray(drivable, bool), 1))[1:-1, 1:-1] * mpp
     comp = rg.largest_component()
     g = nx.MultiGraph(rg.graph.subgraph(comp))
+    if has_oneway(g):   # one-way streets: the largest part in which every road can be driven and left
+        comp = _largest_strong_component(g)
+        g = nx.MultiGraph(g.subgraph(comp))
     sub = RoadGraph(g, rg.width_m, rg.height_m)
     component_m = sub.length_m
     stuck = [n for n in g.nodes if g.degree(n) == 1 and not _dead_end(sub, n, edt_m, mpp, params).turnable]
@@ -574,6 +602,8 @@ def covering_tour(rg: RoadGraph, drivable: np.ndarray | None, mpp: float, params
     if g.number_of_edges() == 0:
         raise RoadGraphError("no road of the graph can be driven: every dead end is too narrow to turn in")
     covered_m = sub.length_m
+    if has_oneway(g):
+        return _directed_tours(sub, edt_m, mpp, params, covered_m, component_m, rg.length_m, stuck)
     start = stuck[0] if stuck else min(g.nodes, key=lambda n: (-g.degree(n), n))
     stop = stuck[1] if len(stuck) == 2 else start
     doubled = RoadGraph(_eulerize(sub, start, stop), rg.width_m, rg.height_m)
@@ -584,6 +614,181 @@ def covering_tour(rg: RoadGraph, drivable: np.ndarray | None, mpp: float, params
         xy, w, loops = _walk_polyline(doubled, steps, edt_m, mpp, params, closed)
         tours.append(Tour(xy, w, closed, covered_m, component_m, rg.length_m, steps, loops))
     return tours[0], tours[1]
+
+
+def has_oneway(g) -> bool:
+    """Whether any edge of the (multi)graph ``g`` is one-way."""
+    return any(d.get("oneway", 0) for *_, d in g.edges(data=True))
+
+
+def allowed(g, u, v, k) -> bool:
+    """Whether edge (u, v, k) of ``g`` may be driven from ``u`` to ``v``."""
+    d = g.edges[u, v, k]
+    return not d.get("oneway", 0) or d["start"] == u
+
+
+def arc_graph(g) -> nx.MultiDiGraph:
+    """The roads of ``g`` as the arcs a car may drive: a one-way edge one arc (from its ``start``), another two
+    (one each way); each arc keyed ``(u, v, k, i)`` with the undirected edge ``(u, v, k)`` in ``edge``."""
+    import networkx as nx
+
+    d_g = nx.MultiDiGraph()
+    d_g.add_nodes_from(g.nodes)
+    for u, v, k, d in g.edges(keys=True, data=True):
+        a = d["start"]
+        b = v if a == u else u
+        d_g.add_edge(a, b, key=(u, v, k, 0), length=d["length"], edge=(u, v, k))
+        if not d.get("oneway", 0):
+            d_g.add_edge(b, a, key=(u, v, k, 1), length=d["length"], edge=(u, v, k))
+    return d_g
+
+
+def _largest_strong_component(g) -> set:
+    """The nodes of the strongly connected part of ``g``'s arcs (:func:`arc_graph`) with the most road."""
+    import networkx as nx
+
+    comps = [c for c in nx.strongly_connected_components(arc_graph(g)) if len(c) > 1 or any(
+        u == v for u, v in g.subgraph(c).edges())]
+    if not comps:
+        raise RoadGraphError("no road can be driven round: the one-way streets lead nowhere they can be left")
+    return max(comps, key=lambda c: sum(d["length"] for *_, d in g.subgraph(c).edges(data=True)))
+
+
+def _directed_tours(sub: RoadGraph, edt_m, mpp: float, params: GraphParams, covered_m: float,
+                    component_m: float, graph_m: float, stuck: list) -> tuple[Tour, Tour]:
+    """The tour and its revisit on a graph with one-way streets. Each road is driven at least once, a one-way
+    street only its way: the two-way roads are oriented as the undirected tour would drive them (the
+    revisit: the other way), the nodes balanced by the shortest drivable detours (a minimum-cost flow over
+    the arcs, :func:`arc_graph`), and the result walked as an Euler circuit preferring the straightest way on
+    (:func:`_directed_walk`); of the two orientations the shorter walk is the tour, the other its revisit.
+    ``stuck``: up to two dead ends the car cannot turn in, where the tour (an open route) starts and ends
+    (left only, or only arrived at, once; the revisit the other way round)."""
+    g = sub.graph
+    start = stuck[0] if stuck else min(g.nodes, key=lambda n: (-g.degree(n), n))
+    stop = stuck[1] if len(stuck) == 2 else start
+    if stuck:   # the start's road must lead out of it, the stop's into it: swap them if one-way says so
+        def way(n):
+            (a, b, k), = list(g.edges(n, keys=True))
+            return a, b, k, (b if a == n else a)
+
+        a, b, k, nb = way(start)
+        if not allowed(g, start, nb, k):
+            start, stop = stop, start
+    und = RoadGraph(_eulerize(sub, start, stop), sub.width_m, sub.height_m)
+    orient: dict[int, object] = {}
+    for a, b, k in _euler_walk(und, start):
+        if g.has_edge(a, b, k):
+            orient.setdefault(id(g.edges[a, b, k]), a)
+    walks = []
+    for flip in (False, True):
+        first, last = (stop, start) if flip else (start, stop)
+        need = []
+        for u, v, k, d in g.edges(keys=True, data=True):
+            a = d["start"] if d.get("oneway", 0) else orient.get(id(d), d["start"])
+            if flip and not d.get("oneway", 0):
+                a = v if a == u else u
+            if stuck and not d.get("oneway", 0) and u != v:   # out of the first stuck end, into the last
+                if first in (u, v) and g.degree(first) == 1:
+                    a = first
+                elif last in (u, v) and g.degree(last) == 1:
+                    a = v if last == u else u
+            need.append((a, v if a == u else u, (u, v, k)))
+        try:
+            walks.append(_directed_walk(sub, need, first, last if stuck else None))
+        except RoadGraphError:
+            if not flip:
+                raise
+            walks.append(None)   # the revisit's way round is impossible (a one-way street out of a dead end)
+    if walks[1] is None:
+        raise RoadGraphError("the roads cannot be driven the other way round (the revisit): a one-way street "
+                             "leads into or out of a dead end the car cannot turn in")
+    # the tour is the shorter of the two orientations (the one that goes with the one-way streets' flow)
+    lengths = [sum(g.edges[u, v, k]["length"] for u, v, k in w) for w in walks]
+    if lengths[1] < lengths[0] - 1e-6:
+        walks.reverse()
+    tours = []
+    closed = not stuck
+    for steps in walks:
+        xy, w, loops = _walk_polyline(sub, steps, edt_m, mpp, params, closed)
+        tours.append(Tour(xy, w, closed, covered_m, component_m, graph_m, steps, loops))
+    return tours[0], tours[1]
+
+
+def _directed_walk(rg: RoadGraph, need: list[tuple], start, stop=None) -> list[tuple]:
+    """A walk from ``start`` over every required arc ``need`` ((from, to, (u, v, k)) of ``rg``'s edges) and the
+    fewest metres of detours that make it one: each node's surplus of arriving over leaving arcs sent along
+    the shortest drivable ways (networkx's minimum-cost flow), then an Euler circuit that at each node takes
+    the arc turning least, keeping each node's last exit (a tree of arcs towards the circuit's first node)
+    for when no other is left. ``stop``: the walk is open and ends there; neither it nor ``start`` is passed
+    through (dead ends the car cannot turn in: no detour enters ``start`` or leaves ``stop``), else it is
+    closed. Returns (u, v, key) steps, ``u`` to ``v`` along edge key ``key``."""
+    import networkx as nx
+
+    g = rg.graph
+    h = nx.MultiDiGraph()
+    h.add_nodes_from(g.nodes)
+    for a, b, e in need:
+        h.add_edge(a, b, edge=e)
+    if stop is not None:
+        h.add_edge(stop, start, edge=None)    # a virtual arc closes the walk; the circuit starts with it
+    surplus = {n: h.in_degree(n) - h.out_degree(n) for n in h.nodes}
+    if any(surplus.values()):
+        f = nx.DiGraph()
+        f.add_nodes_from(g.nodes)
+        for a, b, d in arc_graph(g).edges(data=True):
+            if stop is not None and (b == start or a == stop):
+                continue
+            cost = int(round(100 * d["length"])) + 1
+            if a != b and (not f.has_edge(a, b) or f[a][b]["weight"] > cost):
+                f.add_edge(a, b, weight=cost, edge=d["edge"])
+        for n in f.nodes:
+            f.nodes[n]["demand"] = -surplus.get(n, 0)
+        try:
+            flow = nx.min_cost_flow(f)
+        except nx.NetworkXUnfeasible as e:
+            raise RoadGraphError(f"the one-way streets cannot all be driven in one tour ({e})") from e
+        for a, out in flow.items():
+            for b, n in out.items():
+                for _ in range(int(n)):
+                    h.add_edge(a, b, edge=f[a][b]["edge"])
+    origin = stop if stop is not None else start
+    last: dict = {}                   # each node's last exit: a tree of arcs towards the circuit's origin
+    seen, queue = {origin}, [origin]
+    while queue:
+        x = queue.pop(0)
+        for a, _, key in h.in_edges(x, keys=True):
+            if a not in seen:
+                seen.add(a)
+                last[a] = (x, key)          # keys count per pair of nodes: the arc is (a, x, key)
+                queue.append(a)
+    steps, cur, heading = [], origin, None
+    while h.out_degree(cur) > 0:
+        options = list(h.out_edges(cur, keys=True, data=True))
+        best, best_cost = None, math.inf
+        for _, b, key, d in options:
+            if d["edge"] is None:             # the virtual arc: first, and only then
+                cost = -math.inf if not steps else math.inf
+                xy = None
+            else:
+                xy, _ = rg.edge_xy(cur, b, d["edge"][2])
+                cost = 0.0
+                if heading is not None:
+                    t = _turn(heading, _heading(xy, True))
+                    cost = abs(t) + (0.05 if t > 0 else 0.0) + (10.0 if abs(t) > _UTURN else 0.0)
+                if len(options) > 1 and last.get(cur) == (b, key):
+                    cost += 1000.0
+            if best is None or cost < best_cost:
+                best, best_cost = (b, key, d["edge"]), cost
+        b, key, e = best
+        h.remove_edge(cur, b, key)
+        if e is not None:
+            xy, _ = rg.edge_xy(cur, b, e[2])
+            heading = _heading(xy, False)
+            steps.append((cur, b, e[2]))
+        cur = b
+    if h.number_of_edges():
+        raise RoadGraphError("internal: the directed walk left arcs undriven")
+    return steps
 
 
 def _pendant_length(g: nx.MultiGraph, n) -> float:
@@ -813,13 +1018,20 @@ def snapped_route(rg: RoadGraph, points: np.ndarray, closed: bool, params: Graph
                                  f"; snap_route_m is {params.snap_route_m:g} m")
         anchors.append(_split_at(work, *best[1:]))
     seq = anchors + ([anchors[0]] if closed else [])
+    ways = arc_graph(g) if has_oneway(g) else g     # one-way streets: only the ways a car may drive
     pieces, wpieces = [], []
-    for a, b in zip(seq[:-1], seq[1:]):
+    for i, (a, b) in enumerate(zip(seq[:-1], seq[1:])):
         if a == b:
             continue
-        path = nx.shortest_path(g, a, b, weight="length")
+        try:
+            path = nx.shortest_path(ways, a, b, weight="length")
+        except nx.NetworkXNoPath as e:
+            raise RoadGraphError(f"[{(i + 1) % len(anchors)}]: no way leads there from the waypoint before it "
+                                 f"along the roads' one-way streets") from e
         for p, q in zip(path[:-1], path[1:]):
-            kk = min(g[p][q], key=lambda key: g[p][q][key]["length"])
+            kk = min(ways[p][q], key=lambda key: ways[p][q][key]["length"])
+            if ways is not g:
+                kk = ways[p][q][kk]["edge"][2]
             xy, w = work.edge_xy(p, q, kk)
             pieces.append(xy)
             wpieces.append(w)
@@ -852,8 +1064,9 @@ def _split_at(rg: RoadGraph, u, v, k, s: float):
     a_xy, a_w = np.vstack([xy[:j], p[None]]), np.append(w[:j], pw)
     b_xy, b_w = np.vstack([p[None], xy[j:]]), np.concatenate([[pw], w[j:]])
     n = max((x for x in g.nodes if isinstance(x, int)), default=-1) + 1
+    one = int(d.get("oneway", 0))
     g.add_node(n, xy=p)
     g.remove_edge(u, v, k)
-    g.add_edge(start, n, xy=a_xy, w=a_w, length=float(arc_length(a_xy)[-1]), start=start)
-    g.add_edge(n, end, xy=b_xy, w=b_w, length=float(arc_length(b_xy)[-1]), start=n)
+    g.add_edge(start, n, xy=a_xy, w=a_w, length=float(arc_length(a_xy)[-1]), start=start, oneway=one)
+    g.add_edge(n, end, xy=b_xy, w=b_w, length=float(arc_length(b_xy)[-1]), start=n, oneway=one)
     return n

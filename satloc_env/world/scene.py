@@ -439,6 +439,8 @@ class Scene:
         self.satmap = satmap
         #: vector buildings' report (kept, trimmed, repaired, dropped footprints), for a scene built from them
         self.footprints: dict | None = None
+        #: the derived tour's lengths and coverage of the road network, for a scene whose routes were derived
+        self.tour: dict | None = None
         self.alias_source = alias_source if alias_source is not None else np.zeros(0, int)
         try:
             self.routes = {k: Route(r.waypoints, r.closed, r.laps, name=f"routes.{k}", widths=r.widths)
@@ -464,6 +466,8 @@ class Scene:
             out["radiometry"] = self.satmap.radiometry
         if self.footprints is not None:
             out["footprints"] = dict(self.footprints)
+        if self.tour is not None:
+            out["tour"] = dict(self.tour)
         return out
 
     @functools.cached_property
@@ -799,12 +803,12 @@ def _load_georeferenced(path: Path, g: ImageGeneratorSpec, mpp: float, where: st
 
 
 def _resolve_routes(spec: SceneSpec, ground: _ImageGround | None, lay: Layout, g, base: Path,
-                    where: str, graph_out: list | None = None) -> dict[str, RouteSpec]:
+                    where: str, graph_out: list | None = None, info: dict | None = None) -> dict[str, RouteSpec]:
     """Every route as waypoints in map metres: ``lonlat`` converted through the geo frame, ``trace`` traced
     from the road mask (or the label image's roads), ``snap`` routes snapped to the road graph; without
     routes, the derived ones (:mod:`satloc_env.world.scene_roads`)."""
     from .roadtrace import RoadTraceError, TraceParams, trace_route
-    from .scene_roads import DERIVED_ROUTES, derived_routes, mask_widths, road_graph, snap_waypoints
+    from .scene_roads import DERIVED_ROUTES, derived_routes, mask_widths, road_graph, snap_waypoints, tour_report
 
     out: dict[str, RouteSpec] = {}
     traced: dict[TraceSpec, Any] = {}
@@ -826,6 +830,8 @@ def _resolve_routes(spec: SceneSpec, ground: _ImageGround | None, lay: Layout, g
 
     if not spec.routes:
         tours = derived_routes(graph(), np.isin(lay.ground_labels, DRIVABLE), lay.ground_mpp, spec.road_graph, where)
+        if info is not None:
+            info["tour"] = tour_report(tours[0])
         return {k: as_route(t.waypoints, t.widths, t.closed, 1) for k, t in zip(DERIVED_ROUTES, tours)}
     for k, r in spec.routes.items():
         field_ = f"routes.{k}"
@@ -916,7 +922,8 @@ def build_scene(spec: SceneSpec, base_dir: Path | None = None, aliasing: float |
         lay = ground.layout
     _check_objects_inside(spec, lay.width_m, lay.height_m, where)
     graphs: list = []
-    routes = _resolve_routes(spec, ground, lay, g, base_dir, where, graphs)
+    info: dict = {}
+    routes = _resolve_routes(spec, ground, lay, g, base_dir, where, graphs, info)
     if not graphs and ground is not None and ground.road_graph is not None:
         graphs.append(ground.road_graph)
     b, t, c = _objects_from_spec(spec.objects)
@@ -940,6 +947,7 @@ def build_scene(spec: SceneSpec, base_dir: Path | None = None, aliasing: float |
     if graphs:
         scene.__dict__["road_graph"] = graphs[0]
     scene.footprints = ground.footprints if ground is not None else None
+    scene.tour = info.get("tour")
     return scene
 
 

@@ -27,7 +27,8 @@ from .roadgraph import (
     snapped_route,
 )
 
-__all__ = ["DERIVED_ROUTES", "read_vectors", "vector_roads", "road_graph", "derived_routes", "snap_waypoints", "mask_widths"]
+__all__ = ["DERIVED_ROUTES", "MIN_COVERAGE", "read_vectors", "vector_roads", "road_graph", "derived_routes",
+           "snap_waypoints", "mask_widths", "tour_report"]
 
 #: names of the routes a scene without ``routes:`` gets: the tour and its revisit
 DERIVED_ROUTES = ("main", "revisit")
@@ -63,7 +64,7 @@ def vector_roads(path: Path, frame, shape: tuple[int, int], mpp: float, default_
     lines = read_vectors("roads", lambda p: read_road_lines(p, default_width_m), path, frame, where)
     h, w = shape
     try:
-        graph = graph_from_lines(lines.lines, lines.widths, w * mpp, h * mpp, params, lines.layers)
+        graph = graph_from_lines(lines.lines, lines.widths, w * mpp, h * mpp, params, lines.layers, lines.oneway)
     except RoadGraphError as e:
         raise ConfigError(f"{where}: generator.roads: {path}: {e}") from e
     mask = rasterize_area(road_area(lines.lines, lines.widths, graph, params.curb_radius_m), shape, mpp)
@@ -83,13 +84,38 @@ def road_graph(params: GraphParams, roads: np.ndarray | None, labels: np.ndarray
         raise ConfigError(f"{where}: road_graph: {e}") from e
 
 
+#: a derived tour that drives less of the road network than this warns
+MIN_COVERAGE = 0.8
+
+
 def derived_routes(graph: RoadGraph, drivable: np.ndarray, mpp: float, params: GraphParams, where: str
                    ) -> tuple[Tour, Tour]:
-    """The tour covering the graph's largest connected part and its revisit (:func:`covering_tour`)."""
+    """The tour covering the graph's largest connected part and its revisit (:func:`covering_tour`); a
+    :class:`satloc.SatlocWarning` when the tour drives less than :data:`MIN_COVERAGE` of the whole network."""
+    import warnings
+
+    from satloc.errors import SatlocWarning
+
     try:
-        return covering_tour(graph, drivable, mpp, params)
+        tours = covering_tour(graph, drivable, mpp, params)
     except RoadGraphError as e:
         raise ConfigError(f"{where}: routes: none given, and none could be derived from the road graph: {e}") from e
+    t = tours[0]
+    share = t.covered_m / t.graph_m if t.graph_m > 0 else 1.0
+    if share < MIN_COVERAGE:
+        warnings.warn(f"{where}: routes: the derived tour drives {100 * share:.0f} % of the road network "
+                      f"({t.covered_m / 1000:.2f} of {t.graph_m / 1000:.2f} km): roads cut off from its largest "
+                      f"part, one-way streets that lead nowhere and dead ends too narrow to turn in are left out",
+                      SatlocWarning, stacklevel=2)
+    return tours
+
+
+def tour_report(t: Tour) -> dict:
+    """What a scene reports of its derived tour: lengths (km) and its share of the network and of the part
+    it drives."""
+    return {"network_km": round(t.graph_m / 1000, 3), "covered_km": round(t.covered_m / 1000, 3),
+            "coverage": round(t.covered_m / t.graph_m, 3) if t.graph_m > 0 else 1.0,
+            "component_coverage": round(t.coverage, 3), "loops": int(t.loops)}
 
 
 def snap_waypoints(graph: RoadGraph, xy: np.ndarray, closed: bool, params: GraphParams, field: str, where: str
