@@ -64,10 +64,11 @@ class LocalizerConfig:
     min_distance_frac: float = 0.05       # feature distances are floored at this fraction of the median distance
                                           # between random entries, so duplicates do not get infinite weight
     depth_source: Literal["stereo", "frame"] = "stereo"
-    ef_search: int = 32                   # HNSW search breadth of the ground index (large databases): chosen by
-                                          # `satloc experiment tune` on fcn_train/town_a (no table tests there):
-                                          # the smallest value as good as 96; 32, 48, 96 gave the same errors, 24
-                                          # lost a query (full+align, 57 queries)
+    ef_search: int = 96                   # HNSW search breadth of the ground index (large databases): chosen by
+                                          # `satloc experiment tune` on fcn_train/town_a (no table tests there)
+                                          # at the default world (captured map, drifting passes): the smallest
+                                          # value within 0.05 m of 96's mean error is 96 itself (24 / 32 / 48:
+                                          # 42.56 / 42.56 / 42.55 m, 96: 41.32 m; full+align, 57 queries)
     prune_regions: int = 3                # >0: score only candidates near the best-voted path positions
     prune_window_m: float = 12.0          # path length kept around each voted position (and peak separation)
     refine: bool = False                  # refine the estimate by bird's-eye alignment (satloc.align)
