@@ -384,3 +384,63 @@ def test_shipped_suburb_tour_honours_its_one_way_turning_circles():
     for t in (main, revisit):
         assert all(allowed(g, u, v, k) for u, v, k in t.steps)
     assert main.steps[0][0] == revisit.steps[-1][1] and main.steps[-1][1] == revisit.steps[0][0]
+
+
+def _vector_scene(tmp_path, **gen):
+    (tmp_path / "map.osm").write_text(osm_xml())
+    p = tmp_path / "v.yaml"
+    p.write_text(yaml.safe_dump({"name": "vworld", "seed": 3, "generator": {
+        "type": "vectors", "roads": "map.osm", "buildings": "map.osm", "trees": "map.osm", **gen},
+        "meters_per_pixel": 0.5, "ground_mpp": 0.25}))
+    return p
+
+
+def test_a_world_from_vectors_alone(tmp_path):
+    """generator type vectors: the OSM extract alone makes a world: its frame from the roads' bounds, the
+    ground painted by class (roads, sidewalks, centre lines, grass), the buildings standing, a captured map,
+    derived routes an env drives."""
+    import gymnasium as gym
+
+    from satloc.labels import CLASS_ID
+    from satloc_env.world.scene import DRIVABLE
+
+    with pytest.warns(SatlocWarning, match="derived tour drives"):
+        sc = load_scene(_vector_scene(tmp_path))
+    lab = sc.layout.ground_labels
+    frac = {c: float((lab == CLASS_ID[c]).mean()) for c in ("road", "sidewalk", "lane_marking", "grass", "building")}
+    assert all(v > 0 for v in frac.values()), frac
+    assert 0.05 < frac["road"] < 0.4 and frac["lane_marking"] < 0.02
+    # the frame: the roads' bounds and 20 m around them (main street 150 m, the road over it 110 m long)
+    assert 185 <= sc.layout.width_m <= 195 and 145 <= sc.layout.height_m <= 155
+    ll = sc.satmap.frame.to_lonlat(np.array([sc.layout.width_m / 2, sc.layout.height_m / 2]))
+    x, y = pyproj.Transformer.from_crs("EPSG:4326", UTM, always_xy=True).transform(*ll)
+    assert abs(x - (E0 + 80)) < 3 and abs(y - (N0 + 60)) < 3
+    assert len(sc.layout.buildings) == 3 and all(not b.roof_from_ground for b in sc.layout.buildings)
+    assert len(sc.layout.trees) == 1
+    # the map is a capture of the painted world, not its copy; at gap 0 it is the painted tile
+    assert sc.satmap.image.shape[:2] == (lab.shape[0] // 2, lab.shape[1] // 2)
+    (tmp_path / "b").mkdir()
+    copy = load_scene(_vector_scene(tmp_path / "b"), satellite_gap=0.0)
+    assert np.abs(copy.satmap.image.astype(int) - sc.satmap.image.astype(int)).mean() > 3
+    route = sc.routes["main"]
+    assert route.length > 140 and np.isin(lab, DRIVABLE).any()     # the main street, end to end
+    env = gym.make("satloc/SatLoc-v0", scene=str(tmp_path / "v.yaml"), localizer=None)
+    obs, _ = env.reset(seed=0)
+    for _ in range(5):
+        obs, _, terminated, _, _ = env.step(env.unwrapped.autopilot_action())
+    assert obs["left"].std() > 5 and not terminated
+    env.close()
+
+
+def test_a_vector_world_refuses_bad_fields(tmp_path):
+    from satloc import ConfigError
+
+    with pytest.raises(ConfigError, match=r"generator\.type: expected 'grid', 'image' or 'vectors'"):
+        p = tmp_path / "x.yaml"
+        p.write_text(yaml.safe_dump({"name": "x", "generator": {"type": "osm", "roads": "map.osm"}}))
+        load_scene(p)
+    with pytest.raises(ConfigError, match="sidewalk_m"):
+        load_scene(_vector_scene(tmp_path, sidewalk_m=-1))
+    (tmp_path / "r").mkdir()
+    with pytest.raises(ConfigError, match=r"generator\.region"):
+        load_scene(_vector_scene(tmp_path / "r", region=[11.0, 48.0, 10.0, 49.0]))

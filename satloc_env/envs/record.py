@@ -223,7 +223,7 @@ def scene_identity(scene: str | os.PathLike) -> tuple[str, str, str, float]:
     path = scene_path(scene).resolve()
     files = [("scene.yaml", path)]
     g = spec.generator_spec(str(path))
-    if g.type == "image":
+    if g.type in ("image", "vectors"):
         files += g.files(base)
     _hash_files(h, files)
     source = path.stem if path.parent == SCENES_DIR.resolve() else str(path)

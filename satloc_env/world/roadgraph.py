@@ -584,11 +584,11 @@ def covering_tour(rg: RoadGraph, drivable: np.ndarray | None, mpp: float, params
     params.check()
     edt_m = None if drivable is None else ndimage.distance_transform_edt(
         np.pad(np.asarray(drivable, bool), 1))[1:-1, 1:-1] * mpp
-    comp = rg.largest_component()
+    if has_oneway(rg.graph):   # one-way streets: the largest part in which every road can be driven and left
+        comp = _largest_strong_component(rg.graph)
+    else:
+        comp = rg.largest_component()
     g = nx.MultiGraph(rg.graph.subgraph(comp))
-    if has_oneway(g):   # one-way streets: the largest part in which every road can be driven and left
-        comp = _largest_strong_component(g)
-        g = nx.MultiGraph(g.subgraph(comp))
     sub = RoadGraph(g, rg.width_m, rg.height_m)
     component_m = sub.length_m
     stuck = [n for n in g.nodes if g.degree(n) == 1 and not _dead_end(sub, n, edt_m, mpp, params).turnable]

@@ -120,6 +120,7 @@ from .layout import Building, Car, Layout, Tree
 from .meshes import DEFAULT_GROUND_PAD_M
 from .roadgraph import GraphParams
 from .route import Route
+from .vector_world import VectorGeneratorSpec
 
 # the repository's scenes/ (source checkout, editable install) or its installed copy (satloc_env/scenes)
 _PACKAGE = Path(__file__).resolve().parents[1]          # satloc_env/
@@ -318,13 +319,15 @@ class SceneSpec:
 
         return sorted(self.routes) if self.routes else list(DERIVED_ROUTES)
 
-    def generator_spec(self, where: str = "scene") -> GridGeneratorSpec | ImageGeneratorSpec:
+    def generator_spec(self, where: str = "scene") -> GridGeneratorSpec | ImageGeneratorSpec | VectorGeneratorSpec:
         kind = self.generator.get("type")
         if kind == "grid":
             return from_dict(GridGeneratorSpec, self.generator, f"{where}: generator")
         if kind == "image":
             return from_dict(ImageGeneratorSpec, self.generator, f"{where}: generator")
-        raise ConfigError(f"{where}: generator.type: expected 'grid' or 'image', got {kind!r}")
+        if kind == "vectors":
+            return from_dict(VectorGeneratorSpec, self.generator, f"{where}: generator")
+        raise ConfigError(f"{where}: generator.type: expected 'grid', 'image' or 'vectors', got {kind!r}")
 
 
 MAX_GROUND_PX = 20000 * 20000  # the largest ground raster a scene may ask for (as satloc.geodata.georef's maps)
@@ -917,6 +920,11 @@ def build_scene(spec: SceneSpec, base_dir: Path | None = None, aliasing: float |
             lay, src = generate_grid(params, spec.seed, aliasing, spec.ground_mpp)
         except ValueError as e:
             raise ConfigError(f"{where}: {e}") from e
+    elif g.type == "vectors":
+        from .vector_world import vector_layout
+
+        lay, frame, roads, graph, report = vector_layout(g, spec, base_dir, where, _check_size)
+        ground = _ImageGround(lay, frame, roads, None, road_graph=graph, footprints=report)
     else:
         ground = _image_layout(g, spec, base_dir, where)
         lay = ground.layout
@@ -932,7 +940,7 @@ def build_scene(spec: SceneSpec, base_dir: Path | None = None, aliasing: float |
     lay.cars += c
     lay.sun_azimuth = math.radians(spec.lighting.sun_azimuth_deg)
     lay.sun_elevation = math.radians(spec.lighting.sun_elevation_deg)
-    if g.type == "grid":
+    if g.type in ("grid", "vectors"):   # painted worlds: the tile is a capture of the painted layout
         try:
             tile, tile_labels = capture_tile(lay, spec.meters_per_pixel, spec.seed, satellite_gap)
         except ValueError as e:
