@@ -546,8 +546,9 @@ def _turn_loop(arriving: np.ndarray, width: float, edt_m, mpp: float, height_m: 
     leaves room for the lane offset and 0.75 m inside the drivable area, and that the polyline enters from
     outside (the point at least a radius along it)."""
     s = arc_length(arriving)
-    near = s >= s[-1] - 20.0
-    pts, along = arriving[near], s[near]
+    # candidate centres every 0.5 m of the last 20 m (a straight road's polyline has no vertex there)
+    along = np.union1d(s[s >= s[-1] - 20.0], np.arange(max(s[-1] - 20.0, 0.0), s[-1], 0.5))
+    pts = np.stack([np.interp(along, s, arriving[:, 0]), np.interp(along, s, arriving[:, 1])], axis=1)
     off = abs(params.lane_offset_m) * min(1.0, width / REFERENCE_ROAD_M)
     radius = np.minimum(_edt_at(edt_m, pts, mpp, height_m) - off - 0.75, 10.0)
     ok = (radius >= params.turn_radius_m) & (along >= radius)
@@ -788,7 +789,58 @@ def _directed_walk(rg: RoadGraph, need: list[tuple], start, stop=None) -> list[t
         cur = b
     if h.number_of_edges():
         raise RoadGraphError("internal: the directed walk left arcs undriven")
-    return steps
+    return _around_the_block(g, steps, closed=stop is None)
+
+
+def _around_the_block(g, steps: list[tuple], closed: bool) -> list[tuple]:
+    """``steps`` with each U-turn at a node where other roads meet (driven back along the road it came by)
+    replaced by a drive round the block: the shortest legal loop from that node back to it that leaves by
+    another road, arrives by another road and makes no U-turn on the way but at dead ends (where the tour
+    turns in a loop, where one fits). A U-turn with no such loop stays."""
+    arcs = arc_graph(g)
+    out: list[tuple] = []
+    n_steps = len(steps)
+    for i, (a, b, k) in enumerate(steps):
+        out.append((a, b, k))
+        if i + 1 >= n_steps and not closed:
+            continue
+        _, nb, nk = steps[(i + 1) % n_steps]
+        if nb == a and nk == k and a != b and g.degree(b) >= 3:
+            out += _block_loop(g, arcs, b, (a, b, k))
+    return out
+
+
+def _block_loop(g, arcs, b, banned: tuple) -> list[tuple]:
+    """The shortest walk from ``b`` back to ``b`` over ``arcs`` that neither leaves nor arrives along the edge
+    ``banned`` and never turns back along the edge it came by but at a dead end: (u, v, key) steps, or []
+    (a Dijkstra over (node, edge arrived by) states)."""
+    import heapq
+
+    def same(e) -> bool:   # the same road as ``banned``, whichever end it is named from
+        return frozenset(e[:2]) == frozenset(banned[:2]) and e[2] == banned[2]
+
+    heap, seen, tick = [], set(), 0
+    for _, q, d in arcs.out_edges(b, data=True):
+        if not same(d["edge"]):
+            heapq.heappush(heap, (d["length"], tick, q, d["edge"], [(b, q, d["edge"][2])]))
+            tick += 1
+    while heap:
+        dist, _, x, e, path = heapq.heappop(heap)
+        if x == b:
+            if not same(e):
+                return path
+            continue
+        if (x, e) in seen:
+            continue
+        seen.add((x, e))
+        for _, y, d in arcs.out_edges(x, data=True):
+            e2 = d["edge"]
+            back = e2 == e and e2[0] != e2[1]     # arcs name their edge alike from either end
+            if back and g.degree(x) > 1:
+                continue                      # no U-turn but at a dead end
+            heapq.heappush(heap, (dist + d["length"], tick, y, e2, path + [(x, y, e2[2])]))
+            tick += 1
+    return []
 
 
 def _pendant_length(g: nx.MultiGraph, n) -> float:

@@ -4,7 +4,8 @@ scene, with no imagery.
 The scene's ground is painted from the vectors, as the grid generator paints its blocks (the same painters,
 :func:`satloc_env.world.generator._paint_base`): open land (grass with patches of bare soil) everywhere; the
 roads (:mod:`satloc_env.world.scene_roads`: the centre lines buffered by their widths, the junction corners
-rounded) in asphalt; a sidewalk ``sidewalk_m`` wide along every road edge; a dashed centre line on every road
+rounded) in asphalt, each road the area's edge cuts ending in a turning bulb (``turn_bulb_m``: the roads go
+on past the map, so a car may turn there); a sidewalk ``sidewalk_m`` wide along every road edge; a dashed centre line on every road
 of two lanes or more (3 m dashes, 6 m gaps, kept out of the junctions); building footprints
 (:mod:`satloc_env.world.scene_buildings`: trimmed by the road, extruded to their heights) with a roof colour
 each; trees from points and wooded areas. The satellite map is a capture of this world, as for the grid scenes
@@ -50,12 +51,14 @@ class VectorGeneratorSpec:
     margin_m: float = 20.0         #: without region: the roads' bounds widened by this much
     road_width_m: float = 7.0      #: roads whose attributes give no width
     sidewalk_m: float = 2.0        #: sidewalk along every road edge (0: none)
+    turn_bulb_m: float = 12.0      #: a road the area's edge cuts ends in a turning bulb of this radius (0: none)
     building_height_m: tuple[float, float] = (5.0, 9.0)   #: footprints whose attributes give no height
 
     def __post_init__(self):
         for name, v, ok in (("margin_m", self.margin_m, self.margin_m >= 0),
                             ("road_width_m", self.road_width_m, self.road_width_m > 0),
-                            ("sidewalk_m", self.sidewalk_m, 0 <= self.sidewalk_m <= 20)):
+                            ("sidewalk_m", self.sidewalk_m, 0 <= self.sidewalk_m <= 20),
+                            ("turn_bulb_m", self.turn_bulb_m, 0 <= self.turn_bulb_m <= 30)):
             if not (math.isfinite(float(v)) and ok):
                 raise ConfigError(f"{name}: expected a finite number of metres in range, got {v!r}")
         lo, hi = (float(v) for v in self.building_height_m)
@@ -138,6 +141,34 @@ def _centre_lines(graph, shape: tuple[int, int], mpp: float) -> np.ndarray:
     return out.astype(bool)
 
 
+def _turn_bulbs(graph, w_m: float, h_m: float, reach: float, radius: float):
+    """Discs of ``radius`` where the extract's edge cuts a road (a dead end of the graph within ``reach`` of
+    the area's edge: the graph's margin, and the area's margin around the roads' bounds), centred ``radius``
+    back along the road: the roads went on past the extract, so a car may turn there (a tour turns round
+    only where a turn fits). None when there are none."""
+    import shapely
+
+    from satloc.geometry import arc_length
+
+    if radius <= 0:
+        return None
+    g = graph.graph
+    discs = []
+    for n in g.nodes:
+        if g.degree(n) != 1:
+            continue
+        x, y = g.nodes[n]["xy"]
+        if min(x, y, w_m - x, h_m - y) > reach:
+            continue                                     # a dead end of the map itself: left as it is
+        (a, b, k), = list(g.edges(n, keys=True))
+        xy, _ = graph.edge_xy(b if a == n else a, n, k)  # arriving at the dead end
+        s = arc_length(xy)
+        back = max(s[-1] - radius, 0.0)
+        c = np.array([np.interp(back, s, xy[:, 0]), np.interp(back, s, xy[:, 1])])
+        discs.append(shapely.Point(c).buffer(radius))
+    return shapely.union_all(discs) if discs else None
+
+
 def vector_layout(g: VectorGeneratorSpec, spec, base: Path, where: str, check_size) -> tuple:
     """The scene's ground from the vectors (see the module docstring): (layout, frame, road mask, road graph,
     footprint report). ``check_size(w_m, h_m, mpp, where, field)`` refuses an area too large (the scene's
@@ -161,6 +192,11 @@ def vector_layout(g: VectorGeneratorSpec, spec, base: Path, where: str, check_si
     except RoadGraphError as e:
         raise ConfigError(f"{where}: generator.roads: {base / g.roads}: {e}") from e
     area = road_area(lines.lines, lines.widths, graph, spec.road_graph.curb_radius_m)
+    reach = spec.road_graph.edge_margin_m + (g.margin_m if g.region is None else 0.0) + 1.0
+    bulbs = _turn_bulbs(graph, w_m, h_m, reach, g.turn_bulb_m)
+    if bulbs is not None:   # the bulbs' necks rounded (a closing of the road near them), as kerbs are
+        near = area.intersection(bulbs.buffer(10.0)).union(bulbs)
+        area = area.union(near.buffer(3.0).buffer(-3.0))
     roads = rasterize_area(area, (h, w), mpp)
     if not roads.any():
         raise ConfigError(f"{where}: generator.roads: no road of {base / g.roads} lies in the area")
