@@ -472,3 +472,38 @@ def test_shipped_osm_town_is_made_by_its_tool_and_drives(tmp_path):
     env = gym.make("satloc/SatLoc-v0", scene="osm_town", localizer=None)
     env.reset(seed=0, options={"route": "revisit"})
     env.close()
+
+
+@pytest.mark.parametrize("roof", ["flat", "gabled"])
+def test_building_bases_and_gabled_roofs_in_3d(roof):
+    """A building part from min_height up, under a flat roof or a gabled one whose ridge runs along the long
+    axis at its height; its walls up to the eaves."""
+    from satloc_env.world.layout import Building, Layout
+    from satloc_env.world.meshes import build_world
+
+    fp = np.array([[10.0, 10.0], [22.0, 10.0], [22.0, 18.0], [10.0, 18.0]])
+    lay = Layout(40.0, 30.0, 0.5, np.full((60, 80, 3), 90, np.uint8), np.zeros((60, 80), np.uint8),
+                 [Building(fp, 9.0, 1, base=2.0, roof=roof)], [], [])
+    w = build_world(lay)
+    pos = np.vstack([c.positions for c in w.chunks]).astype(np.float64)
+    above = pos[pos[:, 2] > 1e-3]
+    assert above[:, 2].min() == pytest.approx(2.0) and above[:, 2].max() == pytest.approx(9.0)
+    top = above[np.isclose(above[:, 2], 9.0)][:, :2]
+    if roof == "flat":   # the roof's corners (and the walls' splits along its edges)
+        ring = shapely.LinearRing(fp)
+        assert {tuple(p) for p in fp} <= {tuple(p) for p in np.round(top, 3)}
+        assert all(ring.distance(shapely.Point(p)) < 1e-6 for p in top)
+    else:   # the ridge: the short sides' midpoints; the eaves at 9 - 0.4 x 8 m
+        assert {tuple(p) for p in np.round(top, 3)} == {(10.0, 14.0), (22.0, 14.0)}
+        assert np.isclose(above[:, 2], 9.0 - 3.2).any()
+
+
+def test_a_scene_keeps_bases_and_roofs_through_save_and_load(tmp_path):
+    from satloc_env.world.scene import Scene
+
+    sc = _scene(tmp_path, {"roads": "map.osm", "buildings": "map.osm"})
+    house = [b for b in sc.layout.buildings if b.roof == "gabled"]
+    assert len(house) == 1 and house[0].base == 3.0
+    sc.save(tmp_path / "saved")
+    back = Scene.load(tmp_path / "saved")
+    assert [(b.base, b.roof) for b in back.layout.buildings] == [(b.base, b.roof) for b in sc.layout.buildings]

@@ -87,7 +87,7 @@ def test_aliasing_copies_blocks_exactly():
     (lambda d: d.update(colour="red"), r"unknown key\(s\) \['colour'\]"),
     (lambda d: d.update(seed="seven"), r"s\.yaml: seed: expected an integer"),
     (lambda d: d["generator"].update(blocks="many"), r"generator\.blocks: expected a list"),
-    (lambda d: d["generator"].update(type="fractal"), r"generator\.type: expected 'grid' or 'image'"),
+    (lambda d: d["generator"].update(type="fractal"), r"generator\.type: expected 'grid', 'image' or 'vectors'"),
     (lambda d: d["routes"]["main"]["waypoints"].append([500, 10]),
      r"routes\.main\.waypoints\[4\] = \[500(\.0)?, 10(\.0)?\] lies outside the tile"),
     (lambda d: d.update(query_route="nope"), r"query_route: route 'nope' is not in routes"),

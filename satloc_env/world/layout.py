@@ -19,6 +19,8 @@ class Building:
     facade: int = 0            # facade style index (texture variant)
     roof_rgb: tuple[int, int, int] = (120, 110, 100)
     roof_from_ground: bool = False   # the roof shows the layout's ground image under it (real imagery)
+    base: float = 0.0          # metres above the ground the walls start at (OSM min_height)
+    roof: str = "flat"         # "flat", or "gabled" (a ridge along a rectangular footprint's long axis)
 
 
 @dataclass

@@ -484,9 +484,11 @@ def _rng(*key) -> np.random.Generator:
 
 
 def _add_building(mb: _MeshBuilder, b: Building, index: int, layout: Layout | None = None) -> None:
-    """A building: walls from the facade painters; its roof painted in ``roof_rgb``, or, with
-    ``roof_from_ground``, the layout's ground image over the footprint's bounding box (the roof as the
-    imagery shows it, unshaded: the imagery has its light already)."""
+    """A building: walls from the facade painters, from ``base`` up; its roof painted in ``roof_rgb``, or,
+    with ``roof_from_ground``, the layout's ground image over the footprint's bounding box (the roof as the
+    imagery shows it, unshaded: the imagery has its light already). ``roof`` ``gabled`` on a rectangular
+    footprint: walls to the eaves, two slopes up to a ridge along the long axis at ``height``, and the gable
+    ends (:func:`_add_gable_roof`); any other footprint keeps a flat roof."""
     rng = _rng("building", index, b.facade)
     style = _FACADE_STYLES[b.facade % len(_FACADE_STYLES)]
     roof = np.asarray(b.roof_rgb, dtype=np.float32)
@@ -494,9 +496,57 @@ def _add_building(mb: _MeshBuilder, b: Building, index: int, layout: Layout | No
     top = lambda h, w: _paint(rng, roof, h, w)  # noqa: E731
     if b.roof_from_ground and layout is not None:
         top = lambda h, w: _ground_crop(layout, fp, h, w)  # noqa: E731
-    _add_prism(mb, fp, 0.0, float(b.height), _FACADE_M, CLASS_ID["building"],
-               lambda walls, h: _facade_texture(rng, style, [length for _, length in walls], h, _FACADE_M),
-               top, top_shade=1.0 if b.roof_from_ground and layout is not None else None)
+    base, height = float(b.base), float(b.height)
+    gable = _gable(fp, base, height) if b.roof == "gabled" else None
+    walls = lambda segs, h: _facade_texture(rng, style, [length for _, length in segs], h, _FACADE_M)  # noqa: E731
+    if gable is None:
+        _add_prism(mb, fp, base, height, _FACADE_M, CLASS_ID["building"], walls, top,
+                   top_shade=1.0 if b.roof_from_ground and layout is not None else None)
+        return
+    _add_prism(mb, fp, base, gable[0], _FACADE_M, CLASS_ID["building"], walls, None)
+    _add_gable_roof(mb, gable, top, walls)
+
+
+def _gable(fp: np.ndarray, base: float, height: float):
+    """(eave height, ridge height, the rectangle's corners CCW starting on a long side) of a gabled roof
+    over the footprint ``fp`` when it is a rectangle (4 corners, right angles within 5 degrees) and high
+    enough; else None. The rise is 0.4 x the short side, at most half of the building's height above its
+    base."""
+    p = _ccw(fp)
+    if len(p) != 4:
+        return None
+    e = np.roll(p, -1, axis=0) - p
+    lengths = np.linalg.norm(e, axis=1)
+    if lengths.min() <= 0.5:
+        return None
+    cos = [abs(float(e[i] @ e[(i + 1) % 4])) / (lengths[i] * lengths[(i + 1) % 4]) for i in range(4)]
+    if max(cos) > math.sin(math.radians(5)):
+        return None
+    if lengths[0] < lengths[1]:          # start on a long side
+        p = np.roll(p, -1, axis=0)
+    rise = min(0.4 * float(lengths.min()), 0.5 * (height - base))
+    if rise < 0.5:
+        return None
+    return height - rise, height, p
+
+
+def _add_gable_roof(mb: _MeshBuilder, gable, top, walls) -> None:
+    """The two slopes (painted by ``top``) and the two gable ends (by ``walls``) of :func:`_gable`'s roof."""
+    eave, ridge, (a, b, c, d) = gable      # a-b and c-d the eaves, b-c and d-a the gable ends
+    r_bc, r_da = np.r_[(b + c) / 2, ridge], np.r_[(d + a) / 2, ridge]
+    a3, b3, c3, d3 = (np.r_[q, eave] for q in (a, b, c, d))
+    slope_len = float(np.linalg.norm(r_bc - b3))
+    long_len = float(np.linalg.norm(b - a))
+    h_px = max(2, min(math.ceil(slope_len / _FACADE_M), mb.max_patch_width))
+    w_px = max(2, min(math.ceil(long_len / _FACADE_M), mb.max_patch_width))
+    st = np.array([[[0, 1], [1, 1], [1, 0], [0, 0]]] * 2, np.float64)
+    mb.add_quads(np.array([[a3, b3, r_bc, r_da], [c3, d3, r_da, r_bc]]), st,
+                 mb.add_patch(top(h_px, w_px), CLASS_ID["building"]))
+    for p, q, r in ((b3, c3, r_bc), (d3, a3, r_da)):
+        width = float(np.linalg.norm(q - p))
+        patch = mb.add_patch(walls([(0, width)], max(2, math.ceil((ridge - eave) / _FACADE_M))), CLASS_ID["building"])
+        mb.add_polygon_faces(np.array([p, q, r]), np.array([[0, 1], [1, 1], [0.5, 0]], np.float64),
+                             np.array([[0, 1, 2]]), patch)
 
 
 def _ground_crop(layout: Layout, poly: np.ndarray, h: int, w: int) -> np.ndarray:

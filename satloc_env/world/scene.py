@@ -525,6 +525,8 @@ class Scene:
                 "bld_verts": np.concatenate([x.footprint for x in b]) if b else np.zeros((0, 2)),
                 "bld_params": np.array([[x.height, x.facade, *x.roof_rgb] for x in b], np.float64).reshape(-1, 5),
                 "bld_roof_ground": np.array([x.roof_from_ground for x in b], np.uint8),
+                "bld_base": np.array([x.base for x in b], np.float64),
+                "bld_gabled": np.array([x.roof == "gabled" for x in b], np.uint8),
                 "trees": np.array([[*t.center, t.canopy_radius, t.canopy_bottom, t.canopy_top, t.shade]
                                    for t in lay.trees], np.float64).reshape(-1, 6),
                 "cars": np.array([[*c.center, c.yaw, c.length, c.width, c.height, *c.rgb] for c in lay.cars],
@@ -558,6 +560,8 @@ class Scene:
             "alias_source": ArraySpec("iu", (None,), min=0), "bld_nverts": ArraySpec("iu", ("B",), min=3),
             "bld_verts": ArraySpec("f", (None, 2)), "bld_params": ArraySpec("f", ("B", 5)),
             "bld_roof_ground": ArraySpec("iub", ("B",), min=0, max=1, required=False),
+            "bld_base": ArraySpec("f", ("B",), min=0, required=False),
+            "bld_gabled": ArraySpec("iub", ("B",), min=0, max=1, required=False),
             "trees": ArraySpec("f", (None, 6)), "cars": ArraySpec("f", (None, 9))})
         if a["ground_rgb"].dtype != np.uint8 or a["ground_labels"].dtype != np.uint8 or min(a["ground_rgb"].shape) < 1:
             raise FormatError(f"{lz}: ground_rgb and ground_labels must be non-empty uint8 rasters, got "
@@ -587,8 +591,13 @@ class Scene:
         verts_split = np.split(verts, np.cumsum(nv)[:-1]) if len(nv) else []
         roof_ground = a.get("bld_roof_ground")
         roof_ground = np.zeros(len(bp), bool) if roof_ground is None else roof_ground.astype(bool)
-        buildings = [Building(v, float(q[0]), int(q[1]), tuple(int(c) for c in q[2:5]), bool(rg))
-                     for v, q, rg in zip(verts_split, bp, roof_ground)]
+        base = a.get("bld_base")
+        base = np.zeros(len(bp)) if base is None else base
+        gabled = a.get("bld_gabled")
+        gabled = np.zeros(len(bp), bool) if gabled is None else gabled.astype(bool)
+        buildings = [Building(v, float(q[0]), int(q[1]), tuple(int(c) for c in q[2:5]), bool(rg), float(z),
+                              "gabled" if gb else "flat")
+                     for v, q, rg, z, gb in zip(verts_split, bp, roof_ground, base, gabled)]
         trees = [Tree((t[0], t[1]), t[2], t[3], t[4], int(t[5])) for t in tr]
         cars = [Car((c[0], c[1]), c[2], c[3], c[4], c[5], tuple(int(v) for v in c[6:9])) for c in ca]
         lay = Layout(w_m, h_m, mpp, a["ground_rgb"], a["ground_labels"], buildings, trees, cars, az, el)

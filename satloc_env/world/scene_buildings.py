@@ -185,7 +185,10 @@ def vector_buildings(path: Path, frame, shape: tuple[int, int], mpp: float, driv
         ring = np.asarray(q.exterior.coords, np.float64)[:-1]
         if not shapely.LinearRing(ring).is_ccw:
             ring = ring[::-1]
-        out.append(Building(ring, float(height) if height is not None else drawn_h, facade, roof_from_ground=True))
+        top = float(height) if height is not None else drawn_h
+        base = min(float(fps.bases[feature[k]]), max(top - 1.0, 0.0))   # a part starts below its top
+        out.append(Building(ring, top, facade, roof_from_ground=True, base=base,
+                            roof=fps.roofs[feature[k]] if fps.roofs[feature[k]] == "gabled" else "flat"))
         keep[k + 1] = True
     mask = keep[ids] & ~drivable
     return out, mask, report
