@@ -124,11 +124,20 @@ def test_table1_protocols_on_a_tiny_section(tmp_path):
     d = np.hypot(*np.diff(full.poses[kept["config"]["database_frames"], :2], axis=0).T)
     assert len(d) >= 3 and np.all(np.abs(d - 8.0) < 2.0), d
     assert "Protocol **city**" in (tmp_path / "table1.md").read_text()
-    # rerun: every stage reused
+    # rerun: every stage reused, and every mode's localization (stamped when it finished): the same rows
     stamps = {p: p.stat().st_mtime_ns for p in (tmp_path / "city").rglob("*_stage.json")}
     stamps.update({p: p.stat().st_mtime_ns for p in (tmp_path / "city").rglob("record.json")})
-    table1(tmp_path, ("city",), small, progress=False, log=lambda m: None)
+    located = {p: p.stat().st_mtime_ns for p in (tmp_path / "city").rglob("localization_*.npz")}
+    again = table1(tmp_path, ("city",), small, progress=False, log=lambda m: None)
     assert len(stamps) >= 5 and all(p.stat().st_mtime_ns == t for p, t in stamps.items())
+    assert len(located) >= 6 and all(p.stat().st_mtime_ns == t for p, t in located.items())
+    ours = lambda rs: [r for r in rs if r["method"].startswith("Ours")]   # noqa: E731
+    assert ours(again) == ours(rows) and len(ours(rows)) >= 6
+    # a damaged stamp: that mode is localized again
+    victim = sorted(located)[0]
+    victim.with_name(victim.name.replace(".npz", ".stamp.json")).write_text("{not json")
+    table1(tmp_path, ("city",), small, progress=False, log=lambda m: None)
+    assert victim.stat().st_mtime_ns != located[victim]
 
 
 def test_sweep_config_and_figure(tmp_path):

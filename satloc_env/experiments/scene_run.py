@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import csv
 import dataclasses
+import json
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -33,11 +34,11 @@ import numpy as np
 from satloc.baselines import EfmConfig, FabMapConfig
 from satloc.config import added_field, from_dict, to_dict
 from satloc.context import ContextConfig
-from satloc.errors import ConfigError
+from satloc.errors import ConfigError, FormatError
 from satloc.geometry import Pose2, wrap_angle
 from satloc.localizer import Localization, LocalizerConfig
 from satloc.metrics import bootstrap_ci, ci_method, error_stats, stationary_block_length, worst_case_errors
-from satloc.persist import atomic_path, read_json, write_json
+from satloc.persist import atomic_path, header, read_json, write_json
 from satloc.pipeline import BuildConfig, build, load_localizer, localize, train_projection
 from satloc.projection import ProjectionConfig
 from satloc.satmap import SatelliteMap
@@ -291,11 +292,11 @@ def tracked_odometry(cfg, seq: Sequence, idx: np.ndarray, cache: Path | None = N
 
 def vo_steps(seq: Sequence, cache: Path | None = None) -> np.ndarray:
     """(N, 3) :func:`satloc.vo.visual_odometry` of every frame of ``seq``, cached in ``cache``."""
-    from satloc.persist import load_npz, save_npz
-    from satloc.vo import VOConfig, visual_odometry
-
     import hashlib
     import json
+
+    from satloc.persist import load_npz, save_npz
+    from satloc.vo import VOConfig, visual_odometry
 
     # the frames' identity, not only their count and name: a pass recorded again (other drift, another scene
     # with the same routes) must not reuse another's odometry
@@ -422,6 +423,14 @@ def localize_and_report(cfg, label: str, db: Sequence, q: Sequence, sel: np.ndar
     examples: dict[str, list[tuple[int, Localization]]] = {}
     for mode in cfg.modes:
         lc = mode_config(cfg, mode)
+        stamp = _localization_stamp(lc, bdir, q, sel, odo if lc.track else None)
+        done = _localization_done(out, lc.name, stamp)
+        if done is not None:   # this mode ran before on the same build, queries, settings and odometry
+            s, err = done
+            s.update(**table_stats(err, q.poses[sel], db.poses))
+            results[mode] = s
+            log(f"[{label}] {METHOD_NAMES[mode]:9s} mean {s['mean_m']:.2f} m (reused: {out}/localization_{lc.name}.*)")
+            continue
         t = time.perf_counter()
         loc = load_localizer(bdir, lc, progress=progress)
         t_init = time.perf_counter() - t
@@ -431,6 +440,8 @@ def localize_and_report(cfg, label: str, db: Sequence, q: Sequence, sel: np.ndar
         err = s.pop("errors")
         s.update(localizer_init_s=round(t_init, 2), **table_stats(err, q.poses[sel], db.poses))
         results[mode] = s
+        write_json(out / f"localization_{lc.name}.stamp.json", dict(header("localization_stamp"), stamp=stamp,
+                                                                     summary=_plain_summary(s)))
         log(f"[{label}] {METHOD_NAMES[mode]:9s} mean {s['mean_m']:.2f} m (std {s['std_m']:.2f}), median "
             f"{s['median_m']:.2f} m, {100 * s['within_1m']:.0f} % within 1 m, {s['queries_per_s']:.1f} queries/s "
             f"over {s['queries']} queries")
@@ -454,6 +465,48 @@ def localize_and_report(cfg, label: str, db: Sequence, q: Sequence, sel: np.ndar
             plot_posterior(satmap, r, truth, out / f"posterior_{mode}_q{qi:03d}.png",
                            title=f"{label} query {qi}, {METHOD_NAMES[mode]}")
     return summary
+
+
+#: the files of a build directory that make the build (satloc.pipeline.build, train_projection)
+_BUILD_FILES = ("build.json", "dictionary.npz", "satellite_features.npz", "projection.json", "projections.pt")
+
+
+def _localization_stamp(lc, bdir: Path, q: Sequence, sel: np.ndarray, odometry) -> dict:
+    """What a mode's localization depends on: its settings, the build (each file's name, size and time), the
+    query frames (their sequence's identity and the selection) and, tracked, the odometry."""
+    import hashlib
+
+    def digest(*arrays) -> str:
+        h = hashlib.sha256()
+        for a in arrays:
+            h.update(np.ascontiguousarray(np.asarray(a, np.float64)).tobytes())
+        return h.hexdigest()[:32]
+
+    build = sorted((p.name, p.stat().st_size, p.stat().st_mtime_ns) for p in Path(bdir).iterdir()
+                   if p.name in _BUILD_FILES and p.is_file())   # not the caches a localizer adds on load
+    return {"config": to_dict(lc), "build": [list(b) for b in build], "queries": [q.name, len(q)],
+            "frames": digest(np.asarray(sel), np.asarray(q.poses)[np.asarray(sel, int)]),
+            "odometry": digest(odometry) if odometry is not None else None}
+
+
+def _plain_summary(s: dict) -> dict:
+    return {k: v for k, v in s.items() if isinstance(v, (int, float, str, bool, type(None)))}
+
+
+def _localization_done(out: Path, name: str, stamp: dict) -> tuple[dict, np.ndarray] | None:
+    """(summary, errors) of a mode localized before under the same ``stamp`` (its ``localization_<name>``
+    files, stamped when it finished), else None."""
+    from satloc.persist import load_npz
+
+    path = Path(out) / f"localization_{name}.stamp.json"
+    try:
+        saved = read_json(path, "localization_stamp")
+        if saved.get("stamp") != json.loads(json.dumps(stamp)):
+            return None
+        a, _ = load_npz(Path(out) / f"localization_{name}.npz", "localization")
+        return dict(saved["summary"]), np.asarray(a["errors"], np.float64)
+    except (FormatError, KeyError, OSError, ValueError):   # none, damaged or foreign: localize again
+        return None
 
 
 def run_scene(cfg: ExperimentConfig, out: str | Path, progress: bool = True, log=print) -> dict:
