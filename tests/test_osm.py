@@ -507,3 +507,79 @@ def test_a_scene_keeps_bases_and_roofs_through_save_and_load(tmp_path):
     sc.save(tmp_path / "saved")
     back = Scene.load(tmp_path / "saved")
     assert [(b.base, b.roof) for b in back.layout.buildings] == [(b.base, b.roof) for b in sc.layout.buildings]
+
+
+def test_a_one_way_roundabout_with_spokes_is_driven_round():
+    """A closed one-way ring (a roundabout, drawn counter-clockwise from its east point) with four two-way
+    spokes: every ring piece keeps the drawn direction, even the one ending at the ring's closing point, so
+    the whole network is one strongly connected part and the tour covers it."""
+    import networkx as nx
+
+    from satloc_env.world.roadgraph import allowed, arc_graph, covering_tour
+
+    ang = np.linspace(0.0, 2 * np.pi, 33)
+    ring = np.stack([100 + 15 * np.cos(ang), 100 + 15 * np.sin(ang)], 1)
+    ring[-1] = ring[0]
+    spokes = [np.array([(115.0, 100.0), (190.0, 100.0)]), np.array([(100.0, 115.0), (100.0, 190.0)]),
+              np.array([(85.0, 100.0), (10.0, 100.0)]), np.array([(100.0, 85.0), (100.0, 10.0)])]
+    rg = graph_from_lines([ring, *spokes], [7.0] * 5, 200, 200, GraphParams(), oneway=[1, 0, 0, 0, 0])
+    g = rg.graph
+    for u, v, k, d in g.edges(keys=True, data=True):
+        if d["oneway"]:   # counter-clockwise: the cross product of (start - centre) and (end - centre) > 0
+            a, b = d["xy"][0] - 100, d["xy"][-1] - 100
+            assert a[0] * b[1] - a[1] * b[0] > 0
+    assert nx.is_strongly_connected(arc_graph(g))
+    main, _ = covering_tour(rg, None, 0.5, GraphParams())
+    # no dead end can be turned in (no drivable raster): the tour runs from one spoke's end round the ring to
+    # another's, and the other two spokes are left out
+    assert main.covered_m == pytest.approx(rg.length_m - 2 * 75.0, abs=1.0)
+    ring_edges = {(u, v, k) for u, v, k, d in g.edges(keys=True, data=True) if d["oneway"]}
+    assert ring_edges <= {(u, v, k) for u, v, k in main.steps} | {(v, u, k) for u, v, k in main.steps}
+    assert all(allowed(g, u, v, k) for u, v, k in main.steps)
+
+
+def test_one_dead_end_it_cannot_turn_in_beside_one_way_streets():
+    """A one-way block with one two-way spur ending where the car cannot turn: the tour starts there, drives
+    everything and ends there (it failed with no feasible flow)."""
+    from satloc_env.world.roadgraph import covering_tour
+
+    block = np.array([(50.0, 50.0), (150.0, 50.0), (150.0, 150.0), (50.0, 150.0), (50.0, 50.0)])
+    spur = np.array([(150.0, 100.0), (190.0, 100.0)])
+    rg = graph_from_lines([block, spur], [7.0, 7.0], 200, 200, GraphParams(), oneway=[1, 0])
+    main, revisit = covering_tour(rg, None, 0.5, GraphParams())
+    assert not main.closed and main.coverage == pytest.approx(1.0)
+    end = [n for n in rg.graph.nodes if rg.graph.degree(n) == 1][0]
+    assert main.steps[0][0] == end and main.steps[-1][1] == end
+    assert sum(1 for u, v, k in main.steps if end in (u, v)) == 2      # out once, back once
+
+
+def test_a_ramp_ending_on_another_layer_joins_it_at_its_vertex():
+    import networkx as nx
+
+    street = np.array([(10.0, 100.0), (100.0, 100.0), (190.0, 100.0)])
+    ramp = np.array([(100.0, 20.0), (100.0, 100.0)])
+    rg = graph_from_lines([street, ramp], [7.0, 7.0], 200, 200, GraphParams(), layers=[0, 1])
+    assert nx.is_connected(rg.graph) and sorted(dict(rg.graph.degree()).values()) == [1, 1, 1, 3]
+
+
+def test_numeric_oneway_and_layer_fields_and_ambiguous_lengths():
+    assert road_oneway({"oneway": -1.0}) == -1 and road_oneway({"oneway": 1}) == 1
+    assert road_layer({"layer": 1.0}) == 1 and road_layer({"layer": float("nan"), "bridge": "yes"}) == 1
+    assert parse_length("1,000") is None and parse_length("12,5 m") == 12.5
+
+
+def test_an_integer_surface_model_with_nodata(tmp_path):
+    import rasterio
+    from affine import Affine
+
+    from satloc.geodata.heights import HeightRaster
+
+    z = np.full((100, 100), 300, np.int16)
+    z[40:60, 40:60] = 312
+    z[:5, :5] = -32768
+    with rasterio.open(tmp_path / "dsm.tif", "w", driver="GTiff", width=100, height=100, count=1, dtype="int16",
+                       crs=UTM, transform=Affine(1, 0, E0, 0, -1, N0 + 100), nodata=-32768) as ds:
+        ds.write(z, 1)
+    hr = HeightRaster(tmp_path / "dsm.tif", UTM)
+    house = shapely.box(E0 + 42, N0 + 42, E0 + 58, N0 + 58)
+    assert hr.height(house) == pytest.approx(12.0)

@@ -51,7 +51,7 @@ class HeightRaster:
                 raster_crs = pyproj.CRS.from_user_input(ds.crs.to_wkt())
         except rasterio.errors.RasterioIOError as e:
             raise FormatError(f"{self.path}: not a readable raster ({str(e)[:200]})") from e
-        values = np.asarray(band.filled(np.nan), np.float64)
+        values = np.ma.asarray(band).astype(np.float64).filled(np.nan)   # integer models with nodata too
         values[~np.isfinite(values)] = np.nan
         if not np.isfinite(values).any():
             raise FormatError(f"{self.path}: holds no valid sample (every pixel nodata, masked or NaN)")

@@ -124,8 +124,8 @@ def parse_length(v) -> float | None:
     if m:
         return float(m.group(1)) * 0.3048 + float(m.group(2)) * 0.0254
     m = _LENGTH.match(s)
-    if not m:
-        return None
+    if not m or re.fullmatch(r"[0-9]{1,3},[0-9]{3}", m.group(1)):
+        return None                      # "1,000": a thousands separator or a decimal comma; neither is safe
     return float(m.group(1).replace(",", ".")) * _UNIT_M[(m.group(2) or "m").lower()]
 
 
@@ -220,7 +220,10 @@ def _number(v, first_of_list: bool = False) -> float | None:
 
 def road_oneway(attrs: dict) -> int:
     """+1 (the drawn direction only), -1 (against it) or 0 (both ways) from a feature's OpenStreetMap tags."""
-    v = str(attrs.get("oneway") or "").strip().lower()
+    raw = attrs.get("oneway")
+    if isinstance(raw, (int, float, np.integer, np.floating)) and not isinstance(raw, bool) and math.isfinite(raw):
+        raw = str(int(raw))                # a numeric field (Shapefile, GeoPackage): 1, -1, 0
+    v = str(raw or "").strip().lower()
     if v in _YES:
         return 1
     if v in ("-1", "reverse"):
@@ -235,9 +238,12 @@ def road_oneway(attrs: dict) -> int:
 def road_layer(attrs: dict) -> int:
     """A line's vertical layer from its tags: ``layer`` where it is an integer, else 1 on a bridge, -1 in a
     tunnel, else 0."""
+    raw = attrs.get("layer")
     try:
-        return int(str(attrs.get("layer")).strip().split(";")[0])
-    except ValueError:
+        if isinstance(raw, (int, float, np.integer, np.floating)) and not isinstance(raw, bool):
+            return int(raw)                # a numeric field; NaN raises ValueError below
+        return int(str(raw).strip().split(";")[0])
+    except (ValueError, OverflowError):
         pass
     if str(attrs.get("bridge") or "no").strip().lower() not in ("no", "false", "0", ""):
         return 1

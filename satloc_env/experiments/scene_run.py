@@ -290,21 +290,25 @@ def tracked_odometry(cfg, seq: Sequence, idx: np.ndarray, cache: Path | None = N
     return out
 
 
-def vo_steps(seq: Sequence, cache: Path | None = None) -> np.ndarray:
-    """(N, 3) :func:`satloc.vo.visual_odometry` of every frame of ``seq``, cached in ``cache``."""
+def sequence_identity(seq: Sequence) -> str:
+    """A recorded pass's identity, not only its count and name: its poses, timestamps and the recording's
+    settings (scene, pass, revisit change, satellite gap), so that a pass recorded again (other drift, another
+    scene with the same routes, other knobs) never reuses another's cached results."""
     import hashlib
-    import json
 
-    from satloc.persist import load_npz, save_npz
-    from satloc.vo import VOConfig, visual_odometry
-
-    # the frames' identity, not only their count and name: a pass recorded again (other drift, another scene
-    # with the same routes) must not reuse another's odometry
     meta = {k: seq.meta.get(k) for k in ("scene", "pass_config", "change_seed", "satellite_gap")}
     h = hashlib.sha256(np.ascontiguousarray(np.asarray(seq.poses, np.float64)).tobytes())
     h.update(np.ascontiguousarray(np.asarray(seq.timestamps, np.float64)).tobytes())
     h.update(json.dumps(meta, sort_keys=True, default=str).encode())
-    key = {"frames": len(seq), "vo": to_dict(VOConfig()), "name": seq.name, "identity": h.hexdigest()[:32]}
+    return h.hexdigest()[:32]
+
+
+def vo_steps(seq: Sequence, cache: Path | None = None) -> np.ndarray:
+    """(N, 3) :func:`satloc.vo.visual_odometry` of every frame of ``seq``, cached in ``cache``."""
+    from satloc.persist import load_npz, save_npz
+    from satloc.vo import VOConfig, visual_odometry
+
+    key = {"frames": len(seq), "vo": to_dict(VOConfig()), "name": seq.name, "identity": sequence_identity(seq)}
     if cache is not None and Path(cache).is_file():
         try:
             a, meta = load_npz(cache, "visual_odometry")

@@ -51,6 +51,7 @@ from .scene_run import (
     is_tracked,
     localize_and_report,
     scene_label,
+    sequence_identity,
     tracked_odometry,
 )
 
@@ -253,7 +254,7 @@ def _tune_vo(tc: TuneConfig, q, out: Path, rows: list, progress: bool) -> dict:
 
     def run(setting: str, value, config: VOConfig) -> dict:
         path = out / f"vo_{setting}_{value}.npz"
-        key = {"vo": to_dict(config), "frames": len(q), "name": q.name}
+        key = {"vo": to_dict(config), "frames": len(q), "name": q.name, "identity": sequence_identity(q)}
         odo = None
         if path.is_file():
             try:

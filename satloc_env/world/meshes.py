@@ -497,7 +497,8 @@ def _add_building(mb: _MeshBuilder, b: Building, index: int, layout: Layout | No
     if b.roof_from_ground and layout is not None:
         top = lambda h, w: _ground_crop(layout, fp, h, w)  # noqa: E731
     base, height = float(b.base), float(b.height)
-    gable = _gable(fp, base, height) if b.roof == "gabled" else None
+    # a roof from the imagery stays flat: the picture shows it from above already, light and all
+    gable = _gable(fp, base, height) if b.roof == "gabled" and not b.roof_from_ground else None
     walls = lambda segs, h: _facade_texture(rng, style, [length for _, length in segs], h, _FACADE_M)  # noqa: E731
     if gable is None:
         _add_prism(mb, fp, base, height, _FACADE_M, CLASS_ID["building"], walls, top,

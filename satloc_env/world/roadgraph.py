@@ -191,10 +191,15 @@ def graph_from_lines(lines, widths, width_m: float, height_m: float, params: Gra
             g.add_node(node_at[key], xy=np.asarray(p, np.float64))
         return node_at[key]
 
+    multi_layer = len(np.unique(src_layer)) > 1
+    foreign_ends = np.array([xy[e] for xy in src for e in (0, -1)], np.float64).reshape(-1, 2)
+    foreign_layer = np.repeat(src_layer, 2)
     for layer in np.unique(src_layer):   # each layer noded on its own: no junction where layers cross
         idx = np.flatnonzero(src_layer == layer)
         geoms = [shapely.LineString(src[i]) for i in idx]
         noded = _line_parts(shapely.unary_union(shapely.MultiLineString(geoms)))
+        if multi_layer:   # a line of another layer ending on this one's vertex (a ramp onto it) joins it there
+            noded = _split_at_points(noded, foreign_ends[foreign_layer != layer])
         tree = STRtree(geoms)
         for piece in noded:
             xy = np.asarray(shapely.get_coordinates(piece), np.float64)
@@ -203,7 +208,11 @@ def graph_from_lines(lines, widths, width_m: float, height_m: float, params: Gra
             j = int(idx[int(tree.nearest(shapely.line_interpolate_point(piece, 0.5, normalized=True)))])
             along = _project(src[j], xy)
             w = np.interp(along, arc_length(src[j]), src_w[j])
-            one = src_oneway[j] * (1 if along[-1] >= along[0] else -1)   # the piece's own direction
+            # the piece's own direction, judged inside it: an end may be a ring's closing point (projecting to 0)
+            inner = np.asarray(shapely.get_coordinates(shapely.line_interpolate_point(
+                piece, [0.25, 0.75], normalized=True)), np.float64)
+            s_in = _project(src[j], inner)
+            one = src_oneway[j] * (1 if s_in[1] >= s_in[0] else -1)
             if one < 0:                       # stored from the node it may be driven from
                 xy, w = xy[::-1].copy(), w[::-1].copy()
             u, v = node(xy[0]), node(xy[-1])   # layers meet where their lines share an end (1 cm)
@@ -215,6 +224,29 @@ def graph_from_lines(lines, widths, width_m: float, height_m: float, params: Gra
     if g.number_of_edges() == 0:
         raise RoadGraphError("the road graph is empty: every road inside the tile is shorter than snap_m")
     return rg
+
+
+def _split_at_points(pieces: list, points: np.ndarray, tol: float = 0.01) -> list:
+    """``pieces`` (LineStrings) cut where one of ``points`` lies on a piece within ``tol`` metres, away from
+    its ends (shapely's substrings)."""
+    import shapely
+    from shapely.ops import substring
+
+    if not len(points):
+        return pieces
+    pts = shapely.points(points)
+    tree = shapely.STRtree(pts)
+    out = []
+    for piece in pieces:
+        near = tree.query(piece, predicate="dwithin", distance=tol)
+        cuts = sorted({float(piece.project(pts[i])) for i in near})
+        cuts = [c for c in cuts if tol < c < piece.length - tol]
+        if not cuts:
+            out.append(piece)
+            continue
+        bounds = [0.0, *cuts, piece.length]
+        out += [substring(piece, a, b) for a, b in zip(bounds[:-1], bounds[1:])]
+    return out
 
 
 def road_area(lines, widths, graph: RoadGraph | None = None, curb_radius_m: float = 0.0):
@@ -695,7 +727,8 @@ def _directed_tours(sub: RoadGraph, edt_m, mpp: float, params: GraphParams, cove
                     a = v if last == u else u
             need.append((a, v if a == u else u, (u, v, k)))
         try:
-            walks.append(_directed_walk(sub, need, first, last if stuck else None))
+            walks.append(_directed_walk(sub, need, first, last if len(stuck) == 2 else None,
+                                        no_turn=set(stuck)))
         except RoadGraphError:
             if not flip:
                 raise
@@ -715,14 +748,15 @@ def _directed_tours(sub: RoadGraph, edt_m, mpp: float, params: GraphParams, cove
     return tours[0], tours[1]
 
 
-def _directed_walk(rg: RoadGraph, need: list[tuple], start, stop=None) -> list[tuple]:
+def _directed_walk(rg: RoadGraph, need: list[tuple], start, stop=None, no_turn=frozenset()) -> list[tuple]:
     """A walk from ``start`` over every required arc ``need`` ((from, to, (u, v, k)) of ``rg``'s edges) and the
     fewest metres of detours that make it one: each node's surplus of arriving over leaving arcs sent along
     the shortest drivable ways (networkx's minimum-cost flow), then an Euler circuit that at each node takes
     the arc turning least, keeping each node's last exit (a tree of arcs towards the circuit's first node)
     for when no other is left. ``stop``: the walk is open and ends there; neither it nor ``start`` is passed
     through (dead ends the car cannot turn in: no detour enters ``start`` or leaves ``stop``), else it is
-    closed. Returns (u, v, key) steps, ``u`` to ``v`` along edge key ``key``."""
+    closed. ``no_turn``: dead ends the car cannot turn in (no detour round a block turns back there).
+    Returns (u, v, key) steps, ``u`` to ``v`` along edge key ``key``."""
     import networkx as nx
 
     g = rg.graph
@@ -789,10 +823,10 @@ def _directed_walk(rg: RoadGraph, need: list[tuple], start, stop=None) -> list[t
         cur = b
     if h.number_of_edges():
         raise RoadGraphError("internal: the directed walk left arcs undriven")
-    return _around_the_block(g, steps, closed=stop is None)
+    return _around_the_block(g, steps, closed=stop is None, no_turn=no_turn)
 
 
-def _around_the_block(g, steps: list[tuple], closed: bool) -> list[tuple]:
+def _around_the_block(g, steps: list[tuple], closed: bool, no_turn=frozenset()) -> list[tuple]:
     """``steps`` with each U-turn at a node where other roads meet (driven back along the road it came by)
     replaced by a drive round the block: the shortest legal loop from that node back to it that leaves by
     another road, arrives by another road and makes no U-turn on the way but at dead ends (where the tour
@@ -806,11 +840,11 @@ def _around_the_block(g, steps: list[tuple], closed: bool) -> list[tuple]:
             continue
         _, nb, nk = steps[(i + 1) % n_steps]
         if nb == a and nk == k and a != b and g.degree(b) >= 3:
-            out += _block_loop(g, arcs, b, (a, b, k))
+            out += _block_loop(g, arcs, b, (a, b, k), no_turn)
     return out
 
 
-def _block_loop(g, arcs, b, banned: tuple) -> list[tuple]:
+def _block_loop(g, arcs, b, banned: tuple, no_turn=frozenset()) -> list[tuple]:
     """The shortest walk from ``b`` back to ``b`` over ``arcs`` that neither leaves nor arrives along the edge
     ``banned`` and never turns back along the edge it came by but at a dead end: (u, v, key) steps, or []
     (a Dijkstra over (node, edge arrived by) states)."""
@@ -836,8 +870,8 @@ def _block_loop(g, arcs, b, banned: tuple) -> list[tuple]:
         for _, y, d in arcs.out_edges(x, data=True):
             e2 = d["edge"]
             back = e2 == e and e2[0] != e2[1]     # arcs name their edge alike from either end
-            if back and g.degree(x) > 1:
-                continue                      # no U-turn but at a dead end
+            if back and (g.degree(x) > 1 or x in no_turn):
+                continue                      # no U-turn but at a dead end the car can turn in
             heapq.heappush(heap, (dist + d["length"], tick, y, e2, path + [(x, y, e2[2])]))
             tick += 1
     return []
