@@ -583,3 +583,19 @@ def test_an_integer_surface_model_with_nodata(tmp_path):
     hr = HeightRaster(tmp_path / "dsm.tif", UTM)
     house = shapely.box(E0 + 42, N0 + 42, E0 + 58, N0 + 58)
     assert hr.height(house) == pytest.approx(12.0)
+
+
+def test_building_parts_replace_their_outline(tmp_path):
+    """An OSM building drawn as an outline and two building:part ways (GDAL's OSM driver files those as closed
+    lines): the parts are the footprints, with their own heights, bases and roofs; the outline gives way."""
+    parts = {1: (0.0, 0.0), 2: (30.0, 0.0), 3: (30.0, 20.0), 4: (0.0, 20.0), 5: (15.0, 0.0), 6: (15.0, 20.0)}
+    ways = [([1, 2, 3, 4, 1], {"building": "yes", "height": "20"}),
+            ([1, 5, 6, 4, 1], {"building:part": "yes", "height": "20"}),
+            ([5, 2, 3, 6, 5], {"building:part": "yes", "height": "12", "min_height": "3", "roof:shape": "gabled"}),
+            ([1, 2], {"highway": "residential"})]
+    (tmp_path / "parts.osm").write_text(osm_xml(parts, ways))
+    fp = read_footprints(tmp_path / "parts.osm")
+    assert sorted(zip(fp.heights, fp.bases, fp.roofs)) == [(12.0, 3.0, "gabled"), (20.0, 0.0, "flat")]
+    # without parts the outline stands
+    (tmp_path / "one.osm").write_text(osm_xml(parts, [ways[0], ways[3]]))
+    assert read_footprints(tmp_path / "one.osm").heights == [20.0]

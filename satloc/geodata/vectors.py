@@ -452,24 +452,45 @@ def _rings(g) -> list[np.ndarray]:
     return out
 
 
+def _is_tagged(attrs: dict, key: str) -> bool:
+    return str(attrs.get(key) or "no").strip().lower() not in ("no", "none", "")
+
+
 def read_footprints(path: str | os.PathLike) -> Footprints:
     """The building footprints of a vector file (every polygon layer), in its own CRS (see the module
-    docstring). FormatError naming the file when it cannot be read, declares no CRS or holds no polygon."""
+    docstring). OpenStreetMap ``building:part`` ways (which GDAL's OSM driver files as closed lines) are
+    footprints too, and a ``building`` outline that its parts cover (90 % of its area) gives way to them, as
+    OSM's renderers draw it. FormatError naming the file when it cannot be read, declares no CRS or holds no
+    polygon."""
+    import shapely
+
+    found: list[tuple] = []     # (polygon, attrs, is_part)
+    crs = None
+    repaired = 0
+    for g, attrs, layer_crs in _read_layers(path, ("POLYGON", "LINE"), "building footprints"):
+        if g.geom_type in ("LineString", "MultiLineString"):
+            if not (attrs.get("_osm") and _is_tagged(attrs, "building:part") and g.geom_type == "LineString"
+                    and g.is_closed and len(g.coords) >= 4):
+                continue   # lines are footprints only as OSM's closed building:part ways
+            g = shapely.Polygon(g.coords)
+        if ("building" in attrs or "building:part" in attrs) and not (
+                _is_tagged(attrs, "building") or _is_tagged(attrs, "building:part")):
+            continue   # an export with other polygons too (landuse, areas): its buildings are tagged
+        g, fixed = _valid(g)
+        if g.is_empty:
+            continue
+        repaired += bool(fixed)
+        crs = _one_crs(crs, layer_crs, path)
+        found.append((g, attrs, _is_tagged(attrs, "building:part") and not _is_tagged(attrs, "building")))
+    parts = shapely.union_all([g for g, _, is_part in found if is_part]) if any(p for *_, p in found) else None
     rings: list[np.ndarray] = []
     heights: list[float | None] = []
     bases: list[float] = []
     roofs: list[str] = []
-    crs = None
-    repaired = 0
-    for g, attrs, layer_crs in _read_layers(path, ("POLYGON",), "building footprints"):
-        if ("building" in attrs or "building:part" in attrs) and all(
-                str(attrs.get(k) or "no").strip().lower() in ("no", "none", "") for k in ("building", "building:part")):
-            continue   # an export with other polygons too (landuse, areas): its buildings are tagged
-        g, fixed = _valid(g)
+    for g, attrs, is_part in found:
+        if parts is not None and not is_part and g.area > 0 and g.intersection(parts).area >= 0.9 * g.area:
+            continue   # an outline drawn as its parts
         got = _rings(g)
-        repaired += bool(fixed and got)
-        if got:
-            crs = _one_crs(crs, layer_crs, path)
         rings += got
         heights += [building_height(attrs)] * len(got)
         bases += [building_base(attrs)] * len(got)
