@@ -303,12 +303,14 @@ def sequence_identity(seq: Sequence) -> str:
     return h.hexdigest()[:32]
 
 
-def vo_steps(seq: Sequence, cache: Path | None = None) -> np.ndarray:
-    """(N, 3) :func:`satloc.vo.visual_odometry` of every frame of ``seq``, cached in ``cache``."""
+def vo_steps(seq: Sequence, cache: Path | None = None, config=None, progress: bool = False) -> np.ndarray:
+    """(N, 3) :func:`satloc.vo.visual_odometry` of every frame of ``seq`` with ``config`` (default
+    ``VOConfig()``), cached in ``cache`` (kept apart by the pass's identity and the configuration)."""
     from satloc.persist import load_npz, save_npz
     from satloc.vo import VOConfig, visual_odometry
 
-    key = {"frames": len(seq), "vo": to_dict(VOConfig()), "name": seq.name, "identity": sequence_identity(seq)}
+    config = config or VOConfig()
+    key = {"frames": len(seq), "vo": to_dict(config), "name": seq.name, "identity": sequence_identity(seq)}
     if cache is not None and Path(cache).is_file():
         try:
             a, meta = load_npz(cache, "visual_odometry")
@@ -316,7 +318,7 @@ def vo_steps(seq: Sequence, cache: Path | None = None) -> np.ndarray:
                 return a["steps"]
         except Exception:  # damaged or foreign: compute again
             pass
-    steps = visual_odometry(seq)
+    steps = visual_odometry(seq, config, progress)
     if cache is not None:
         save_npz(cache, "visual_odometry", {"steps": steps}, {"key": key})
     return steps

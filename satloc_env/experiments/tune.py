@@ -35,7 +35,7 @@ from pathlib import Path
 from satloc.baselines.efm import EfmConfig
 from satloc.baselines.fabmap import FabMapConfig
 from satloc.config import from_dict, to_dict
-from satloc.errors import ConfigError, FormatError
+from satloc.errors import ConfigError
 from satloc.localizer import LocalizerConfig
 from satloc.persist import write_json
 from satloc.satmap import SatelliteMap
@@ -51,8 +51,8 @@ from .scene_run import (
     is_tracked,
     localize_and_report,
     scene_label,
-    sequence_identity,
     tracked_odometry,
+    vo_steps,
 )
 
 #: the scenes Table I, Table II and the sweep test on: never calibration data
@@ -248,24 +248,20 @@ def tune(out: str | Path, config: dict | None = None, progress: bool = True, log
 def _tune_vo(tc: TuneConfig, q, out: Path, rows: list, progress: bool) -> dict:
     """The odometry's grid on every frame of the calibration query pass ``q`` (appended to ``rows``): the
     detector at the default window, then the window at the chosen detector (``gftt`` only: ORB has no
-    window); each run cached in ``out/vo_<setting>_<value>.npz``."""
-    from satloc.persist import load_npz, save_npz
-    from satloc.vo import odometry_drift, visual_odometry
+    window); each run cached in ``out/vo_<setting>_<value>.npz`` (:func:`vo_steps`), a configuration met twice
+    (the default window in both grids) measured once."""
+    import json
+
+    from satloc.vo import odometry_drift
+
+    measured: dict = {}   # configuration -> its odometry
 
     def run(setting: str, value, config: VOConfig) -> dict:
-        path = out / f"vo_{setting}_{value}.npz"
-        key = {"vo": to_dict(config), "frames": len(q), "name": q.name, "identity": sequence_identity(q)}
-        odo = None
-        if path.is_file():
-            try:
-                a, meta = load_npz(path, "visual_odometry")
-                odo = a["steps"] if meta.get("key") == key else None
-            except (FormatError, KeyError):   # damaged or foreign: measured again
-                odo = None
-        if odo is None:
-            odo = visual_odometry(q, config, progress)
-            save_npz(path, "visual_odometry", {"steps": odo}, {"key": key})
-        return _vo_row(f"vo.{setting}", value, odometry_drift(odo, q.poses, (tc.vo_segment_m,)), tc.vo_segment_m)
+        key = json.dumps(to_dict(config), sort_keys=True)
+        if key not in measured:
+            measured[key] = vo_steps(q, out / f"vo_{setting}_{value}.npz", config, progress)
+        drift = odometry_drift(measured[key], q.poses, (tc.vo_segment_m,))
+        return _vo_row(f"vo.{setting}", value, drift, tc.vo_segment_m)
 
     base = VOConfig()
     grid = [run("detector", d, VOConfig(detector=d)) for d in tc.vo_detector]

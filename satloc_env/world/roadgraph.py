@@ -700,12 +700,8 @@ def _directed_tours(sub: RoadGraph, edt_m, mpp: float, params: GraphParams, cove
     start = stuck[0] if stuck else min(g.nodes, key=lambda n: (-g.degree(n), n))
     stop = stuck[1] if len(stuck) == 2 else start
     if stuck:   # the start's road must lead out of it, the stop's into it: swap them if one-way says so
-        def way(n):
-            (a, b, k), = list(g.edges(n, keys=True))
-            return a, b, k, (b if a == n else a)
-
-        a, b, k, nb = way(start)
-        if not allowed(g, start, nb, k):
+        (a, b, k), = list(g.edges(start, keys=True))
+        if not allowed(g, start, b if a == start else a, k):
             start, stop = stop, start
     und = RoadGraph(_eulerize(sub, start, stop), sub.width_m, sub.height_m)
     orient: dict[int, object] = {}
@@ -801,23 +797,17 @@ def _directed_walk(rg: RoadGraph, need: list[tuple], start, stop=None, no_turn=f
         options = list(h.out_edges(cur, keys=True, data=True))
         best, best_cost = None, math.inf
         for _, b, key, d in options:
+            xy = None
             if d["edge"] is None:             # the virtual arc: first, and only then
                 cost = -math.inf if not steps else math.inf
-                xy = None
             else:
                 xy, _ = rg.edge_xy(cur, b, d["edge"][2])
-                cost = 0.0
-                if heading is not None:
-                    t = _turn(heading, _heading(xy, True))
-                    cost = abs(t) + (0.05 if t > 0 else 0.0) + (10.0 if abs(t) > _UTURN else 0.0)
-                if len(options) > 1 and last.get(cur) == (b, key):
-                    cost += 1000.0
+                cost = _turn_cost(heading, xy) + (1000.0 if len(options) > 1 and last.get(cur) == (b, key) else 0.0)
             if best is None or cost < best_cost:
-                best, best_cost = (b, key, d["edge"]), cost
-        b, key, e = best
+                best, best_cost = (b, key, d["edge"], xy), cost
+        b, key, e, xy = best
         h.remove_edge(cur, b, key)
         if e is not None:
-            xy, _ = rg.edge_xy(cur, b, e[2])
             heading = _heading(xy, False)
             steps.append((cur, b, e[2]))
         cur = b
@@ -831,7 +821,7 @@ def _around_the_block(g, steps: list[tuple], closed: bool, no_turn=frozenset()) 
     replaced by a drive round the block: the shortest legal loop from that node back to it that leaves by
     another road, arrives by another road and makes no U-turn on the way but at dead ends (where the tour
     turns in a loop, where one fits). A U-turn with no such loop stays."""
-    arcs = arc_graph(g)
+    arcs = None
     out: list[tuple] = []
     n_steps = len(steps)
     for i, (a, b, k) in enumerate(steps):
@@ -840,6 +830,7 @@ def _around_the_block(g, steps: list[tuple], closed: bool, no_turn=frozenset()) 
             continue
         _, nb, nk = steps[(i + 1) % n_steps]
         if nb == a and nk == k and a != b and g.degree(b) >= 3:
+            arcs = arc_graph(g) if arcs is None else arcs
             out += _block_loop(g, arcs, b, (a, b, k), no_turn)
     return out
 
@@ -940,11 +931,7 @@ def _euler_walk(rg: RoadGraph, start) -> list[tuple]:
         for a, b, k in options:
             nxt = b if a == cur else a
             xy, _ = rg.edge_xy(cur, nxt, k)
-            if heading is None:
-                cost = 0.0
-            else:
-                t = _turn(heading, _heading(xy, True))
-                cost = abs(t) + (0.05 if t > 0 else 0.0) + (10.0 if abs(t) > _UTURN else 0.0)
+            cost = _turn_cost(heading, xy)
             if len(options) > 1 and _is_bridge(h, cur, nxt, k):
                 cost += 100.0
             if cost < best_cost:
@@ -958,6 +945,15 @@ def _euler_walk(rg: RoadGraph, start) -> list[tuple]:
     if h.number_of_edges():
         raise RoadGraphError("internal: the Euler walk left edges undriven")
     return steps
+
+
+def _turn_cost(heading: float | None, xy: np.ndarray) -> float:
+    """What taking the road ``xy`` on from ``heading`` costs a walk: the turn (radians), left a little dearer
+    than right, a U-turn much dearer; nothing for the first step."""
+    if heading is None:
+        return 0.0
+    t = _turn(heading, _heading(xy, True))
+    return abs(t) + (0.05 if t > 0 else 0.0) + (10.0 if abs(t) > _UTURN else 0.0)
 
 
 def _is_bridge(h: nx.MultiGraph, u, v, k) -> bool:

@@ -640,8 +640,8 @@ def _route_corridor(spec: SceneSpec, frame, shape: tuple[int, int], mpp: float, 
     ``width_m``: the road of a scene that has no road data, where its buildings and trees must not stand;
     None when no route gives its points."""
     import shapely
-    from affine import Affine
-    from rasterio.features import rasterize
+
+    from .roadgraph import rasterize_area
 
     lines = []
     for r in (spec.routes or {}).values():
@@ -655,11 +655,7 @@ def _route_corridor(spec: SceneSpec, frame, shape: tuple[int, int], mpp: float, 
             xy = np.vstack([xy, xy[:1]])
         if len(xy) >= 2:
             lines.append(shapely.LineString(xy).buffer(width_m / 2))
-    if not lines:
-        return None
-    h, w = shape
-    return rasterize([(g, 1) for g in lines], out_shape=(h, w), transform=Affine(mpp, 0.0, 0.0, 0.0, -mpp, h * mpp),
-                     fill=0, dtype="uint8").astype(bool)
+    return rasterize_area(shapely.union_all(lines), shape, mpp) if lines else None
 
 
 def _image_layout(g: ImageGeneratorSpec, spec: SceneSpec, base: Path, where: str) -> _ImageGround:

@@ -127,17 +127,21 @@ def vector_buildings(path: Path, frame, shape: tuple[int, int], mpp: float, driv
     road_tree = shapely.STRtree(list(getattr(road, "geoms", [road]))) if not road.is_empty else None
     polys, heights, feature = [], [], []
     trimmed, dropped, inside = set(), set(), set()
+    whole: dict[int, object] = {}   # each footprint as read (made valid), for the surface model
+
+    def simple(q):   # a part's exterior, simplified to 5 cm; None when too small
+        q = Polygon(q.exterior).simplify(0.05, preserve_topology=True)
+        return q if q.geom_type == "Polygon" and q.area >= _MIN_PART_M2 else None
+
     for i, (ring, height) in enumerate(zip(fps.rings, fps.heights)):
-        g = shapely.make_valid(Polygon(ring))
-        g = g.intersection(tile)
+        whole[i] = shapely.make_valid(Polygon(ring))
+        g = whole[i].intersection(tile)
         parts = [q for q in getattr(g, "geoms", [g]) if q.geom_type == "Polygon" and q.area >= _MIN_PART_M2]
         if parts:
             inside.add(i)
-        for q in parts:
-            q = Polygon(q.exterior).simplify(0.05, preserve_topology=True)
-            if q.geom_type != "Polygon" or q.area < _MIN_PART_M2:
-                continue
+        for q in filter(None, map(simple, parts)):
             near = road_tree.query(q, predicate="intersects") if road_tree is not None else []
+            kept = [q]
             if len(near):
                 cut = q.difference(shapely.union_all(road_tree.geometries.take(near)))
                 if q.area - cut.area >= _TRIM_M2:
@@ -147,16 +151,10 @@ def vector_buildings(path: Path, frame, shape: tuple[int, int], mpp: float, driv
                     if sum(c.area for c in pieces) < MIN_KEPT_FRACTION * q.area:
                         dropped.add(i)
                         continue
-                    for c in pieces:
-                        c = Polygon(c.exterior).simplify(0.05, preserve_topology=True)
-                        if c.geom_type == "Polygon" and c.area >= _MIN_PART_M2:
-                            polys.append(c)
-                            heights.append(height)
-                            feature.append(i)
-                    continue
-            polys.append(q)
-            heights.append(height)
-            feature.append(i)
+                    kept = list(filter(None, map(simple, pieces)))
+            polys += kept
+            heights += [height] * len(kept)
+            feature += [i] * len(kept)
     standing = set(feature)
     dropped = sorted(dropped - standing)     # every part of it was left out
     trimmed = sorted(trimmed & standing)
@@ -170,9 +168,9 @@ def vector_buildings(path: Path, frame, shape: tuple[int, int], mpp: float, driv
         warnings.warn(f"{where}: generator.buildings: {path}: of {len(fps.rings)} footprints, {len(trimmed) + len(dropped)} "
                       f"overlap the road: {'; '.join(msg)}", SatlocWarning, stacklevel=2)
     if surface is not None:   # the surface model's heights first, where it has them
-        whole = {i: shapely.make_valid(Polygon(fps.rings[i])) for i in sorted(set(feature))}
-        everything = shapely.union_all(list(whole.values()))
-        measured = {i: surface.height(g, everything.difference(g.buffer(0.01))) for i, g in whole.items()}
+        standing_whole = {i: whole[i] for i in sorted(standing)}
+        everything = shapely.union_all(list(standing_whole.values()))
+        measured = {i: surface.height(g, everything.difference(g.buffer(0.01))) for i, g in standing_whole.items()}
         heights = [measured[f] if measured[f] is not None else h for f, h in zip(feature, heights)]
         report["heights_from_raster"] = sum(v is not None for v in measured.values())
     ids = _ids_raster(polys, shape, mpp)
@@ -200,7 +198,7 @@ def vector_trees(path: Path, frame, shape: tuple[int, int], mpp: float, drivable
     drivable ground (see the module docstring); ``surface``: a height raster whose heights (over each crown)
     come first where it has them."""
     from shapely import contains_xy
-    from shapely.geometry import Polygon, box
+    from shapely.geometry import Point, Polygon, box
 
     from satloc.geodata.vectors import read_trees
 
@@ -247,8 +245,6 @@ def vector_trees(path: Path, frame, shape: tuple[int, int], mpp: float, drivable
     for k in np.flatnonzero(inside & ~on_road):
         (x, y), r, ht = xy_arr[k], float(radius[k]), float(height[k])
         if surface is not None:
-            from shapely.geometry import Point
-
             measured = surface.height(Point(x, y).buffer(max(r, 1.0)))
             ht = measured if measured is not None else ht
         r = min(r, 0.45 * ht)

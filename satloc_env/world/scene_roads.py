@@ -27,7 +27,7 @@ from .roadgraph import (
     snapped_route,
 )
 
-__all__ = ["DERIVED_ROUTES", "MIN_COVERAGE", "read_vectors", "vector_roads", "road_graph", "derived_routes",
+__all__ = ["DERIVED_ROUTES", "MIN_COVERAGE", "line_network", "read_vectors", "vector_roads", "road_graph", "derived_routes",
            "snap_waypoints", "mask_widths", "tour_report"]
 
 #: names of the routes a scene without ``routes:`` gets: the tour and its revisit
@@ -63,14 +63,22 @@ def vector_roads(path: Path, frame, shape: tuple[int, int], mpp: float, default_
 
     lines = read_vectors("roads", lambda p: read_road_lines(p, default_width_m), path, frame, where)
     h, w = shape
-    try:
-        graph = graph_from_lines(lines.lines, lines.widths, w * mpp, h * mpp, params, lines.layers, lines.oneway)
-    except RoadGraphError as e:
-        raise ConfigError(f"{where}: generator.roads: {path}: {e}") from e
-    mask = rasterize_area(road_area(lines.lines, lines.widths, graph, params.curb_radius_m), shape, mpp)
+    graph, area = line_network(lines, w * mpp, h * mpp, params, path, where)
+    mask = rasterize_area(area, shape, mpp)
     if not mask.any():
         raise ConfigError(f"{where}: generator.roads: no road of {path} lies in the loaded area of the image")
     return graph, mask
+
+
+def line_network(lines, width_m: float, height_m: float, params: GraphParams, path: Path, where: str):
+    """(road graph, road surface) of ``lines`` (:class:`satloc.geodata.vectors.RoadLines` in the scene's metres,
+    read from ``path``) on a tile of ``width_m`` x ``height_m``: their graph (layers and one-way streets kept)
+    and the surface of the lines buffered by their widths, the junctions' corners rounded."""
+    try:
+        graph = graph_from_lines(lines.lines, lines.widths, width_m, height_m, params, lines.layers, lines.oneway)
+    except RoadGraphError as e:
+        raise ConfigError(f"{where}: generator.roads: {path}: {e}") from e
+    return graph, road_area(lines.lines, lines.widths, graph, params.curb_radius_m)
 
 
 def road_graph(params: GraphParams, roads: np.ndarray | None, labels: np.ndarray, mpp: float, where: str

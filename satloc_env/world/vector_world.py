@@ -79,33 +79,36 @@ class VectorGeneratorSpec:
         return out
 
 
-def _frame_and_size(g: VectorGeneratorSpec, base: Path, mpp: float, where: str):
-    """The GeoFrame (origin at the area's south-west corner) and the area's size in metres (whole pixels)."""
-    from satloc.geodata.vectors import read_road_lines
+def _frame_and_lines(g: VectorGeneratorSpec, base: Path, mpp: float, where: str):
+    """The GeoFrame (origin at the area's south-west corner), the area's size in metres (whole pixels) and
+    the road lines in the frame's metres, the road file read once."""
+    from satloc.geodata.vectors import RoadLines, read_road_lines
     from satloc.geoframe import GeoFrame
 
     from .scene_roads import read_vectors
 
+    probe = GeoFrame(0.0, 0.0)   # any frame: the lines' lon/lat, then the area's own frame
+    read = read_vectors("roads", lambda p: read_road_lines(p, g.road_width_m), base / g.roads, probe, where)
+    lonlat = [probe.to_lonlat(xy) for xy in read.lines]
     if g.region is not None:
         lon0, lat0, lon1, lat1 = (float(v) for v in g.region)
         if not (-180 <= lon0 < lon1 <= 180 and -85 <= lat0 < lat1 <= 85):
             raise ConfigError(f"{where}: generator.region: expected [lon_min, lat_min, lon_max, lat_max] in "
                               f"degrees with lon_min < lon_max and lat_min < lat_max, got {list(g.region)}")
     else:
-        probe = GeoFrame(0.0, 0.0)   # any frame: the roads' lon/lat bounds
-        lines = read_vectors("roads", lambda p: read_road_lines(p, g.road_width_m), base / g.roads, probe, where)
-        lonlat = np.vstack([probe.to_lonlat(xy) for xy in lines.lines])
-        (lon0, lat0), (lon1, lat1) = lonlat.min(axis=0), lonlat.max(axis=0)
-        centre = GeoFrame(float(lon0), float(lat0))
-        sw, ne = centre.to_map(np.array([[lon0, lat0], [lon1, lat1]]))
-        sw, ne = sw - g.margin_m, ne + g.margin_m
-        (lon0, lat0), (lon1, lat1) = centre.to_lonlat(np.array([sw, ne]))
+        every = np.vstack(lonlat)
+        (lon0, lat0), (lon1, lat1) = every.min(axis=0), every.max(axis=0)
+        corner = GeoFrame(float(lon0), float(lat0))
+        sw, ne = corner.to_map(np.array([[lon0, lat0], [lon1, lat1]]))
+        (lon0, lat0), (lon1, lat1) = corner.to_lonlat(np.array([sw - g.margin_m, ne + g.margin_m]))
     frame = GeoFrame(float(lon0), float(lat0))
     ex, ny = frame.to_map(np.array([lon1, lat1]))
     w_m, h_m = math.floor(ex / mpp + 1e-6) * mpp, math.floor(ny / mpp + 1e-6) * mpp
     if w_m < 10 * mpp or h_m < 10 * mpp:
         raise ConfigError(f"{where}: generator: the area ({w_m:g} m x {h_m:g} m) is smaller than 10 pixels a side")
-    return frame, w_m, h_m
+    lines = RoadLines([frame.to_map(ll) for ll in lonlat], read.widths, frame.crs, read.source, read.oneway,
+                      read.layers)
+    return frame, w_m, h_m, lines
 
 
 def _centre_lines(graph, shape: tuple[int, int], mpp: float) -> np.ndarray:
@@ -173,25 +176,18 @@ def vector_layout(g: VectorGeneratorSpec, spec, base: Path, where: str, check_si
     """The scene's ground from the vectors (see the module docstring): (layout, frame, road mask, road graph,
     footprint report). ``check_size(w_m, h_m, mpp, where, field)`` refuses an area too large (the scene's
     check)."""
-    from satloc.geodata.vectors import read_road_lines
-
     from .generator import _paint_base, _roof_rgb
     from .layout import Layout
     from .paint import noise
-    from .roadgraph import RoadGraphError, graph_from_lines, rasterize_area, road_area
+    from .roadgraph import rasterize_area
     from .scene_buildings import height_raster, vector_buildings, vector_trees
-    from .scene_roads import read_vectors
+    from .scene_roads import line_network
 
     mpp = spec.ground_mpp
-    frame, w_m, h_m = _frame_and_size(g, base, mpp, where)
+    frame, w_m, h_m, lines = _frame_and_lines(g, base, mpp, where)
     check_size(w_m, h_m, mpp, where, "generator")
     h, w = int(round(h_m / mpp)), int(round(w_m / mpp))
-    lines = read_vectors("roads", lambda p: read_road_lines(p, g.road_width_m), base / g.roads, frame, where)
-    try:
-        graph = graph_from_lines(lines.lines, lines.widths, w_m, h_m, spec.road_graph, lines.layers, lines.oneway)
-    except RoadGraphError as e:
-        raise ConfigError(f"{where}: generator.roads: {base / g.roads}: {e}") from e
-    area = road_area(lines.lines, lines.widths, graph, spec.road_graph.curb_radius_m)
+    graph, area = line_network(lines, w_m, h_m, spec.road_graph, base / g.roads, where)
     reach = spec.road_graph.edge_margin_m + (g.margin_m if g.region is None else 0.0) + 1.0
     bulbs = _turn_bulbs(graph, w_m, h_m, reach, g.turn_bulb_m)
     if bulbs is not None:   # the bulbs' necks rounded (a closing of the road near them), as kerbs are
