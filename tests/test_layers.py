@@ -1,5 +1,6 @@
 """The package layering (pyproject.toml's import-linter contracts): the tree keeps it, and an upward import
 breaks it with a message naming both modules."""
+import os
 import shutil
 import subprocess
 import sys
@@ -13,7 +14,9 @@ LINT = [sys.executable, "-c", "import sys; from importlinter.cli import lint_imp
 
 
 def _lint(cwd: Path) -> subprocess.CompletedProcess:
-    env = {"PYTHONPATH": str(cwd), "PATH": "/usr/bin:/bin"}
+    # the tree under test first; a PYTHONPATH already set (import-linter installed with --target, say) after it
+    paths = [str(cwd)] + [p for p in os.environ.get("PYTHONPATH", "").split(os.pathsep) if p]
+    env = {"PYTHONPATH": os.pathsep.join(paths), "PATH": "/usr/bin:/bin"}
     return subprocess.run(LINT, cwd=cwd, env=env, capture_output=True, text=True, timeout=120)
 
 
