@@ -397,3 +397,58 @@ def test_closing_one_renderer_keeps_others_working(renderer, world, camera, fram
     other.render(POSE, depth=False)
     other.close()
     assert np.array_equal(renderer.render(POSE, depth=False)["left"], frame["left"])
+
+
+# --- the world beyond the layout's edge --------------------------------------------------------------------------
+def test_mirrored_world_covers_the_pad_and_shares_textures(layout):
+    w = build_world(layout, chunk_m=20.0, pad_m=50.0)
+    own = [c for c in w.chunks if not c.mirror]
+    mirrors = [c for c in w.chunks if c.mirror]
+    assert len(own) == 9 and mirrors
+    textures = {id(c.texture) for c in own}
+    assert all(id(m.texture) in textures for m in mirrors)          # no texture copied
+    lo = np.min([m.bounds[0] for m in mirrors], axis=0)
+    hi = np.max([m.bounds[1] for m in mirrors], axis=0)
+    assert lo[0] <= -50.0 and lo[1] <= -50.0 and hi[0] >= SIZE + 50.0 and hi[1] >= SIZE + 50.0
+    # every mirrored ground triangle still faces up (a reflection turns the faces round to keep their winding)
+    for m in mirrors:
+        p = m.positions[m.faces].astype(np.float64)
+        flat = np.all(np.abs(p[..., 2]) < 1e-6, axis=1)
+        n = np.cross(p[flat, 1] - p[flat, 0], p[flat, 2] - p[flat, 0])
+        assert flat.any() and np.all(n[:, 2] > 0)
+    assert len(build_world(layout, chunk_m=20.0, pad_m=50.0, beyond="neutral").chunks) == 10
+    with pytest.raises(Exception, match="beyond"):
+        build_world(layout, pad_m=50.0, beyond="sea")
+
+
+def test_the_road_goes_on_past_the_edge_in_the_mirror(layout, camera):
+    """Near the north edge, looking north: the ground beyond the edge is the tile reflected (road, its
+    dashes, the building reflected across the edge), where neutral padding shows unknown ground."""
+    pose = Pose2(30.0, 50.0, np.pi / 2)            # on the road, 10 m from the north edge
+    views = {}
+    for beyond in ("mirror", "neutral"):
+        with StereoRenderer(build_world(layout, pad_m=60.0, beyond=beyond), camera) as r:
+            views[beyond] = r.render(pose, depth="left", labels=True)
+    # the ground point of every pixel, from the depth
+    K = np.array([[camera.fx, 0, camera.cx], [0, camera.fy, camera.cy], [0, 0, 1.0]])
+    vv, uu = np.mgrid[0:camera.height, 0:camera.width]
+    rays = np.linalg.inv(K) @ np.stack([uu.ravel(), vv.ravel(), np.ones(uu.size)])
+    T = camera.map_from_camera(pose)
+    d = views["mirror"]["depth_left"].ravel()
+    pts = (T[:3, :3] @ (rays * d) + T[:3, 3:4]).T
+    ground = (d > 0) & (np.abs(pts[:, 2]) < 0.05)
+    beyond_edge = ground & (pts[:, 1] > SIZE + 1.0) & (pts[:, 1] < SIZE + 25.0)
+    on_road = beyond_edge & (np.abs(pts[:, 0] - 30.0) < 5.0)
+    lab_m, lab_n = views["mirror"]["labels_left"].ravel(), views["neutral"]["labels_left"].ravel()
+    assert on_road.sum() > 500
+    assert np.mean(np.isin(lab_m[on_road], [CLASS_ID["road"], CLASS_ID["lane_marking"]])) > 0.95
+    assert np.all(lab_n[on_road] == CLASS_ID["void"])
+    # each such pixel shows the class of the point reflected across the edge (y -> 2 * SIZE - y)
+    y_ref = 2 * SIZE - pts[beyond_edge, 1]
+    rows = np.clip(((SIZE - y_ref) / MPP).astype(int), 0, layout.ground_labels.shape[0] - 1)
+    cols = np.clip((pts[beyond_edge, 0] / MPP).astype(int), 0, layout.ground_labels.shape[1] - 1)
+    assert np.mean(lab_m[beyond_edge] == layout.ground_labels[rows, cols]) > 0.97
+    # the building (45, 35) stands again at (45, 85), beyond the edge
+    bld = lab_m == CLASS_ID["building"]
+    assert bld.any() and np.all(pts[bld & (d > 0), 1] > SIZE)
+    assert not (lab_n == CLASS_ID["building"]).any()

@@ -148,9 +148,9 @@ class BatchStereoRenderer:
         if entry is None:
             tag = f"#w{self._next_world}"
             self._next_world += 1
-            nodes = []
+            nodes, textures = [], {}
             for i, chunk in enumerate(world.chunks):
-                pair = _meshes(chunk)
+                pair = _meshes(chunk, textures)
                 nodes.append(tuple(self._scene.add(mesh, name=f"chunk{i:05d}/{kind}{tag}")
                                    for mesh, kind in zip(pair, ("color", "labels"))))
             rects = np.array([np.r_[c.bounds[0, :2], c.bounds[1, :2]] for c in world.chunks])
@@ -359,15 +359,24 @@ class StereoRenderer:
         self.close()
 
 
-def _meshes(tm: TexturedMesh) -> tuple[Any, Any]:
-    """pyrender meshes of a :class:`TexturedMesh`: (colour mesh, label mesh), one primitive each."""
+def _meshes(tm: TexturedMesh, textures: dict | None = None) -> tuple[Any, Any]:
+    """pyrender meshes of a :class:`TexturedMesh`: (colour mesh, label mesh), one primitive each. Meshes that
+    share texture arrays (a chunk and its reflections beyond the layout's edge) share one pyrender texture
+    each through ``textures`` (keyed by the arrays' identity, alive while the caller holds the meshes), so it
+    is uploaded once."""
     from satloc_env.render.gl import pyrender
 
-    wrap = pyrender.GLTF.REPEAT if tm.repeat else pyrender.GLTF.CLAMP_TO_EDGE
-    clamp = dict(wrapS=wrap, wrapT=wrap)
-    color_tex = pyrender.Texture(source=tm.texture, source_channels="RGB", sampler=pyrender.Sampler(**clamp))
-    label_tex = pyrender.Texture(source=tm.labels, source_channels="R", sampler=pyrender.Sampler(
-        magFilter=pyrender.GLTF.NEAREST, minFilter=pyrender.GLTF.NEAREST, **clamp))
+    key = (id(tm.texture), id(tm.labels), tm.repeat)
+    if textures is not None and key in textures:
+        color_tex, label_tex = textures[key]
+    else:
+        wrap = pyrender.GLTF.REPEAT if tm.repeat else pyrender.GLTF.CLAMP_TO_EDGE
+        clamp = dict(wrapS=wrap, wrapT=wrap)
+        color_tex = pyrender.Texture(source=tm.texture, source_channels="RGB", sampler=pyrender.Sampler(**clamp))
+        label_tex = pyrender.Texture(source=tm.labels, source_channels="R", sampler=pyrender.Sampler(
+            magFilter=pyrender.GLTF.NEAREST, minFilter=pyrender.GLTF.NEAREST, **clamp))
+        if textures is not None:
+            textures[key] = (color_tex, label_tex)
     shade = np.repeat(tm.shade[:, None], 4, axis=1)
     shade[:, 3] = 1.0
     prims = []

@@ -13,12 +13,21 @@ lies in the chunk. The mesh has one colour texture laid out as
 and one label texture with the same layout holding a class id (:mod:`satloc.labels`) per texel:
 ``layout.ground_labels`` in the ground region, the object's class in its atlas regions.
 
-With ``pad_m`` > 0 the ground goes on beyond the layout for ``pad_m`` metres on every side, so that no view
-from the layout ever ends at its edge and shows sky below the horizon: flat ground textured with one neutral
-texture repeated (:func:`pad_texture`: the median colour of
-the layout's outermost ground with a faint, seamless mottle; class ``void``, unknown ground, which is not
-drivable): one mesh of eight flat quads round the layout, one draw call. It shows the camera that the ground
-goes on, not what lies there.
+With ``pad_m`` > 0 the world goes on beyond the layout for ``pad_m`` metres on every side, so that no view
+from the layout ever ends at its edge and shows sky below the horizon. ``beyond`` says with what:
+
+* ``"mirror"`` (the default): the layout reflected across its edges, ground and objects, as a texture
+  repeats with GL's mirrored-repeat wrap (x -> -x, x -> 2 W - x, and so on out to ``pad_m``). Each image is a
+  whole chunk reflected (positions mirrored, faces turned to keep their winding, :attr:`TexturedMesh.mirror`
+  set), sharing its chunk's texture arrays: a road that meets the edge goes on (as its mirror image), a
+  block of houses stands beyond the edge, and the seam is continuous because the reflection of the ground
+  at the edge is the ground at the edge. Shading and painted shadows are mirrored with the geometry, so the
+  reflected world is lit consistently by a reflected sun. The reflections are scenery: no route, object list
+  or satellite map knows them.
+* ``"neutral"``: flat ground textured with one neutral texture repeated (:func:`pad_texture`: the median
+  colour of the layout's outermost ground with a faint, seamless mottle; class ``void``, unknown ground,
+  which is not drivable): one mesh of eight flat quads round the layout, one draw call. It shows the camera
+  that the ground goes on, not what lies there, and a road meeting the edge ends there in a straight line.
 
 Textures are made deterministically: the random generator of an object is seeded by its kind and its index
 in the layout (and a facade's look is chosen by its ``facade`` style index). Object faces carry a baked
@@ -42,7 +51,7 @@ from satloc.labels import CLASS_ID
 
 from .layout import Building, Car, Layout, Obstacle, Person, Tree
 
-__all__ = ["TexturedMesh", "World", "build_world", "build_occluders", "sun_direction", "SKY_RGB", "PAD"]
+__all__ = ["TexturedMesh", "World", "build_world", "BEYOND", "build_occluders", "sun_direction", "SKY_RGB", "PAD"]
 
 #: Texels of padding around every texture region (real neighbouring ground, or the region's replicated edge).
 PAD = 8
@@ -70,6 +79,7 @@ class TexturedMesh:
     texture: np.ndarray    #: (H, W, 3) uint8 RGB, W % 4 == 0
     labels: np.ndarray     #: (H, W) uint8 class ids
     repeat: bool = False   #: the texture repeats beyond [0, 1] (the padding's); else clamped to its edge
+    mirror: bool = False   #: a reflection of a chunk beyond the layout's edge, sharing that chunk's texture arrays
 
     @property
     def bounds(self) -> np.ndarray:
@@ -96,9 +106,16 @@ def sun_direction(azimuth: float, elevation: float) -> np.ndarray:
 
 
 # --- public builders --------------------------------------------------------------------------------------
-def build_world(layout: Layout, chunk_m: float = 204.8, pad_m: float = 0.0) -> World:
-    """Turn ``layout`` into chunked, textured geometry, with ``pad_m`` metres of neutral ground around it
-    (see the module docstring)."""
+#: what lies beyond the layout's edge (see the module docstring)
+BEYOND = ("mirror", "neutral")
+
+
+def build_world(layout: Layout, chunk_m: float = 204.8, pad_m: float = 0.0, beyond: str = "mirror") -> World:
+    """Turn ``layout`` into chunked, textured geometry, with ``pad_m`` metres of world around it: the layout
+    mirrored across its edges (``beyond="mirror"``) or neutral ground (``"neutral"``); see the module
+    docstring."""
+    if beyond not in BEYOND:
+        raise ConfigError(f"build_world: beyond: expected one of {BEYOND}, got {beyond!r}")
     mpp = float(layout.ground_mpp)
     rows, cols = layout.ground_labels.shape
     if layout.ground_rgb.shape != (rows, cols, 3):
@@ -125,7 +142,7 @@ def build_world(layout: Layout, chunk_m: float = 204.8, pad_m: float = 0.0) -> W
     for k, c in enumerate(layout.cars):
         members[chunk_of(*c.center)].append(lambda mb, c=c, k=k: _add_car(mb, c, ("parked", k)))
 
-    chunks = []
+    chunks, extents = [], []
     for j in range(ny):
         for i in range(nx):
             ground = _ground_region(layout, i * cpx, j * cpx, cpx)
@@ -133,9 +150,46 @@ def build_world(layout: Layout, chunk_m: float = 204.8, pad_m: float = 0.0) -> W
             for add in members[j * nx + i]:
                 add(mb)
             chunks.append(mb.build(ground))
-    if pad_m > 0:
+            extents.append((ground.corners[0, 0], ground.corners[2, 0], ground.corners[0, 1], ground.corners[2, 1]))
+    if pad_m > 0 and beyond == "neutral":
         chunks.append(_pad_mesh(layout, cols * mpp, rows * mpp, float(pad_m)))
+    elif pad_m > 0:
+        chunks += _mirrored(chunks, extents, cols * mpp, rows * mpp, float(pad_m))
     return World(float(layout.width_m), float(layout.height_m), cpx * mpp, chunks, sun)
+
+
+def _images(lo: float, hi: float, size: float, pad: float) -> list[tuple[float, float]]:
+    """The reflections (sign, offset) of the interval [lo, hi] of [0, size] under mirrored repetition
+    (x -> offset + sign x with offset = 2 m size: sign +1 for an even number of reflections, -1 for an odd one)
+    that meet (-pad, size + pad); the identity first."""
+    out = []
+    reach = math.ceil(pad / size) + 1
+    for m in range(-reach, reach + 1):
+        for sign in (1.0, -1.0):
+            a, b = (2 * m * size + lo, 2 * m * size + hi) if sign > 0 else (2 * m * size - hi, 2 * m * size - lo)
+            if b > -pad and a < size + pad:
+                out.append((sign, 2 * m * size))
+    out.sort(key=lambda t: (t != (1.0, 0.0), t[1], t[0]))
+    return out
+
+
+def _mirrored(chunks: list[TexturedMesh], extents: list[tuple[float, float, float, float]], w_m: float, h_m: float,
+              pad_m: float) -> list[TexturedMesh]:
+    """The layout's chunks reflected across its edges out to ``pad_m`` (see the module docstring): every
+    image of every chunk under the mirrored repetition of [0, w] x [0, h], but the chunk itself."""
+    out = []
+    for mesh, (x0, x1, y0, y1) in zip(chunks, extents):
+        for sx, ax in _images(x0, x1, w_m, pad_m):
+            for sy, ay in _images(y0, y1, h_m, pad_m):
+                if (sx, ax, sy, ay) == (1.0, 0.0, 1.0, 0.0):
+                    continue
+                pos = mesh.positions.astype(np.float64)
+                pos[:, 0] = ax + sx * pos[:, 0]
+                pos[:, 1] = ay + sy * pos[:, 1]
+                faces = mesh.faces if sx * sy > 0 else np.ascontiguousarray(mesh.faces[:, ::-1])
+                out.append(TexturedMesh(pos.astype(np.float32), mesh.uvs, mesh.shade, faces, mesh.texture,
+                                        mesh.labels, repeat=mesh.repeat, mirror=True))
+    return out
 
 
 #: texels on a side of the padding's repeated texture

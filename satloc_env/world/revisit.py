@@ -184,6 +184,8 @@ def change_foliage(world, strength: float, seed: int) -> None:
     r = _rng(seed, "vegetation", 2)
     k = 0.6 * strength
     for mesh in world.chunks:
+        if mesh.mirror:   # shares its chunk's texture, changed there
+            continue
         tree = mesh.labels == C["tree"]
         rows, cols = np.flatnonzero(tree.any(axis=1)), np.flatnonzero(tree.any(axis=0))
         if rows.size == 0:
@@ -383,6 +385,6 @@ def changed_world(scene, strength: float, seed: int):
 
     pad = scene.spec.ground_pad_m
     layout = changed_layout(scene.layout, strength, seed)
-    world = build_world(layout, pad_m=DEFAULT_GROUND_PAD_M if pad is None else pad)
+    world = build_world(layout, pad_m=DEFAULT_GROUND_PAD_M if pad is None else pad, beyond=scene.spec.ground_beyond)
     change_foliage(world, strength, seed)
     return world

@@ -18,7 +18,8 @@ A scene file (see ``scenes/*.yaml``)::
     database_route: main
     query_route: main              # derived routes: main (the other lane) or revisit (the other direction)
     road_graph: {snap_m: 2, edge_margin_m: 2, smooth_m: 3, spacing_m: 2, turn_radius_m: 4.5, snap_route_m: 20}
-    ground_pad_m: 250              # neutral ground around the tile, so no view shows its edge
+    ground_pad_m: 250              # world around the tile, so no view shows its edge
+    ground_beyond: mirror          # what it is: the tile mirrored across its edges, or neutral ground
     objects: {buildings: [...], trees: [...], cars: [...]}   # extra hand-placed objects
     lighting: {sun_azimuth_deg: 135, sun_elevation_deg: 50}
     knobs: {aliasing: 0.0, occlusion: 0.0, appearance: 0.0, satellite_gap: 0.5}
@@ -73,9 +74,12 @@ way along them. Routes over the graph carry the road's width at each waypoint (`
 follow it (:class:`satloc_env.world.route.Route`: -1.75 m is the centre of the right lane on roads up to 7 m
 wide, -width / 4 on narrower ones).
 
-**The tile's edge.** The ground goes on ``ground_pad_m`` metres (default 250, more than the renderer's view
-distance, 150 m) beyond the tile on every side, in a neutral texture (:func:`satloc_env.world.meshes.pad_texture`),
-so no view shows the tile's edge and sky below the horizon. The alternative, keeping routes the view distance
+**The tile's edge.** The world goes on ``ground_pad_m`` metres (default 250, more than the renderer's view
+distance, 150 m) beyond the tile on every side, so no view shows the tile's edge and sky below the horizon:
+by default (``ground_beyond: mirror``) the tile's ground and objects reflected across its edges, so a road
+that meets the edge goes on and houses stand beyond it; with ``ground_beyond: neutral``, flat ground in a
+neutral texture (:func:`satloc_env.world.meshes.pad_texture`), where roads end at the edge. The reflections
+are scenery: routes stay on the tile, and the satellite map covers the tile alone. The alternative, keeping routes the view distance
 inside the tile, would leave nothing of a 377 m x 277 m image such as ``suburb_utm``. Derived routes keep
 ``road_graph.edge_margin_m`` (2 m) inside the tile. Pixels of a georeferenced image that hold no imagery
 (nodata, masked, transparent, or beyond a reprojected image's footprint: :attr:`SatelliteMap.valid`) are
@@ -311,6 +315,7 @@ class SceneSpec:
     knobs: Knobs = field(default_factory=Knobs)
     road_graph: GraphParams = field(default_factory=GraphParams)
     ground_pad_m: float | None = None    # None: DEFAULT_GROUND_PAD_M
+    ground_beyond: str = "mirror"        # satloc_env.world.meshes.BEYOND
 
     @property
     def route_names(self) -> list[str]:
@@ -351,6 +356,7 @@ def check_spec(spec: SceneSpec, where: str) -> None:
     if spec.ground_pad_m is not None:
         need(0 <= spec.ground_pad_m <= MAX_GROUND_PAD_M, "ground_pad_m", f"metres in [0, {MAX_GROUND_PAD_M:g}]",
              spec.ground_pad_m)
+    need(spec.ground_beyond in ("mirror", "neutral"), "ground_beyond", "'mirror' or 'neutral'", spec.ground_beyond)
     need(0 < spec.lighting.sun_elevation_deg <= 90, "lighting.sun_elevation_deg", "degrees in (0, 90]",
          spec.lighting.sun_elevation_deg)
     rgb_ok = lambda c: all(0 <= v <= 255 for v in c)  # noqa: E731
@@ -488,7 +494,8 @@ class Scene:
         from .meshes import build_world
 
         pad = self.spec.ground_pad_m
-        return build_world(self.layout, pad_m=DEFAULT_GROUND_PAD_M if pad is None else pad)
+        return build_world(self.layout, pad_m=DEFAULT_GROUND_PAD_M if pad is None else pad,
+                           beyond=self.spec.ground_beyond)
 
     def _check_routes(self, where: str) -> None:
         W, H = self.layout.width_m, self.layout.height_m
