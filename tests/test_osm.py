@@ -599,3 +599,70 @@ def test_building_parts_replace_their_outline(tmp_path):
     # without parts the outline stands
     (tmp_path / "one.osm").write_text(osm_xml(parts, [ways[0], ways[3]]))
     assert read_footprints(tmp_path / "one.osm").heights == [20.0]
+
+
+def _with_bounds(xml: str, sw, ne) -> str:
+    """The export with a ``<bounds>`` element (as osmconvert, Osmosis and the OSM API write) for the UTM box
+    from ``sw`` to ``ne`` (metres east / north of (E0, N0))."""
+    lon0, lat0 = TO_LONLAT.transform(E0 + sw[0], N0 + sw[1])
+    lon1, lat1 = TO_LONLAT.transform(E0 + ne[0], N0 + ne[1])
+    b = f'  <bounds minlat="{lat0:.7f}" minlon="{lon0:.7f}" maxlat="{lat1:.7f}" maxlon="{lon1:.7f}"/>\n'
+    head, rest = xml.split("\n", 2)[:2], xml.split("\n", 2)[2]
+    return "\n".join(head) + "\n" + b + rest
+
+
+def test_an_extract_is_the_area_it_declares(tmp_path):
+    """A vectors world over an OSM XML extract covers the extract's declared <bounds>, not the extent of its
+    ways, which run on past them to their last node (here 25 to 30 m past every side): the roads are cut at
+    the edge and end in turning bulbs inside the area."""
+    from satloc.geodata.vectors import declared_bounds
+
+    (tmp_path / "map.osm").write_text(_with_bounds(osm_xml(), (30.0, 30.0), (130.0, 90.0)))
+    b = declared_bounds(tmp_path / "map.osm")
+    assert b is not None and b[0] < b[2] and b[1] < b[3]
+    assert declared_bounds(tmp_path / "v.yaml") is None
+    (tmp_path / "plain").mkdir()
+    (tmp_path / "plain" / "map.osm").write_text(osm_xml())
+    assert declared_bounds(tmp_path / "plain" / "map.osm") is None
+    p = tmp_path / "v.yaml"
+    p.write_text(yaml.safe_dump({"name": "bounded", "seed": 3, "generator": {
+        "type": "vectors", "roads": "map.osm", "buildings": "map.osm", "trees": "map.osm"},
+        "meters_per_pixel": 0.5, "ground_mpp": 0.25}))
+    with pytest.warns(SatlocWarning):
+        sc = load_scene(p)
+    # 100 m x 60 m of UTM, give or take the grid convergence between UTM north and true north
+    assert 97 <= sc.layout.width_m <= 103 and 57 <= sc.layout.height_m <= 63
+    from satloc_env.envs.drivecheck import first_off_road
+    assert first_off_road(sc, "main", -1.75) is None
+
+
+def test_an_extract_without_trees_has_none_and_says_so(tmp_path):
+    xml = osm_xml().replace('<tag k="natural" v="tree"/>', "")
+    (tmp_path / "map.osm").write_text(xml)
+    with pytest.warns(SatlocWarning, match="holds no trees"):
+        t = read_trees(tmp_path / "map.osm")
+    assert len(t.points) == 0 and not t.canopies
+
+
+def test_a_world_too_large_for_the_memory_is_refused_before_it_is_built(tmp_path, monkeypatch):
+    from satloc import ConfigError
+    from satloc_env.world import scene as scene_mod
+
+    monkeypatch.setattr(scene_mod, "_available_memory", lambda: 20_000_000)   # 0.02 GB: the scene needs about 0.07
+    with pytest.raises(ConfigError, match=r"needs about .* GB to build, more than the 0\.0 GB available.*"
+                                          r"generator\.region"):
+        load_scene(_vector_scene(tmp_path))
+
+
+def test_a_road_cut_along_the_edge_gets_its_bulb_inside_the_area():
+    """A road that meets the area's edge at a glancing angle: the turning bulb moves back along it until the
+    whole disc lies inside (it would stick out centred one radius back from the cut)."""
+    from satloc_env.world.vector_world import _turn_bulbs
+
+    w, h = 200.0, 100.0
+    # along the south edge, 3 m inside it, to its cut end at the east edge (2 m in, the graph's margin)
+    g = graph_from_lines([np.array([[20.0, 50.0], [60.0, 3.0], [198.0, 3.0]])], [7.0], w, h)
+    disc = _turn_bulbs(g, w, h, 3.0, 12.0)
+    assert disc is not None
+    x0, y0, x1, y1 = disc.bounds
+    assert x0 >= 0.5 and y0 >= 0.5 and x1 <= w - 0.5 and y1 <= h - 0.5, disc.bounds

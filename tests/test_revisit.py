@@ -136,7 +136,7 @@ def test_changed_world_changes_foliage_and_never_the_tile(scene_path):
     assert w is changed_world(scene, 0.8, 4) and changed_world(scene, 0.0, 4) is base
     assert not np.allclose(w.sun_direction, base.sun_direction)      # the facades' shading follows the sun
     # the foliage: only tree texels that are green, not bark, not the ground, not other objects
-    fresh = build_world(scene.layout, pad_m=250.0)
+    fresh = build_world(scene.layout, pad_m=250.0, beyond=scene.spec.beyond_edge)
     change_foliage(fresh, 0.8, 4)
     changed = 0
     for a, b in zip(base.chunks, fresh.chunks):

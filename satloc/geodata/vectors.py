@@ -49,14 +49,15 @@ from __future__ import annotations
 import math
 import os
 import re
+import warnings
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
-from ..errors import ConfigError, FormatError
+from ..errors import ConfigError, FormatError, SatlocWarning
 
-__all__ = ["LANE_WIDTH_M", "LEVEL_HEIGHT_M", "OSM_CAR_ROADS", "VECTOR_SUFFIXES", "Footprints", "RoadLines",
+__all__ = ["LANE_WIDTH_M", "LEVEL_HEIGHT_M", "OSM_CAR_ROADS", "VECTOR_SUFFIXES", "Footprints", "RoadLines", "declared_bounds",
            "Trees", "building_base", "building_height", "is_vector_file", "parse_length", "read_footprints",
            "read_road_lines", "read_trees", "road_layer", "road_oneway", "road_width", "roof_shape", "vector_files"]
 
@@ -111,6 +112,32 @@ def is_vector_file(path: str | os.PathLike) -> bool:
         return len(pyogrio.list_layers(p)) > 0
     except Exception:  # noqa: BLE001 - pyogrio raises DataSourceError and GDAL's own errors: not vectors
         return False
+
+
+def declared_bounds(path: str | os.PathLike) -> tuple[float, float, float, float] | None:
+    """(lon_min, lat_min, lon_max, lat_max) the file says it covers: the ``<bounds>`` element of an
+    OpenStreetMap XML file (osmconvert, Osmosis, the OSM API and JOSM write it before the first node); None for
+    other files and for an OSM file without one. An extract's ways run on past these bounds to their last
+    node ("complete ways"), often far: the declared area, not the features' extent, is what was asked for."""
+    try:
+        with open(path, "rb") as f:
+            head = f.read(1 << 16)
+    except OSError:
+        return None
+    if b"<osm" not in head:
+        return None
+    m = re.search(rb"<bounds\b([^>]*)>", head)
+    if m is None:
+        return None
+    got = {a + b: c for a, b, c in re.findall(rb'(min|max)(lat|lon)\s*=\s*["\']([-+0-9.eE]+)["\']', m.group(1))}
+    try:
+        box = tuple(float(got[k]) for k in (b"minlon", b"minlat", b"maxlon", b"maxlat"))
+    except (KeyError, ValueError):
+        return None
+    lon0, lat0, lon1, lat1 = box
+    if not (-180 <= lon0 < lon1 <= 180 and -90 <= lat0 < lat1 <= 90):
+        return None
+    return box
 
 
 def parse_length(v) -> float | None:
@@ -503,15 +530,19 @@ def read_footprints(path: str | os.PathLike) -> Footprints:
 
 def read_trees(path: str | os.PathLike) -> Trees:
     """The trees of a vector file: Points (single trees) and Polygons (canopy areas), in its own CRS (see the
-    module docstring). FormatError naming the file when it cannot be read, declares no CRS or holds neither."""
+    module docstring). FormatError naming the file when it cannot be read, declares no CRS or holds neither. A
+    map with other features but no trees (an OpenStreetMap extract of a place whose trees nobody mapped, given
+    as ``trees:`` as well as ``roads:``) gives no trees and a warning."""
     import shapely
 
     pts, ph, pr, canopies, ch = [], [], [], [], []
     crs = None
+    others = None   # the CRS of the features that are not trees (OSM exports)
     for g, attrs, layer_crs in _read_layers(path, ("POINT", "POLYGON"), "trees"):
         low = {str(k).lower(): v for k, v in attrs.items()}
         if ("natural" in low or "landuse" in low or "_osm" in low) and not (
                 str(low.get("natural")).lower() in _TREE_NATURAL or str(low.get("landuse")).lower() == "forest"):
+            others = layer_crs if others is None else others
             continue   # an OSM export with other features too: trees are natural=tree / wood, landuse=forest
         h = parse_length(low.get("height"))
         h = h if h is not None and 1.0 <= h <= 150.0 else None
@@ -533,6 +564,10 @@ def read_trees(path: str | os.PathLike) -> Trees:
                 crs = _one_crs(crs, layer_crs, path)
             canopies += got
             ch += [h] * len(got)
+    if not pts and not canopies and others is not None:
+        warnings.warn(SatlocWarning(f"{path}: holds no trees (natural=tree points, natural=wood or landuse=forest "
+                                    f"areas): none stand"), stacklevel=2)
+        return Trees(np.zeros((0, 2)), [], [], [], [], others, str(path))
     if not pts and not canopies:
         raise FormatError(f"{path}: holds no Point or Polygon (trees are read from Points, single trees, and "
                           f"Polygons, canopy areas)")

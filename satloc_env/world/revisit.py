@@ -385,6 +385,6 @@ def changed_world(scene, strength: float, seed: int):
 
     pad = scene.spec.ground_pad_m
     layout = changed_layout(scene.layout, strength, seed)
-    world = build_world(layout, pad_m=DEFAULT_GROUND_PAD_M if pad is None else pad, beyond=scene.spec.ground_beyond)
+    world = build_world(layout, pad_m=DEFAULT_GROUND_PAD_M if pad is None else pad, beyond=scene.spec.beyond_edge)
     change_foliage(world, strength, seed)
     return world

@@ -19,7 +19,7 @@ A scene file (see ``scenes/*.yaml``)::
     query_route: main              # derived routes: main (the other lane) or revisit (the other direction)
     road_graph: {snap_m: 2, edge_margin_m: 2, smooth_m: 3, spacing_m: 2, turn_radius_m: 4.5, snap_route_m: 20}
     ground_pad_m: 250              # world around the tile, so no view shows its edge
-    ground_beyond: mirror          # what it is: the tile mirrored across its edges, or neutral ground
+    ground_beyond: mirror          # what it is: the tile mirrored, or neutral ground (default: see below)
     objects: {buildings: [...], trees: [...], cars: [...]}   # extra hand-placed objects
     lighting: {sun_azimuth_deg: 135, sun_elevation_deg: 50}
     knobs: {aliasing: 0.0, occlusion: 0.0, appearance: 0.0, satellite_gap: 0.5}
@@ -76,10 +76,12 @@ wide, -width / 4 on narrower ones).
 
 **The tile's edge.** The world goes on ``ground_pad_m`` metres (default 250, more than the renderer's view
 distance, 150 m) beyond the tile on every side, so no view shows the tile's edge and sky below the horizon:
-by default (``ground_beyond: mirror``) the tile's ground and objects reflected across its edges, so a road
-that meets the edge goes on and houses stand beyond it; with ``ground_beyond: neutral``, flat ground in a
-neutral texture (:func:`satloc_env.world.meshes.pad_texture`), where roads end at the edge. The reflections
-are scenery: routes stay on the tile, and the satellite map covers the tile alone. The alternative, keeping routes the view distance
+with ``ground_beyond: mirror`` the tile's ground and objects reflected across its edges, so a road that
+meets the edge goes on and houses stand beyond it; with ``ground_beyond: neutral``, flat ground in a neutral
+texture (:func:`satloc_env.world.meshes.pad_texture`), where roads end at the edge. The default is
+``mirror`` for real places (image and vector generators) and ``neutral`` for the generated grids, whose
+measured figures rest on it (:attr:`SceneSpec.beyond_edge`). The reflections are scenery: routes stay on the
+tile, and the satellite map covers the tile alone. The alternative, keeping routes the view distance
 inside the tile, would leave nothing of a 377 m x 277 m image such as ``suburb_utm``. Derived routes keep
 ``road_graph.edge_margin_m`` (2 m) inside the tile. Pixels of a georeferenced image that hold no imagery
 (nodata, masked, transparent, or beyond a reprojected image's footprint: :attr:`SatelliteMap.valid`) are
@@ -315,7 +317,16 @@ class SceneSpec:
     knobs: Knobs = field(default_factory=Knobs)
     road_graph: GraphParams = field(default_factory=GraphParams)
     ground_pad_m: float | None = None    # None: DEFAULT_GROUND_PAD_M
-    ground_beyond: str = "mirror"        # satloc_env.world.meshes.BEYOND
+    ground_beyond: str | None = None     # satloc_env.world.meshes.BEYOND; None: see beyond_edge
+
+    @property
+    def beyond_edge(self) -> str:
+        """What the world is beyond the tile: ``ground_beyond`` if given, else ``mirror`` for scenes of real
+        places (image and vector generators) and ``neutral`` for generated grids, whose measured figures
+        (the tables, the tuned settings, the active-localization maps) rest on it."""
+        if self.ground_beyond is not None:
+            return self.ground_beyond
+        return "neutral" if self.generator.get("type") == "grid" else "mirror"
 
     @property
     def route_names(self) -> list[str]:
@@ -356,7 +367,8 @@ def check_spec(spec: SceneSpec, where: str) -> None:
     if spec.ground_pad_m is not None:
         need(0 <= spec.ground_pad_m <= MAX_GROUND_PAD_M, "ground_pad_m", f"metres in [0, {MAX_GROUND_PAD_M:g}]",
              spec.ground_pad_m)
-    need(spec.ground_beyond in ("mirror", "neutral"), "ground_beyond", "'mirror' or 'neutral'", spec.ground_beyond)
+    need(spec.ground_beyond in (None, "mirror", "neutral"), "ground_beyond", "'mirror' or 'neutral'",
+         spec.ground_beyond)
     need(0 < spec.lighting.sun_elevation_deg <= 90, "lighting.sun_elevation_deg", "degrees in (0, 90]",
          spec.lighting.sun_elevation_deg)
     rgb_ok = lambda c: all(0 <= v <= 255 for v in c)  # noqa: E731
@@ -375,11 +387,34 @@ def check_spec(spec: SceneSpec, where: str) -> None:
         need(rgb_ok(c.rgb), f"objects.cars[{i}].rgb", "[r, g, b] in 0..255", c.rgb)
 
 
+#: bytes of memory a generated world takes per ground pixel at its peak (its rasters, the satellite capture and
+#: the renderable world): osm_town, 10.1 Mpx, peaked at 1.6 GB resident with the interpreter and libraries
+BYTES_PER_GROUND_PX = 150
+
+
+def _available_memory() -> int | None:
+    """Bytes of memory the system says are available (Linux's MemAvailable), None where unknown."""
+    try:
+        with open("/proc/meminfo") as f:
+            for line in f:
+                if line.startswith("MemAvailable:"):
+                    return int(line.split()[1]) * 1024
+    except (OSError, ValueError, IndexError):
+        pass
+    return None
+
+
 def _check_size(width_m: float, height_m: float, mpp: float, where: str, what: str) -> None:
     px = (width_m / mpp) * (height_m / mpp)
     if not (math.isfinite(px) and 1 <= px <= MAX_GROUND_PX and width_m > 0 and height_m > 0):
         raise ConfigError(f"{where}: {what}: a {width_m:g} m x {height_m:g} m ground at {mpp:g} m per pixel is "
                           f"{px:.3g} pixels; expected 1 to {MAX_GROUND_PX:.3g}")
+    need, have = px * BYTES_PER_GROUND_PX, _available_memory()
+    if have is not None and need > have:
+        raise ConfigError(f"{where}: {what}: a {width_m:.0f} m x {height_m:.0f} m ground at {mpp:g} m per pixel "
+                          f"({px / 1e6:.0f} Mpx) needs about {need / 1e9:.1f} GB to build, more than the "
+                          f"{have / 1e9:.1f} GB available here: give generator.region (lon/lat) for the part you "
+                          f"need, or a coarser ground_mpp")
 
 
 def _check_objects_inside(spec: SceneSpec, width_m: float, height_m: float, where: str) -> None:
@@ -495,7 +530,7 @@ class Scene:
 
         pad = self.spec.ground_pad_m
         return build_world(self.layout, pad_m=DEFAULT_GROUND_PAD_M if pad is None else pad,
-                           beyond=self.spec.ground_beyond)
+                           beyond=self.spec.beyond_edge)
 
     def _check_routes(self, where: str) -> None:
         W, H = self.layout.width_m, self.layout.height_m

@@ -13,8 +13,10 @@ each; trees from points and wooded areas. The satellite map is a capture of this
 own time and texture).
 
 The scene's frame is a :class:`satloc.geoframe.GeoFrame` with its origin at the area's south-west corner:
-``region`` (lon/lat degrees) if given, else the roads' bounds widened by ``margin_m``. Routes are derived
-from the road graph (one-way streets honoured) unless the scene file gives them.
+``region`` (lon/lat degrees) if given, else the bounds an OpenStreetMap XML road file declares (its
+``<bounds>``: an extract's ways run on to their last node, often far beyond the area asked for), else the
+roads' bounds widened by ``margin_m``. Routes are derived from the road graph (one-way streets honoured)
+unless the scene file gives them.
 """
 from __future__ import annotations
 
@@ -47,8 +49,8 @@ class VectorGeneratorSpec:
     buildings: str | None = None   #: building footprints (vector file; may be the same file as roads)
     trees: str | None = None       #: tree points and wooded areas (vector file)
     heights: str | None = None     #: a DSM / nDSM GeoTIFF (any CRS): building and tree heights
-    region: tuple[float, float, float, float] | None = None   #: lon_min, lat_min, lon_max, lat_max (degrees)
-    margin_m: float = 20.0         #: without region: the roads' bounds widened by this much
+    region: tuple[float, float, float, float] | None = None   #: lon_min, lat_min, lon_max, lat_max (degrees); None: see above
+    margin_m: float = 20.0         #: without region or declared bounds: the roads' bounds widened by this much
     road_width_m: float = 7.0      #: roads whose attributes give no width
     sidewalk_m: float = 2.0        #: sidewalk along every road edge (0: none)
     turn_bulb_m: float = 12.0      #: a road the area's edge cuts ends in a turning bulb of this radius (0: none)
@@ -80,9 +82,10 @@ class VectorGeneratorSpec:
 
 
 def _frame_and_lines(g: VectorGeneratorSpec, base: Path, mpp: float, where: str):
-    """The GeoFrame (origin at the area's south-west corner), the area's size in metres (whole pixels) and
-    the road lines in the frame's metres, the road file read once."""
-    from satloc.geodata.vectors import RoadLines, read_road_lines
+    """The GeoFrame (origin at the area's south-west corner), the area's size in metres (whole pixels), the
+    road lines in the frame's metres (the road file read once) and the margin the area keeps around the roads
+    (``margin_m`` when the area is the roads' extent, else 0)."""
+    from satloc.geodata.vectors import RoadLines, declared_bounds, read_road_lines
     from satloc.geoframe import GeoFrame
 
     from .scene_roads import read_vectors
@@ -90,8 +93,9 @@ def _frame_and_lines(g: VectorGeneratorSpec, base: Path, mpp: float, where: str)
     probe = GeoFrame(0.0, 0.0)   # any frame: the lines' lon/lat, then the area's own frame
     read = read_vectors("roads", lambda p: read_road_lines(p, g.road_width_m), base / g.roads, probe, where)
     lonlat = [probe.to_lonlat(xy) for xy in read.lines]
-    if g.region is not None:
-        lon0, lat0, lon1, lat1 = (float(v) for v in g.region)
+    region = g.region if g.region is not None else declared_bounds(base / g.roads)
+    if region is not None:
+        lon0, lat0, lon1, lat1 = (float(v) for v in region)
         if not (-180 <= lon0 < lon1 <= 180 and -85 <= lat0 < lat1 <= 85):
             raise ConfigError(f"{where}: generator.region: expected [lon_min, lat_min, lon_max, lat_max] in "
                               f"degrees with lon_min < lon_max and lat_min < lat_max, got {list(g.region)}")
@@ -108,7 +112,7 @@ def _frame_and_lines(g: VectorGeneratorSpec, base: Path, mpp: float, where: str)
         raise ConfigError(f"{where}: generator: the area ({w_m:g} m x {h_m:g} m) is smaller than 10 pixels a side")
     lines = RoadLines([frame.to_map(ll) for ll in lonlat], read.widths, frame.crs, read.source, read.oneway,
                       read.layers)
-    return frame, w_m, h_m, lines
+    return frame, w_m, h_m, lines, (g.margin_m if region is None else 0.0)
 
 
 def _centre_lines(graph, shape: tuple[int, int], mpp: float) -> np.ndarray:
@@ -147,8 +151,10 @@ def _centre_lines(graph, shape: tuple[int, int], mpp: float) -> np.ndarray:
 def _turn_bulbs(graph, w_m: float, h_m: float, reach: float, radius: float):
     """Discs of ``radius`` where the extract's edge cuts a road (a dead end of the graph within ``reach`` of
     the area's edge: the graph's margin, and the area's margin around the roads' bounds), centred ``radius``
-    back along the road: the roads went on past the extract, so a car may turn there (a tour turns round
-    only where a turn fits). None when there are none."""
+    back along the road, or farther back where a road running along the edge would put the disc partly off
+    the area (the first centre whose disc lies 1 m inside; else the one farthest inside): the roads went on
+    past the extract, so a car may turn there (a tour turns round only where a turn fits). None when there
+    are none."""
     import shapely
 
     from satloc.geometry import arc_length
@@ -166,9 +172,12 @@ def _turn_bulbs(graph, w_m: float, h_m: float, reach: float, radius: float):
         (a, b, k), = list(g.edges(n, keys=True))
         xy, _ = graph.edge_xy(b if a == n else a, n, k)  # arriving at the dead end
         s = arc_length(xy)
-        back = max(s[-1] - radius, 0.0)
-        c = np.array([np.interp(back, s, xy[:, 0]), np.interp(back, s, xy[:, 1])])
-        discs.append(shapely.Point(c).buffer(radius))
+        back = np.arange(max(s[-1] - radius, 0.0), -1e-9, -0.5)      # from the end backwards
+        c = np.stack([np.interp(back, s, xy[:, 0]), np.interp(back, s, xy[:, 1])], axis=1)
+        inside = np.min(np.stack([c[:, 0], c[:, 1], w_m - c[:, 0], h_m - c[:, 1]]), axis=0)
+        fits = np.flatnonzero(inside >= radius + 1.0)
+        i = int(fits[0]) if len(fits) else int(np.argmax(inside))
+        discs.append(shapely.Point(c[i]).buffer(radius))
     return shapely.union_all(discs) if discs else None
 
 
@@ -184,11 +193,11 @@ def vector_layout(g: VectorGeneratorSpec, spec, base: Path, where: str, check_si
     from .scene_roads import line_network
 
     mpp = spec.ground_mpp
-    frame, w_m, h_m, lines = _frame_and_lines(g, base, mpp, where)
+    frame, w_m, h_m, lines, margin = _frame_and_lines(g, base, mpp, where)
     check_size(w_m, h_m, mpp, where, "generator")
     h, w = int(round(h_m / mpp)), int(round(w_m / mpp))
     graph, area = line_network(lines, w_m, h_m, spec.road_graph, base / g.roads, where)
-    reach = spec.road_graph.edge_margin_m + (g.margin_m if g.region is None else 0.0) + 1.0
+    reach = spec.road_graph.edge_margin_m + margin + 1.0
     bulbs = _turn_bulbs(graph, w_m, h_m, reach, g.turn_bulb_m)
     if bulbs is not None:   # the bulbs' necks rounded (a closing of the road near them), as kerbs are
         near = area.intersection(bulbs.buffer(10.0)).union(bulbs)
