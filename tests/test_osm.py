@@ -666,3 +666,17 @@ def test_a_road_cut_along_the_edge_gets_its_bulb_inside_the_area():
     assert disc is not None
     x0, y0, x1, y1 = disc.bounds
     assert x0 >= 0.5 and y0 >= 0.5 and x1 <= w - 0.5 and y1 <= h - 0.5, disc.bounds
+
+
+def test_an_undrivable_derived_route_says_what_to_change(tmp_path):
+    """A route the user drew is to be moved; a derived one has a turn the car cannot follow, and the user can
+    change the area or give routes: the message says which."""
+    from satloc_env.envs.drivecheck import off_road_message
+
+    (tmp_path / "a").mkdir()
+    with pytest.warns(SatlocWarning):
+        sc = load_scene(_vector_scene(tmp_path / "a"))
+    msg = off_road_message(sc, "main", -1.75, np.array([10.0, 10.0]), 5.0)
+    assert "derived from the road graph" in msg and "generator.region" in msg
+    drawn = load_scene("city")
+    assert "move the route onto the road there" in off_road_message(drawn, "main", -1.75, np.array([1.0, 1.0]), 1.0)

@@ -69,9 +69,14 @@ def off_road_message(scene, route: str, lane_offset_m: float, pose, s: float) ->
         lon, lat = frame.to_lonlat(np.array([x, y]))
         where += f" (lon {lon:.6f}, lat {lat:.6f})"
     length = scene.routes[route].length
+    if getattr(scene, "tour", None) is not None:   # derived from the road graph: the user drew no route to move
+        advice = ("the route was derived from the road graph, and a turn there is sharper than the car can "
+                  "follow (roads meeting at an acute angle, a turn-round loop with little room): leave that "
+                  "junction out of the area (generator.region) or give routes of your own")
+    else:
+        advice = "move the route onto the road there, give another lane offset, or widen the road"
     return (f"routes.{route}: the autopilot leaves the road at {where}, {s:.0f} m of {length:.0f} m along the "
-            f"route, driving at lane offset {lane_offset_m:g} m; move the route onto the road there, give "
-            f"another lane offset, or widen the road")
+            f"route, driving at lane offset {lane_offset_m:g} m; {advice}")
 
 
 def check_route(scene, route: str, lane_offset_m: float, speed_mps: float = 8.0, dt: float = DEFAULT_DT,
