@@ -680,3 +680,39 @@ def test_an_undrivable_derived_route_says_what_to_change(tmp_path):
     assert "derived from the road graph" in msg and "generator.region" in msg
     drawn = load_scene("city")
     assert "move the route onto the road there" in off_road_message(drawn, "main", -1.75, np.array([1.0, 1.0]), 1.0)
+
+
+@pytest.mark.parametrize("header, box", [
+    ('<bound box="48.1,10.0,48.2,10.1" origin="osmosis"/>', (10.0, 48.1, 10.1, 48.2)),          # Osmosis
+    ('<bounds minlat="0.49" minlon="0.49" maxlat="0.5" maxlon="0.5"/>\n'                          # JOSM: one per
+     '<bounds minlon=\'0.49\' maxlat=\'0.5012\' minlat=\'0.5\' maxlon=\'0.5\'/>', (0.49, 0.49, 0.5, 0.5012)),  # area
+    ("<!-- " + "x" * 100_000 + ' -->\n<bounds minlat="1" minlon="2" maxlat="1.1" maxlon="2.1"/>', (2.0, 1.0, 2.1, 1.1)),
+    ('<bounds minlat="-90" minlon="-180" maxlat="90" maxlon="180"/>', None),   # beyond the map projection's reach
+    ("", None),
+])
+def test_declared_bounds_as_the_tools_write_them(tmp_path, header, box):
+    from satloc.geodata.vectors import declared_bounds
+
+    p = tmp_path / "x.osm"
+    p.write_text(f'<?xml version="1.0"?>\n<osm version="0.6">\n{header}\n<node id="1" lat="1" lon="2"/>\n</osm>\n')
+    got = declared_bounds(p)
+    assert got == (None if box is None else pytest.approx(box))
+
+
+def test_a_saved_scene_keeps_its_tour_and_its_world_beyond_the_edge(tmp_path):
+    import json
+
+    from satloc_env.world.scene import Scene
+
+    (tmp_path / "a").mkdir()
+    with pytest.warns(SatlocWarning):
+        sc = load_scene(_vector_scene(tmp_path / "a"))
+    sc.save(tmp_path / "saved")
+    back = Scene.load(tmp_path / "saved")
+    assert back.tour == sc.tour and back.tour is not None and back.spec.beyond_edge == "mirror"
+    # a scene saved before ground_beyond existed was rendered with neutral ground: it stays so
+    sj = tmp_path / "saved" / "scene.json"
+    meta = json.loads(sj.read_text())
+    del meta["spec"]["ground_beyond"]
+    sj.write_text(json.dumps(meta))
+    assert Scene.load(tmp_path / "saved").spec.beyond_edge == "neutral"

@@ -115,29 +115,46 @@ def is_vector_file(path: str | os.PathLike) -> bool:
 
 
 def declared_bounds(path: str | os.PathLike) -> tuple[float, float, float, float] | None:
-    """(lon_min, lat_min, lon_max, lat_max) the file says it covers: the ``<bounds>`` element of an
-    OpenStreetMap XML file (osmconvert, Osmosis, the OSM API and JOSM write it before the first node); None for
-    other files and for an OSM file without one. An extract's ways run on past these bounds to their last
-    node ("complete ways"), often far: the declared area, not the features' extent, is what was asked for."""
+    """(lon_min, lat_min, lon_max, lat_max) the file says it covers: in an OpenStreetMap XML file, the
+    ``<bounds minlat= minlon= maxlat= maxlon=>`` elements (osmconvert, the OSM API, Overpass; JOSM writes one
+    per downloaded area: their union) or Osmosis's ``<bound box="s,w,n,e">``, all before the first node; None
+    for other files, for an OSM file without them and for bounds beyond +-85 degrees of latitude. An
+    extract's ways run on past these bounds to their last node ("complete ways"), often far: the declared
+    area, not the features' extent, is what was asked for."""
+    head = b""
     try:
         with open(path, "rb") as f:
-            head = f.read(1 << 16)
+            while len(head) < (16 << 20):          # the header ends at the first node; 16 MB at most
+                chunk = f.read(1 << 16)
+                if not chunk:
+                    break
+                head += chunk
+                if b"<node" in head:
+                    break
     except OSError:
         return None
-    if b"<osm" not in head:
+    if b"<osm" not in head[: 1 << 16]:
         return None
-    m = re.search(rb"<bounds\b([^>]*)>", head)
-    if m is None:
+    head = head.split(b"<node", 1)[0]
+    num = rb"([-+0-9.eE]+)"
+    boxes = []
+    for attrs in re.findall(rb"<bounds\b([^>]*)>", head):
+        got = {a + b: c for a, b, c in re.findall(rb"(min|max)(lat|lon)\s*=\s*[\"']" + num + rb"[\"']", attrs)}
+        try:
+            boxes.append(tuple(float(got[k]) for k in (b"minlon", b"minlat", b"maxlon", b"maxlat")))
+        except (KeyError, ValueError):
+            continue
+    for box in re.findall(rb"<bound\b[^>]*\bbox\s*=\s*[\"']([^\"']*)[\"']", head):
+        try:
+            s_, w_, n_, e_ = (float(v) for v in box.split(b","))
+        except ValueError:
+            continue
+        boxes.append((w_, s_, e_, n_))
+    boxes = [b for b in boxes if -180 <= b[0] < b[2] <= 180 and -85 <= b[1] < b[3] <= 85]
+    if not boxes:
         return None
-    got = {a + b: c for a, b, c in re.findall(rb'(min|max)(lat|lon)\s*=\s*["\']([-+0-9.eE]+)["\']', m.group(1))}
-    try:
-        box = tuple(float(got[k]) for k in (b"minlon", b"minlat", b"maxlon", b"maxlat"))
-    except (KeyError, ValueError):
-        return None
-    lon0, lat0, lon1, lat1 = box
-    if not (-180 <= lon0 < lon1 <= 180 and -90 <= lat0 < lat1 <= 90):
-        return None
-    return box
+    a = np.asarray(boxes, np.float64)
+    return float(a[:, 0].min()), float(a[:, 1].min()), float(a[:, 2].max()), float(a[:, 3].max())
 
 
 def parse_length(v) -> float | None:

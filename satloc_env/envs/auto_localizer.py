@@ -60,7 +60,8 @@ log = logging.getLogger(__name__)
 CACHE_ENV = "SATLOC_CACHE"
 #: files a complete cache entry has
 ENTRY_FILES = ("build.json", "dictionary.npz", "satellite_features.npz", "projections.pt", "autoloc.json")
-_KEY_VERSION = 2  # bump when the way an entry is made changes in a way the key does not show (2: ground beyond the tile)
+_KEY_VERSION = 3  # bump when the way an entry is made changes in a way the key does not show (2: ground beyond the tile;
+#                    3: real places mirrored beyond it, an OSM extract's declared bounds)
 
 
 def cache_root(cache_dir: str | os.PathLike | None = None) -> Path:

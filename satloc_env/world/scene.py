@@ -393,18 +393,29 @@ BYTES_PER_GROUND_PX = 150
 
 
 def _available_memory() -> int | None:
-    """Bytes of memory the system says are available (Linux's MemAvailable), None where unknown."""
+    """Bytes of memory this process may still take: Linux's MemAvailable, or less where a cgroup (v2) limits
+    the process (a container); None where unknown."""
+    out = None
     try:
         with open("/proc/meminfo") as f:
             for line in f:
                 if line.startswith("MemAvailable:"):
-                    return int(line.split()[1]) * 1024
+                    out = int(line.split()[1]) * 1024
+                    break
     except (OSError, ValueError, IndexError):
         pass
-    return None
+    try:
+        limit = Path("/sys/fs/cgroup/memory.max").read_text().strip()
+        if limit != "max":
+            room = int(limit) - int(Path("/sys/fs/cgroup/memory.current").read_text().strip())
+            out = room if out is None else min(out, room)
+    except (OSError, ValueError):
+        pass
+    return out
 
 
-def _check_size(width_m: float, height_m: float, mpp: float, where: str, what: str) -> None:
+def _check_size(width_m: float, height_m: float, mpp: float, where: str, what: str,
+                advice: str = "generator.region, lon/lat, for the part you need") -> None:
     px = (width_m / mpp) * (height_m / mpp)
     if not (math.isfinite(px) and 1 <= px <= MAX_GROUND_PX and width_m > 0 and height_m > 0):
         raise ConfigError(f"{where}: {what}: a {width_m:g} m x {height_m:g} m ground at {mpp:g} m per pixel is "
@@ -413,8 +424,8 @@ def _check_size(width_m: float, height_m: float, mpp: float, where: str, what: s
     if have is not None and need > have:
         raise ConfigError(f"{where}: {what}: a {width_m:.0f} m x {height_m:.0f} m ground at {mpp:g} m per pixel "
                           f"({px / 1e6:.0f} Mpx) needs about {need / 1e9:.1f} GB to build, more than the "
-                          f"{have / 1e9:.1f} GB available here: give generator.region (lon/lat) for the part you "
-                          f"need, or a coarser ground_mpp")
+                          f"{have / 1e9:.1f} GB available here: make the area smaller ({advice}) or ground_mpp "
+                          f"coarser")
 
 
 def _check_objects_inside(spec: SceneSpec, width_m: float, height_m: float, where: str) -> None:
@@ -579,6 +590,8 @@ class Scene:
                 "sun_azimuth": lay.sun_azimuth, "sun_elevation": lay.sun_elevation})
             meta = header("scene")
             meta["spec"] = to_dict(self.spec)
+            if self.tour is not None:
+                meta["tour"] = dict(self.tour)
             write_json(d / "scene.json", meta)
             self.satmap.save(d / "tile")
 
@@ -593,6 +606,8 @@ class Scene:
             raise FormatError(f"{sj}: spec.{bad}: expected a finite number")
         try:
             spec = from_dict(SceneSpec, meta.get("spec"), f"{sj}: spec")
+            if isinstance(meta.get("spec"), dict) and "ground_beyond" not in meta["spec"]:
+                spec = dataclasses.replace(spec, ground_beyond="neutral")   # saved before the mirror: as it was
             spec.generator_spec(f"{sj}: spec")
             check_spec(spec, f"{sj}: spec")
         except ConfigError as e:
@@ -653,9 +668,12 @@ class Scene:
                               f"per pixel) does not cover the layout in {lz} ({w_m:g} m x {h_m:g} m) at the "
                               f"spec's {spec.meters_per_pixel:g} m per pixel ({sj})")
         try:
-            return Scene(spec, lay, sm, a["alias_source"], where=f"{sj}: spec")
+            scene = Scene(spec, lay, sm, a["alias_source"], where=f"{sj}: spec")
         except ConfigError as e:
             raise FormatError(str(e)) from e
+        tour = meta.get("tour")
+        scene.tour = dict(tour) if isinstance(tour, dict) else None
+        return scene
 
 
 def _objects_from_spec(spec: ObjectsSpec) -> tuple[list[Building], list[Tree], list[Car]]:
@@ -962,7 +980,7 @@ def build_scene(spec: SceneSpec, base_dir: Path | None = None, aliasing: float |
         if min(g.blocks) < 1 or not (g.pitch_m > 0 and g.road_width_m > 0 and g.sidewalk_m >= 0 and g.margin_m >= 0):
             raise ConfigError(f"{where}: generator: expected blocks >= 1, pitch_m and road_width_m > 0, sidewalk_m "
                               f"and margin_m >= 0, got {to_dict(g)}")
-        _check_size(*params.size_m(), spec.ground_mpp, where, "generator")
+        _check_size(*params.size_m(), spec.ground_mpp, where, "generator", "fewer blocks, a smaller pitch_m or margin_m")
         try:
             lay, src = generate_grid(params, spec.seed, aliasing, spec.ground_mpp)
         except ValueError as e:

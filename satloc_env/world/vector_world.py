@@ -98,7 +98,7 @@ def _frame_and_lines(g: VectorGeneratorSpec, base: Path, mpp: float, where: str)
         lon0, lat0, lon1, lat1 = (float(v) for v in region)
         if not (-180 <= lon0 < lon1 <= 180 and -85 <= lat0 < lat1 <= 85):
             raise ConfigError(f"{where}: generator.region: expected [lon_min, lat_min, lon_max, lat_max] in "
-                              f"degrees with lon_min < lon_max and lat_min < lat_max, got {list(g.region)}")
+                              f"degrees with lon_min < lon_max and lat_min < lat_max, got {list(region)}")
     else:
         every = np.vstack(lonlat)
         (lon0, lat0), (lon1, lat1) = every.min(axis=0), every.max(axis=0)
