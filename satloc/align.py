@@ -111,6 +111,22 @@ class BevAligner:
         self._scan_key: tuple | None = None     # the candidate set whose scan plan is cached
         self._scan_groups: list = []
 
+    def with_search(self, search_m: float) -> BevAligner:
+        """A copy that searches translations of +- ``search_m`` around a pose (the normalised satellite channels
+        and the BEV grid shared, not recomputed)."""
+        import copy
+
+        if not search_m > 0:
+            raise ConfigError(f"align: search_m must be > 0, got {search_m!r}")
+        out = copy.copy(self)
+        nx, ny = self.shape
+        out.margin = int(math.ceil(search_m / self.res))
+        out._crop_x, out._crop_y = np.meshgrid(self.x0 + self.res * np.arange(-out.margin, nx + out.margin),
+                                               self.y0 + self.res * np.arange(-out.margin, ny + out.margin),
+                                               indexing="ij")
+        out._scan_key, out._scan_groups = None, []
+        return out
+
     def bev(self, features: np.ndarray, depth: np.ndarray) -> tuple[list[np.ndarray], np.ndarray]:
         """The query's BEV channels and the mask (float32, 1 where the ground is seen, else 0)."""
         d = cv2.remap(depth.astype(np.float32), self.map_u, self.map_v, cv2.INTER_NEAREST,
