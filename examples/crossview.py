@@ -8,6 +8,10 @@ Takes ``--frames`` frames evenly spaced along the recording's query pass; for ea
 within ``--radius`` metres of the truth with a heading within ``--yaw`` degrees (seeded), localizes and prints
 one line per frame and the summary: mean and median error, the fractions within 1 m, within 1 m laterally and
 longitudinally, the median heading error and the time per frame.
+
+``--temperatures T1 T2 ...`` also scores the posterior at each temperature: the mean log of the posterior
+mass within 1 m and 2 degrees of the truth (higher is better calibrated), to choose ``CrossViewConfig.
+temperature`` on a calibration recording (``satloc experiment tune`` records one on ``fcn_train/town_a``).
 """
 import argparse
 import math
@@ -18,7 +22,7 @@ from pathlib import Path
 import numpy as np
 
 from satloc import Sequence
-from satloc.crossview import CrossViewLocalizer, Prior
+from satloc.crossview import CrossViewConfig, CrossViewLocalizer, Prior
 from satloc.dictionary import SatelliteFeatures
 from satloc.errors import run_script
 from satloc.features import make_extractor
@@ -32,11 +36,14 @@ def main(argv=None):
     ap.add_argument("--radius", type=float, default=20.0, help="the prior's radius, metres")
     ap.add_argument("--yaw", type=float, default=10.0, help="the prior's heading range, +- degrees")
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--temperatures", type=float, nargs="*", default=[])
     a = ap.parse_args(argv)
     rec = Path(a.recording)
     seq, sm = Sequence.load(rec / "query"), SatelliteMap.load(rec / "map")
     ext = make_extractor("default")
-    cv = CrossViewLocalizer(seq.camera, SatelliteFeatures.compute(sm, ext), ext)
+    cfg = CrossViewConfig(top_k=10**9) if a.temperatures else CrossViewConfig()   # the whole posterior to rescore
+    cv = CrossViewLocalizer(seq.camera, SatelliteFeatures.compute(sm, ext), ext, cfg)
+    logscore = {t: [] for t in a.temperatures}
     rng = np.random.default_rng(a.seed)
     err, lat, lon, yaw, secs = [], [], [], [], []
     for i in np.linspace(0, len(seq) - 1, min(a.frames, len(seq))).astype(int):
@@ -52,6 +59,15 @@ def main(argv=None):
             print(f"frame {i}: too little ground seen")
             err.append(math.inf), lat.append(math.inf), lon.append(math.inf), yaw.append(math.inf)
             continue
+        if a.temperatures:   # softmax(score / T) is the posterior at cfg.temperature raised to cfg.temperature / T
+            near = ((np.hypot(res.candidates[:, 0] - t.x, res.candidates[:, 1] - t.y) <= 1.0)
+                    & (np.abs(np.remainder(res.candidates[:, 2] - t.yaw + np.pi, 2 * np.pi) - np.pi)
+                       <= math.radians(2.0)))
+            lp = np.log(np.maximum(res.posterior, 1e-300))
+            for temp in a.temperatures:
+                q = lp * (cfg.temperature / temp)
+                q = np.exp(q - q.max())
+                logscore[temp].append(math.log(max(float(q[near].sum() / q.sum()), 1e-12)))
         dx, dy = res.pose.x - t.x, res.pose.y - t.y
         c, s = math.cos(t.yaw), math.sin(t.yaw)
         err.append(math.hypot(dx, dy))
@@ -65,6 +81,8 @@ def main(argv=None):
           f"median {np.median(e):.2f} m, within 1 m {np.mean(e < 1):.0%}, lateral within 1 m "
           f"{np.mean(np.array(lat) < 1):.0%}, longitudinal within 1 m {np.mean(np.array(lon) < 1):.0%}, "
           f"heading median {np.median(yaw):.1f} deg, {np.mean(secs):.2f} s per frame")
+    for temp, v in logscore.items():
+        print(f"temperature {temp:g}: mean log posterior mass within 1 m and 2 deg of the truth {np.mean(v):.3f}")
 
 
 if __name__ == "__main__":
