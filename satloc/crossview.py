@@ -31,7 +31,7 @@ import numpy as np
 from .align import AlignConfig, BevAligner, _parabola_peak
 from .dictionary import FrameDepth, SatelliteFeatures
 from .errors import ConfigError
-from .geometry import Pose2, StereoCamera
+from .geometry import Pose2, StereoCamera, wrap_angle
 from .labels import DRIVABLE
 
 __all__ = ["Prior", "CrossViewConfig", "CrossViewResult", "CrossViewLocalizer", "drivable_from_features"]
@@ -176,7 +176,7 @@ class CrossViewLocalizer:
         res, m = al.res, al.margin
         xs, ys, yaws, scores, surfaces = [], [], [], [], []
         for k, dyaw in enumerate(offsets):
-            yaw = prior.yaw + math.radians(float(dyaw))
+            yaw = wrap_angle(prior.yaw + math.radians(float(dyaw)))
             crop = al._crop(Pose2(prior.x, prior.y, yaw))
             r = sum(cv2.matchTemplate(c, t, cv2.TM_CCOEFF_NORMED, mask=mask) for c, t in zip(crop, chans)) / len(chans)
             r = np.nan_to_num(r, nan=-1.0, posinf=-1.0, neginf=-1.0)
