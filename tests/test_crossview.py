@@ -96,3 +96,30 @@ def test_example_localizes_a_recorded_pass_with_no_database(rec):
     lines = r.stdout.strip().splitlines()
     assert sum(line.startswith("frame ") for line in lines) == 3
     assert lines[-1].startswith("3 frames, prior +-20 m / +-10 deg: mean ") and "s per frame" in lines[-1]
+
+
+def test_example_tracks_with_the_odometry_beside_the_recording(rec, tmp_path):
+    """--track: without the odometry file a one-line error; with one (here the true motion between the query
+    frames, as odometry_visual.npz holds it: each frame's motion since the previous one in its vehicle frame)
+    the frames after the first are searched around the previous answer moved by it."""
+    import shutil
+
+    script = Path(__file__).resolve().parents[1] / "examples" / "crossview.py"
+    work = tmp_path / "run"
+    shutil.copytree(rec / "query", work / "rec" / "query")
+    shutil.copytree(rec / "map", work / "rec" / "map")
+    r = subprocess.run([sys.executable, str(script), "--recording", str(work / "rec"), "--frames", "4", "--track"],
+                       capture_output=True, text=True, timeout=600)
+    assert r.returncode == 1 and "odometry_visual.npz not found" in r.stderr.strip().splitlines()[-1], r.stderr
+    poses = Sequence.load(work / "rec" / "query").poses
+    steps = np.full((len(poses), 3), np.nan)
+    for k in range(1, len(poses)):
+        (x0, y0, a0), (x1, y1, a1) = poses[k - 1], poses[k]
+        c, s = math.cos(a0), math.sin(a0)
+        steps[k] = [c * (x1 - x0) + s * (y1 - y0), -s * (x1 - x0) + c * (y1 - y0), a1 - a0]
+    np.savez(work / "odometry_visual.npz", steps=steps)
+    r = subprocess.run([sys.executable, str(script), "--recording", str(work / "rec"), "--frames", "6", "--track"],
+                       capture_output=True, text=True, timeout=600)
+    assert r.returncode == 0, r.stderr
+    last = r.stdout.strip().splitlines()[-1]
+    assert last.startswith("6 frames, tracked, prior +-20 m") and "within 1 m" in last
