@@ -44,13 +44,17 @@ def main(argv=None):
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--temperatures", type=float, nargs="*", default=[])
     ap.add_argument("--track", action="store_true")
+    ap.add_argument("--channels", default="gray", choices=["gray", "edge", "gray+edge"],
+                    help="what the bird's-eye views compare (gray needs no network on the ground image)")
     ap.add_argument("--track-radius", type=float, default=5.0)
     ap.add_argument("--track-yaw", type=float, default=4.0)
     a = ap.parse_args(argv)
     rec = Path(a.recording)
     seq, sm = Sequence.load(rec / "query"), SatelliteMap.load(rec / "map")
     ext = make_extractor("default")
-    cfg = CrossViewConfig(top_k=10**9) if a.temperatures else CrossViewConfig()   # the whole posterior to rescore
+    from satloc.align import AlignConfig
+
+    cfg = CrossViewConfig(top_k=10**9 if a.temperatures else 256, align=AlignConfig(channels=a.channels))
     cv = CrossViewLocalizer(seq.camera, SatelliteFeatures.compute(sm, ext), ext, cfg)
     logscore = {t: [] for t in a.temperatures}
     rng = np.random.default_rng(a.seed)

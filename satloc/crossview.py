@@ -141,6 +141,12 @@ class CrossViewLocalizer:
         self.depth = FrameDepth(camera)
         self._aligner = BevAligner(camera, satfeat.features, satfeat.meters_per_pixel, satfeat.origin, config.align)
         self._searchers: dict[float, BevAligner] = {}
+        from .features import BilateralRGB
+
+        if config.align.channels == "gray" and getattr(extractor, "name", "") not in ("default", "rgb"):
+            raise ConfigError(f"crossview: channels 'gray' compare the bilateral RGB that the 'default' and 'rgb' "
+                              f"features start with; the extractor is {getattr(extractor, 'name', '?')!r}")
+        self._rgb = BilateralRGB()
 
     def _searcher(self, radius_m: float) -> BevAligner:
         """The aligner whose satellite crop is grown by ``radius_m`` (the normalised map shared)."""
@@ -164,7 +170,9 @@ class CrossViewLocalizer:
                               f"outside the satellite map (x {x0:g} to {x0 + w * sf.meters_per_pixel:g}, y "
                               f"{y1 - h * sf.meters_per_pixel:g} to {y1:g} m)")
         depth = self.depth(frame, "query frame")
-        feats = self.extractor(frame.left, "ground")
+        # the gray channel alone needs no network: the bilateral RGB the default features start with
+        feats = self._rgb(frame.left, "ground") if self.config.align.channels == "gray" else \
+            self.extractor(frame.left, "ground")
         al = self._searcher(prior.radius_m)
         chans, mask = al.bev(feats, depth)
         cells = int(mask.sum())
