@@ -32,7 +32,7 @@ from .align import AlignConfig, BevAligner, _parabola_peak
 from .dictionary import FrameDepth, SatelliteFeatures
 from .errors import ConfigError
 from .geometry import Pose2, StereoCamera, wrap_angle
-from .labels import DRIVABLE
+from .labels import DRIVABLE, NUM_CLASSES
 
 __all__ = ["Prior", "CrossViewConfig", "CrossViewResult", "CrossViewLocalizer", "drivable_from_features"]
 
@@ -60,10 +60,6 @@ class Prior:
             raise ConfigError(f"prior.radius_m: expected metres in (0, {MAX_RADIUS_M:g}], got {self.radius_m!r}")
         if not 0 <= self.yaw_deg <= 180:
             raise ConfigError(f"prior.yaw_deg: expected degrees in [0, 180], got {self.yaw_deg!r}")
-
-    @staticmethod
-    def around(pose: Pose2, radius_m: float = 20.0, yaw_deg: float = 10.0) -> Prior:
-        return Prior(pose.x, pose.y, pose.yaw, radius_m, yaw_deg)
 
 
 @dataclass(frozen=True)
@@ -107,8 +103,6 @@ def drivable_from_features(satfeat: SatelliteFeatures, min_prob: float = 0.5, ma
     """(H, W) bool: where the satellite features' semantic channels (the default extractor's: RGB, edge, then
     one probability per class of :mod:`satloc.labels`) give the drivable classes at least ``min_prob``, grown
     by ``margin_m``. ConfigError for features without semantic channels."""
-    from .labels import NUM_CLASSES
-
     f = satfeat.features
     if f.shape[2] != 4 + NUM_CLASSES:
         raise ConfigError(f"crossview.drivable 'semantic' needs the default features (RGB, edge and {NUM_CLASSES} "
@@ -182,17 +176,20 @@ class CrossViewLocalizer:
         n = int(math.floor(prior.yaw_deg / self.config.yaw_step_deg + 1e-9))
         offsets = self.config.yaw_step_deg * np.arange(-n, n + 1)
         res, m = al.res, al.margin
+        # the surface's cells as offsets in the vehicle frame of each heading (every heading's surface has the
+        # same shape), and which lie in the prior's disc
+        ii, jj = np.mgrid[0:2 * m + 1, 0:2 * m + 1]
+        dx, dy = (ii - m) * res, (jj - m) * res
+        in_disc = (dx * dx + dy * dy) <= prior.radius_m ** 2
         xs, ys, yaws, scores, surfaces = [], [], [], [], []
-        for k, dyaw in enumerate(offsets):
+        for dyaw in offsets:
             yaw = wrap_angle(prior.yaw + math.radians(float(dyaw)))
             crop = al._crop(Pose2(prior.x, prior.y, yaw))
             r = sum(cv2.matchTemplate(c, t, cv2.TM_CCOEFF_NORMED, mask=mask) for c, t in zip(crop, chans)) / len(chans)
             r = np.nan_to_num(r, nan=-1.0, posinf=-1.0, neginf=-1.0)
-            ii, jj = np.mgrid[0:r.shape[0], 0:r.shape[1]]
-            dx, dy = (ii - m) * res, (jj - m) * res
             c, s = math.cos(yaw), math.sin(yaw)
             wx, wy = prior.x + c * dx - s * dy, prior.y + s * dx + c * dy
-            ok = (dx * dx + dy * dy) <= prior.radius_m ** 2
+            ok = in_disc.copy()
             if self.drivable is not None:
                 flat, inside = sf.pixel_index(np.stack([wx, wy], -1))
                 ok &= inside & self.drivable.reshape(-1)[np.maximum(flat, 0)]

@@ -129,7 +129,7 @@ def declared_bounds(path: str | os.PathLike) -> tuple[float, float, float, float
                 if not chunk:
                     break
                 head += chunk
-                if b"<node" in head:
+                if b"<node" in head[-len(chunk) - 5:]:   # the new chunk and the seam before it
                     break
     except OSError:
         return None

@@ -381,10 +381,6 @@ def changed_world(scene, strength: float, seed: int):
     strength, seed, _ = _check(strength, seed, ())
     if strength == 0.0:
         return scene.world
-    from .meshes import DEFAULT_GROUND_PAD_M, build_world
-
-    pad = scene.spec.ground_pad_m
-    layout = changed_layout(scene.layout, strength, seed)
-    world = build_world(layout, pad_m=DEFAULT_GROUND_PAD_M if pad is None else pad, beyond=scene.spec.beyond_edge)
+    world = scene.spec.build_world(changed_layout(scene.layout, strength, seed))
     change_foliage(world, strength, seed)
     return world

@@ -123,7 +123,7 @@ from satloc.satmap import SatelliteMap, read_image
 from .capture import DEFAULT_GAP, capture_image, capture_tile
 from .generator import GridParams, generate_grid
 from .layout import Building, Car, Layout, Tree
-from .meshes import DEFAULT_GROUND_PAD_M
+from .meshes import BEYOND, DEFAULT_GROUND_PAD_M
 from .roadgraph import GraphParams
 from .route import Route
 from .vector_world import VectorGeneratorSpec
@@ -328,6 +328,14 @@ class SceneSpec:
             return self.ground_beyond
         return "neutral" if self.generator.get("type") == "grid" else "mirror"
 
+    def build_world(self, layout):
+        """The renderable world of ``layout`` (this scene's or a changed copy) with this spec's ground beyond
+        the tile (``ground_pad_m``, ``beyond_edge``)."""
+        from .meshes import build_world
+
+        pad = DEFAULT_GROUND_PAD_M if self.ground_pad_m is None else self.ground_pad_m
+        return build_world(layout, pad_m=pad, beyond=self.beyond_edge)
+
     @property
     def route_names(self) -> list[str]:
         """The routes the scene has: those given, else the derived ones."""
@@ -367,7 +375,7 @@ def check_spec(spec: SceneSpec, where: str) -> None:
     if spec.ground_pad_m is not None:
         need(0 <= spec.ground_pad_m <= MAX_GROUND_PAD_M, "ground_pad_m", f"metres in [0, {MAX_GROUND_PAD_M:g}]",
              spec.ground_pad_m)
-    need(spec.ground_beyond in (None, "mirror", "neutral"), "ground_beyond", "'mirror' or 'neutral'",
+    need(spec.ground_beyond is None or spec.ground_beyond in BEYOND, "ground_beyond", f"one of {BEYOND}",
          spec.ground_beyond)
     need(0 < spec.lighting.sun_elevation_deg <= 90, "lighting.sun_elevation_deg", "degrees in (0, 90]",
          spec.lighting.sun_elevation_deg)
@@ -537,11 +545,7 @@ class Scene:
     @functools.cached_property
     def world(self):
         """Renderable geometry of the scene (:class:`satloc_env.world.meshes.World`), built once per scene."""
-        from .meshes import build_world
-
-        pad = self.spec.ground_pad_m
-        return build_world(self.layout, pad_m=DEFAULT_GROUND_PAD_M if pad is None else pad,
-                           beyond=self.spec.beyond_edge)
+        return self.spec.build_world(self.layout)
 
     def _check_routes(self, where: str) -> None:
         W, H = self.layout.width_m, self.layout.height_m
