@@ -9,11 +9,12 @@ within ``--radius`` metres of the truth with a heading within ``--yaw`` degrees 
 one line per frame and the summary: mean and median error, the fractions within 1 m, within 1 m laterally and
 longitudinally, the median heading error and the time per frame.
 
-``--track``: the frames are localized in order, each prior but the first centred on the previous answer moved by
-the visual odometry between them (``odometry_visual.npz`` beside the recording's passes, which `satloc demo`
-and the experiments write), ``--track-radius`` metres and ``--track-yaw`` degrees wide; the first frame's is
-the GPS-like prior, and so is any frame's whose moved answer lies outside that frame's GPS-like prior (the
-fix says the track is lost) or follows a frame with no answer.
+``--track``: the frames are localized in order by a :class:`satloc.crossview.CrossViewTracker`, the previous
+answer moved by the visual odometry between them (``odometry_visual.npz`` beside the recording's passes, which
+`satloc demo` and the experiments write): ``--track-mode gate`` searches ``--track-radius`` metres and
+``--track-yaw`` degrees around it, ``fuse`` the whole GPS-like prior with it as a Gaussian belief of
+``--sigma`` metres / ``--sigma-yaw`` degrees; the GPS-like prior alone where the moved answer lies outside it
+(the fix says the track is lost) or after a frame with no answer.
 
 ``--temperatures T1 T2 ...`` also scores the posterior at each temperature: the mean log of the posterior
 mass within 1 m and 2 degrees of the truth (higher is better calibrated), to choose ``CrossViewConfig.
@@ -22,16 +23,17 @@ temperature`` on a calibration recording (``satloc experiment tune`` records one
 import argparse
 import math
 import sys
-import time
 from pathlib import Path
 
 import numpy as np
 
 from satloc import Sequence
-from satloc.crossview import CrossViewConfig, CrossViewLocalizer, Prior
+from satloc.align import AlignConfig
+from satloc.crossview import CrossViewConfig, CrossViewLocalizer, draw_prior, localize_frames
 from satloc.dictionary import SatelliteFeatures
 from satloc.errors import ConfigError, run_script
 from satloc.features import make_extractor
+from satloc.metrics import pose_errors
 from satloc.satmap import SatelliteMap
 
 
@@ -46,71 +48,70 @@ def main(argv=None):
     ap.add_argument("--track", action="store_true")
     ap.add_argument("--channels", default="gray", choices=["gray", "edge", "gray+edge"],
                     help="what the bird's-eye views compare (gray needs no network on the ground image)")
-    ap.add_argument("--track-radius", type=float, default=5.0)
-    ap.add_argument("--track-yaw", type=float, default=4.0)
+    d = CrossViewConfig()
+    ap.add_argument("--drivable", default=d.drivable, choices=["auto", "semantic", "labels", "none"],
+                    help="where the vehicle may be: the map's own road semantics, its label raster (the road "
+                         "vectors; auto: these where the map has them), or anywhere in the prior")
+    ap.add_argument("--projections", default="shipped",
+                    help="learned channels: 'shipped' (the default), a crossview.pt of satloc train-crossview, or "
+                         "'none' (the grey level alone)")
+    ap.add_argument("--track-mode", default=d.track, choices=["gate", "fuse"])
+    ap.add_argument("--track-radius", type=float, default=d.track_radius_m)
+    ap.add_argument("--track-yaw", type=float, default=d.track_yaw_deg)
+    ap.add_argument("--sigma", type=float, default=d.track_sigma_m)
+    ap.add_argument("--sigma-yaw", type=float, default=d.track_sigma_deg)
     a = ap.parse_args(argv)
     rec = Path(a.recording)
     seq, sm = Sequence.load(rec / "query"), SatelliteMap.load(rec / "map")
     ext = make_extractor("default")
-    from satloc.align import AlignConfig
-
-    cfg = CrossViewConfig(top_k=10**9 if a.temperatures else 256, align=AlignConfig(channels=a.channels))
-    cv = CrossViewLocalizer(seq.camera, SatelliteFeatures.compute(sm, ext), ext, cfg)
-    logscore = {t: [] for t in a.temperatures}
+    cfg = CrossViewConfig(top_k=10**9 if a.temperatures else 256, align=AlignConfig(channels=a.channels),
+                          track=a.track_mode, track_radius_m=a.track_radius, track_yaw_deg=a.track_yaw,
+                          track_sigma_m=a.sigma, track_sigma_deg=a.sigma_yaw, drivable=a.drivable,
+                          projections=None if a.projections == "none" else a.projections)
+    sf = SatelliteFeatures.compute(sm, ext)
+    cv = CrossViewLocalizer(seq.camera, sf, ext, cfg, labels=sm.labels)
     rng = np.random.default_rng(a.seed)
-    err, lat, lon, yaw, secs = [], [], [], [], []
-    steps = None
+    idx = np.linspace(0, len(seq) - 1, min(a.frames, len(seq))).astype(int)
+    truth = np.asarray(seq.poses, np.float64)[idx]
+    priors = [draw_prior(t, a.radius, a.yaw, rng) for t in truth]
+    odo = None
     if a.track:
-        odo = rec.parent / "odometry_visual.npz"
-        if not odo.is_file():
-            raise ConfigError(f"--track: {odo} not found (satloc demo and the experiments write it)")
-        steps = np.load(odo, allow_pickle=False)["steps"]
-    last, last_i = None, None
-    for i in np.linspace(0, len(seq) - 1, min(a.frames, len(seq))).astype(int):
-        f = seq[int(i)]
-        t = f.pose
-        r, ang = a.radius * math.sqrt(rng.uniform()), rng.uniform(0, 2 * math.pi)
-        prior = Prior(t.x + r * math.cos(ang), t.y + r * math.sin(ang), t.yaw + math.radians(rng.uniform(-a.yaw, a.yaw)),
-                      a.radius, a.yaw)
-        if steps is not None and last is not None:   # the previous answer moved by the odometry since its frame
-            x, y, th = last.x, last.y, last.yaw
-            for dx, dy, dth in steps[last_i + 1:i + 1]:
-                if np.all(np.isfinite([dx, dy, dth])):
-                    x, y, th = x + math.cos(th) * dx - math.sin(th) * dy, y + math.sin(th) * dx + math.cos(th) * dy, th + dth
-            if math.hypot(x - prior.x, y - prior.y) <= a.radius:   # else the GPS-like fix says the track is lost
-                prior = Prior(x, y, th, a.track_radius, a.track_yaw)
-        t0 = time.perf_counter()
-        res = cv.localize(f, prior)
-        secs.append(time.perf_counter() - t0)
-        last, last_i = res.pose, int(i)
-        if res.pose is None:
+        path = rec.parent / "odometry_visual.npz"
+        if not path.is_file():
+            raise ConfigError(f"--track: {path} not found (satloc demo and the experiments write it)")
+        steps = np.load(path, allow_pickle=False)["steps"]
+        odo = np.full((len(idx), 3), np.nan)
+        for k in range(1, len(idx)):   # the odometry between consecutive evaluated frames, composed
+            x = y = th = 0.0
+            for dx, dy, dth in steps[idx[k - 1] + 1:idx[k] + 1]:
+                x, y, th = x + math.cos(th) * dx - math.sin(th) * dy, y + math.sin(th) * dx + math.cos(th) * dy, th + dth
+            odo[k] = (x, y, th)
+    r = localize_frames(cv, (seq[int(i)] for i in idx), priors, odo, top=cfg.top_k if a.temperatures else 32)
+    pe = pose_errors(r["estimates"], truth)
+    for k, i in enumerate(idx):
+        if not np.isfinite(pe["error"][k]):
             print(f"frame {i}: too little ground seen")
-            err.append(math.inf), lat.append(math.inf), lon.append(math.inf), yaw.append(math.inf)
             continue
-        if a.temperatures:   # softmax(score / T) is the posterior at cfg.temperature raised to cfg.temperature / T
-            near = ((np.hypot(res.candidates[:, 0] - t.x, res.candidates[:, 1] - t.y) <= 1.0)
-                    & (np.abs(np.remainder(res.candidates[:, 2] - t.yaw + np.pi, 2 * np.pi) - np.pi)
-                       <= math.radians(2.0)))
-            lp = np.log(np.maximum(res.posterior, 1e-300))
-            for temp in a.temperatures:
-                q = lp * (cfg.temperature / temp)
-                q = np.exp(q - q.max())
-                logscore[temp].append(math.log(max(float(q[near].sum() / q.sum()), 1e-12)))
-        dx, dy = res.pose.x - t.x, res.pose.y - t.y
-        c, s = math.cos(t.yaw), math.sin(t.yaw)
-        err.append(math.hypot(dx, dy))
-        lon.append(abs(c * dx + s * dy))
-        lat.append(abs(-s * dx + c * dy))
-        yaw.append(abs(math.degrees(math.remainder(res.pose.yaw - t.yaw, 2 * math.pi))))
-        print(f"frame {i}: error {err[-1]:.2f} m (lateral {lat[-1]:.2f}, longitudinal {lon[-1]:.2f}), "
-              f"heading {yaw[-1]:.1f} deg, correlation {res.correlation:.3f}")
-    e = np.array(err)
-    print(f"{len(e)} frames{', tracked' if a.track else ''}, prior +-{a.radius:g} m / +-{a.yaw:g} deg: mean {e[np.isfinite(e)].mean():.2f} m, "
-          f"median {np.median(e):.2f} m, within 1 m {np.mean(e < 1):.0%}, lateral within 1 m "
-          f"{np.mean(np.array(lat) < 1):.0%}, longitudinal within 1 m {np.mean(np.array(lon) < 1):.0%}, "
-          f"heading median {np.median(yaw):.1f} deg, {np.mean(secs):.2f} s per frame")
-    for temp, v in logscore.items():
-        print(f"temperature {temp:g}: mean log posterior mass within 1 m and 2 deg of the truth {np.mean(v):.3f}")
+        print(f"frame {i}: error {pe['error'][k]:.2f} m (lateral {pe['lateral'][k]:.2f}, longitudinal "
+              f"{pe['longitudinal'][k]:.2f}), heading {pe['heading_deg'][k]:.1f} deg, correlation {r['correlation'][k]:.3f}")
+    e = np.where(np.isfinite(pe["error"]), pe["error"], np.inf)
+    print(f"{len(e)} frames{', tracked (' + a.track_mode + ')' if a.track else ''}, prior +-{a.radius:g} m / "
+          f"+-{a.yaw:g} deg: mean {e[np.isfinite(e)].mean():.2f} m, median {np.median(e):.2f} m, within 1 m "
+          f"{np.mean(e < 1):.0%}, lateral within 1 m {np.mean(pe['lateral'] < 1):.0%}, longitudinal within 1 m "
+          f"{np.mean(pe['longitudinal'] < 1):.0%}, heading median {np.nanmedian(pe['heading_deg']):.1f} deg, "
+          f"{np.mean(r['seconds']):.2f} s per frame")
+    for temp in a.temperatures:   # softmax(score / T) is the posterior at cfg.temperature raised to cfg.temperature / T
+        scores = []
+        for k in range(len(idx)):
+            q, c = r["top_probs"][k], r["top_poses"][k]
+            if not q.sum():
+                continue
+            near = ((np.hypot(c[:, 0] - truth[k, 0], c[:, 1] - truth[k, 1]) <= 1.0)
+                    & (np.abs(np.remainder(c[:, 2] - truth[k, 2] + np.pi, 2 * np.pi) - np.pi) <= math.radians(2.0)))
+            lp = np.log(np.maximum(q, 1e-300)) * (cfg.temperature / temp)
+            w = np.exp(lp - lp.max()) * (q > 0)
+            scores.append(math.log(max(float(w[near].sum() / w.sum()), 1e-12)))
+        print(f"temperature {temp:g}: mean log posterior mass within 1 m and 2 deg of the truth {np.mean(scores):.3f}")
 
 
 if __name__ == "__main__":

@@ -22,14 +22,16 @@ def main(argv=None):
     ap.add_argument("--appearance", type=float, default=None, help="appearance change (default: the scene's)")
     ap.add_argument("--lane", type=float, default=-1.75, help="lateral offset from the route centre, metres")
     ap.add_argument("--out", default="drive_out")
-    ap.add_argument("--localizer", default="none", help="none, auto or a build directory (see docs/environment.md)")
+    ap.add_argument("--localizer", default="none",
+                    help="none, cross (no database), auto or a build directory (see docs/environment.md)")
     ap.add_argument("--localize-every", type=int, default=10)
     ap.add_argument("--track", action="store_true", help="fuse localizations over time with the odometry")
     ap.add_argument("--refine", action="store_true", help="refine each estimate by bird's-eye alignment")
     args = ap.parse_args(argv)
 
-    # localizer: "none" drives only; "auto" localizes against a localizer built once from the scene's
-    # database pass and cached (minutes the first time); or a build directory of `satloc build`
+    # localizer: "none" drives only; "cross" localizes against the satellite map alone from a GPS-like prior
+    # (seconds the first time); "auto" against a localizer built once from the scene's database pass and cached
+    # (minutes the first time); or a build directory of `satloc build`
     localizer = None if args.localizer == "none" else args.localizer
     env = gym.make("satloc/SatLoc-v0", scene=args.scene, render_mode="rgb_array", depth=True, localizer=localizer,
                    localize_every=args.localize_every, localizer_track=args.track, localizer_refine=args.refine,

@@ -44,7 +44,8 @@ class AlignConfig:
     forward_m: tuple[float, float] = (3.0, 20.0)    # BEV extent ahead of the vehicle
     half_width_m: float = 10.0                      # and to each side
     ground_tolerance: float = 0.08        # |stereo depth - ground-plane depth| / ground-plane depth
-    channels: str = "gray"                # gray | edge | gray+edge
+    channels: str = "gray"                # gray | edge | gray+edge | learned (every channel of features already
+                                          # projected: satloc.crossview_learn)
     normalize_m: float = 1.0              # local contrast normalisation window (Gaussian sigma); 0: off
     min_correlation: float = 0.2          # below: keep the co-occurrence estimate
     min_cells: int = 400                  # fewer visible ground cells: keep the co-occurrence estimate
@@ -55,8 +56,8 @@ class AlignConfig:
             raise ConfigError("align: peaks >= 1, search_m > 0 and at least one yaw offset are required")
         if not 0 < self.forward_m[0] < self.forward_m[1] or self.half_width_m <= 0:
             raise ConfigError(f"align: forward_m must be 0 < near < far, got {self.forward_m}")
-        if self.channels not in ("gray", "edge", "gray+edge"):
-            raise ConfigError(f"align.channels: expected gray, edge or gray+edge, got {self.channels!r}")
+        if self.channels not in ("gray", "edge", "gray+edge", "learned"):
+            raise ConfigError(f"align.channels: expected gray, edge, gray+edge or learned, got {self.channels!r}")
 
 
 @dataclass
@@ -69,6 +70,8 @@ class Alignment:
 
 def _channel_maps(features: np.ndarray, channels: str) -> list[np.ndarray]:
     f = features
+    if channels == "learned":   # already the learned channels (satloc.crossview_learn.CrossViewProjections)
+        return [np.ascontiguousarray(f[..., c], np.float32) for c in range(f.shape[2])]
     out = []
     if "gray" in channels:
         out.append(np.ascontiguousarray(f[..., :3].astype(np.float32).mean(axis=2)))
@@ -84,7 +87,7 @@ class BevAligner:
 
     def __init__(self, camera: StereoCamera, sat_features: np.ndarray, meters_per_pixel: float,
                  origin: tuple[float, float], config: AlignConfig = AlignConfig()):
-        if sat_features.ndim != 3 or sat_features.shape[2] < 3:
+        if sat_features.ndim != 3 or (sat_features.shape[2] < 3 and config.channels != "learned"):
             raise ConfigError(f"align: satellite features must be (H, W, D>=3) with RGB first, got {sat_features.shape}")
         self.camera, self.config = camera, config
         self.res, self.origin = float(meters_per_pixel), (float(origin[0]), float(origin[1]))

@@ -12,18 +12,28 @@ module localizes from the satellite map alone, inside a prior such as a GPS fix 
    pixel grid inside the prior disc at once;
 3. positions off the drivable area are left out (``drivable="semantic"``: where the satellite features' own
    semantic segmentation gives road, lane marking or parking at least ``drivable_min``, grown by
-   ``drivable_margin_m``; ``"none"``: every position); the posterior over the rest is
+   ``drivable_margin_m``; ``"labels"``: where the map's label raster or road vectors say so (a mask given to
+   the localizer: :func:`drivable_from_labels`, :func:`drivable_from_roads`); ``"none"``: every position); the posterior over the rest is
    ``softmax(correlation / temperature)``, its ``top_k`` strongest kept; the answer is the best position,
    refined to sub-pixel by a parabola through its neighbours, at its heading.
 
 Nothing here is learned from the place: the features are the shipped ones (RGB, edge potentials, FCN
 semantics), computed on the ground image and on the satellite map alike. ``temperature`` shapes the
 posterior, not the answer; it was chosen on calibration data (``fcn_train/town_a``).
+
+Over a sequence, :class:`CrossViewTracker` carries the previous answer, moved by the odometry since its frame,
+to the next: with ``track="fuse"`` (the default) the frame's whole prior is searched and the moved answer
+multiplies the posterior as a Gaussian belief (``track_sigma_m``, ``track_sigma_deg``), so a strong match
+elsewhere can still win; with ``"gate"`` only ``track_radius_m`` / ``track_yaw_deg`` around it are searched.
+Where the moved answer lies outside the frame's own prior by more than the belief reaches (3
+``track_sigma_m``; ``gate``: ``track_radius_m``: the GPS fix says the track is lost), after a frame with no
+answer or after an unknown motion, the prior alone is searched. :func:`localize_frames` runs either over the frames of a sequence.
 """
 from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
+from pathlib import Path
 
 import cv2
 import numpy as np
@@ -34,10 +44,14 @@ from .errors import ConfigError
 from .geometry import Pose2, StereoCamera, wrap_angle
 from .labels import DRIVABLE, NUM_CLASSES
 
-__all__ = ["Prior", "CrossViewConfig", "CrossViewResult", "CrossViewLocalizer", "drivable_from_features"]
+__all__ = ["Prior", "CrossViewConfig", "CrossViewResult", "CrossViewLocalizer", "CrossViewTracker", "draw_prior",
+           "drivable_from_features", "drivable_from_labels", "drivable_from_roads", "localize_frames", "localize_sequence", "parse_prior"]
 
 #: the widest prior searched (metres): the correlation's cost grows with the square of the radius
 MAX_RADIUS_M = 100.0
+#: the shipped learned channels (``CrossViewConfig(projections="shipped")``; ``crossview_report.json`` beside it
+#: says what they were trained on and how)
+SHIPPED_PROJECTIONS = str(Path(__file__).resolve().parent / "weights" / "crossview.pt")
 
 
 @dataclass(frozen=True)
@@ -65,7 +79,11 @@ class Prior:
 @dataclass(frozen=True)
 class CrossViewConfig:
     yaw_step_deg: float = 2.0             # headings searched: the prior's heading +- yaw_deg in these steps
-    drivable: str = "semantic"            # semantic | none (see the module docstring)
+    # auto | semantic | labels | none (see the module docstring); auto: labels where the localizer is given the
+    # map's label raster (road vectors), else semantic. Labels and semantic gave the same answers on calibration
+    # data (fcn_train/town_a, 60 frames); the semantic mask of the FCN, trained on the generator's tiles, failed
+    # on a tile of another painter (suburb_utm: 21 % of queries with no drivable position, see docs/results.md)
+    drivable: str = "auto"
     drivable_min: float = 0.5             # drivable classes' probability at least this
     drivable_margin_m: float = 1.0        # the drivable area grown by this (the semantics' edges are soft)
     # posterior = softmax(correlation / temperature); 0.02 scored best on calibration data (fcn_train/town_a, 40
@@ -73,17 +91,49 @@ class CrossViewConfig:
     # at 0.05; examples/crossview.py --temperatures)
     temperature: float = 0.02
     top_k: int = 256                      # posterior entries kept
+    # learned channels (satloc.crossview_learn, `satloc train-crossview`): a crossview.pt file, or "shipped" (the
+    # package's, trained on fcn_train/suburb_a, suburb_b, town_b: the default); None: the grey level. On calibration
+    # data (fcn_train/town_a, 60 frames) the shipped ones gave single frames 1.46 m mean, 92 % within 1 m against
+    # the grey level's 1.82 m, 88 %, tracked 0.43 against 0.51 m, at 0.16 against 0.08 s per frame (docs/method.md)
+    projections: str | None = "shipped"
+    # CrossViewTracker: "fuse" searches the whole prior with the previous answer moved by the odometry as a
+    # Gaussian belief of track_sigma_m / track_sigma_deg; "gate" searches track_radius_m / track_yaw_deg around it.
+    # Chosen on calibration data (fcn_train/town_a, 60 frames ~12 m apart, visual odometry, examples/crossview.py
+    # --track): mean error gate 0.67 m; fuse sigma 2 m 0.51, 3 m 0.52, 5 m 0.75, 8 m 1.32
+    track: str = "fuse"
+    track_radius_m: float = 5.0
+    track_yaw_deg: float = 4.0
+    track_sigma_m: float = 2.0
+    track_sigma_deg: float = 3.0
     align: AlignConfig = field(default_factory=AlignConfig)   # the BEV: extent, channels, normalisation
 
     def __post_init__(self):
         if not 0 < self.yaw_step_deg <= 10:
             raise ConfigError(f"crossview.yaw_step_deg: expected degrees in (0, 10], got {self.yaw_step_deg!r}")
-        if self.drivable not in ("semantic", "none"):
-            raise ConfigError(f"crossview.drivable: expected 'semantic' or 'none', got {self.drivable!r}")
+        if self.drivable not in ("auto", "semantic", "labels", "none"):
+            raise ConfigError(f"crossview.drivable: expected 'auto', 'semantic', 'labels' or 'none', got "
+                              f"{self.drivable!r}")
         if not 0 <= self.drivable_min <= 1 or self.drivable_margin_m < 0:
             raise ConfigError("crossview: drivable_min must lie in [0, 1] and drivable_margin_m be >= 0")
         if not self.temperature > 0 or self.top_k < 1:
             raise ConfigError("crossview: temperature must be > 0 and top_k >= 1")
+        if self.track not in ("gate", "fuse"):
+            raise ConfigError(f"crossview.track: expected 'gate' or 'fuse', got {self.track!r}")
+        if not self.track_sigma_m > 0 or not self.track_sigma_deg > 0:
+            raise ConfigError("crossview: track_sigma_m and track_sigma_deg must be > 0")
+        if not 0 < self.track_radius_m <= MAX_RADIUS_M or not 0 <= self.track_yaw_deg <= 180:
+            raise ConfigError(f"crossview: track_radius_m must lie in (0, {MAX_RADIUS_M:g}] m and track_yaw_deg in "
+                              f"[0, 180] degrees")
+
+
+def draw_prior(pose, radius_m: float = 20.0, yaw_deg: float = 10.0, rng: np.random.Generator | None = None) -> Prior:
+    """A prior as a GPS fix would give it around the true ``pose`` (a Pose2 or x, y, yaw): centred uniformly
+    within ``radius_m`` of it, its heading uniformly within ``yaw_deg`` degrees, with those widths."""
+    x, y, yaw = (pose.x, pose.y, pose.yaw) if isinstance(pose, Pose2) else (float(v) for v in np.asarray(pose)[:3])
+    rng = rng if rng is not None else np.random.default_rng()
+    r, a = radius_m * math.sqrt(rng.uniform()), rng.uniform(0.0, 2.0 * math.pi)
+    return Prior(x + r * math.cos(a), y + r * math.sin(a), float(wrap_angle(yaw + math.radians(rng.uniform(-yaw_deg, yaw_deg)))),
+                 radius_m, yaw_deg)
 
 
 @dataclass
@@ -115,29 +165,89 @@ def drivable_from_features(satfeat: SatelliteFeatures, min_prob: float = 0.5, ma
     return mask.astype(bool)
 
 
+def drivable_from_labels(labels: np.ndarray, satfeat: SatelliteFeatures, margin_m: float = 1.0) -> np.ndarray:
+    """(H, W) bool: where a label raster of the map (``SatelliteMap.labels``: one class of :mod:`satloc.labels`
+    per pixel, as road vectors give it, e.g. rasterized from OpenStreetMap) holds a drivable class (road, lane
+    marking, parking), grown by ``margin_m``. ConfigError when it does not match the map or holds no road."""
+    lab = np.asarray(labels)
+    if lab.shape != satfeat.features.shape[:2]:
+        raise ConfigError(f"crossview.drivable 'labels': the label raster is {lab.shape}, the map "
+                          f"{satfeat.features.shape[:2]}")
+    mask = np.isin(lab, DRIVABLE).astype(np.uint8)
+    if not mask.any():
+        raise ConfigError("crossview.drivable 'labels': the map's labels hold no road, lane marking or parking")
+    r = int(round(margin_m / satfeat.meters_per_pixel))
+    if r > 0:
+        mask = cv2.dilate(mask, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * r + 1, 2 * r + 1)))
+    return mask.astype(bool)
+
+
+def drivable_from_roads(lines, widths, satfeat: SatelliteFeatures, margin_m: float = 1.0) -> np.ndarray:
+    """(H, W) bool: the map's pixels within half a road's width plus ``margin_m`` of its centre line; ``lines``:
+    (N_i, 2) arrays of points in the map's metres (e.g. :meth:`satloc.geodata.vectors.RoadLines.to_frame`),
+    ``widths``: each road's width (metres). ConfigError when no line crosses the map."""
+    h, w = satfeat.features.shape[:2]
+    mask = np.zeros((h, w), np.uint8)
+    x0, y1 = satfeat.origin
+    mpp = satfeat.meters_per_pixel
+    for xy, width in zip(lines, widths):
+        xy = np.asarray(xy, np.float64)
+        px = np.stack([(xy[:, 0] - x0) / mpp - 0.5, (y1 - xy[:, 1]) / mpp - 0.5], 1)   # pixel centres
+        if not np.all(np.isfinite(px)):
+            continue
+        px = np.clip(px, -1e5, 1e5)
+        thick = max(1, int(round((float(width) + 2 * margin_m) / mpp)))
+        cv2.polylines(mask, [np.round(px * 16).astype(np.int32).reshape(-1, 1, 2)], False, 1, thick, cv2.LINE_8, 4)
+    if not mask.any():
+        raise ConfigError("crossview: no road line crosses the satellite map (are the roads in the map's frame?)")
+    return mask.astype(bool)
+
+
 class CrossViewLocalizer:
     """Localize stereo frames against ``satfeat`` within a :class:`Prior`, with no database (see the module
     docstring). ``extractor`` computes the ground image's features (the one that made ``satfeat``);
-    ``drivable``: a (H, W) bool mask of the map's pixels where the vehicle may be (None: as
-    ``config.drivable`` says)."""
+    ``drivable``: a (H, W) bool mask of the map's pixels where the vehicle may be; ``labels``: the map's label
+    raster (``SatelliteMap.labels``), for ``config.drivable`` ``"labels"`` or ``"auto"``."""
 
     def __init__(self, camera: StereoCamera, satfeat: SatelliteFeatures, extractor, config: CrossViewConfig = CrossViewConfig(),
-                 drivable: np.ndarray | None = None):
+                 drivable: np.ndarray | None = None, labels: np.ndarray | None = None):
         self.camera, self.satfeat, self.extractor, self.config = camera, satfeat, extractor, config
         h, w = satfeat.features.shape[:2]
-        if drivable is not None:
+        mode = config.drivable
+        if mode == "auto":
+            mode = "labels" if (drivable is not None or labels is not None) else "semantic"
+        if drivable is not None and mode != "none":
             drivable = np.asarray(drivable, bool)
             if drivable.shape != (h, w):
                 raise ConfigError(f"crossview: the drivable mask is {drivable.shape}, the map {(h, w)}")
-        elif config.drivable == "semantic":
+        elif mode == "semantic":
             drivable = drivable_from_features(satfeat, config.drivable_min, config.drivable_margin_m)
+        elif mode == "labels":
+            if labels is None:
+                raise ConfigError("crossview.drivable 'labels': give the map's label raster (labels=) or a mask "
+                                  "(drivable=, e.g. drivable_from_roads of its road vectors)")
+            drivable = drivable_from_labels(labels, satfeat, config.drivable_margin_m)
+        else:
+            drivable = None
+        self.drivable_source = mode
         self.drivable = drivable
         self.depth = FrameDepth(camera)
-        self._aligner = BevAligner(camera, satfeat.features, satfeat.meters_per_pixel, satfeat.origin, config.align)
+        self.projections = None
+        sat, align = satfeat.features, config.align
+        if config.projections is not None:
+            from dataclasses import replace
+
+            from .crossview_learn import CrossViewProjections
+
+            self.projections = CrossViewProjections.load(SHIPPED_PROJECTIONS if config.projections == "shipped"
+                                                         else config.projections)
+            sat, align = self.projections.satellite(satfeat.features), replace(config.align, channels="learned")
+        self._aligner = BevAligner(camera, sat, satfeat.meters_per_pixel, satfeat.origin, align)
         self._searchers: dict[float, BevAligner] = {}
         from .features import BilateralRGB
 
-        if config.align.channels == "gray" and getattr(extractor, "name", "") not in ("default", "rgb"):
+        if (config.align.channels == "gray" or config.projections is not None) and \
+                getattr(extractor, "name", "") not in ("default", "rgb"):
             raise ConfigError(f"crossview: channels 'gray' compare the bilateral RGB that the 'default' and 'rgb' "
                               f"features start with; the extractor is {getattr(extractor, 'name', '?')!r}")
         self._rgb = BilateralRGB()
@@ -150,9 +260,10 @@ class CrossViewLocalizer:
             s = self._searchers[key] = self._aligner.with_search(key)
         return s
 
-    def localize(self, frame, prior: Prior) -> CrossViewResult:
+    def localize(self, frame, prior: Prior, predicted: tuple[Pose2, float, float] | None = None) -> CrossViewResult:
         """The pose of ``frame`` (a :class:`satloc.sequence.Frame` with left image and stereo or depth) within
-        ``prior``."""
+        ``prior``. ``predicted`` (pose, sigma metres, sigma degrees): a Gaussian belief, e.g. the previous answer
+        moved by the odometry, multiplied into the posterior (its log added to correlation / temperature)."""
         if not isinstance(prior, Prior):
             raise ConfigError(f"crossview: prior must be a satloc.crossview.Prior, got {type(prior).__name__}")
         sf = self.satfeat
@@ -165,8 +276,12 @@ class CrossViewLocalizer:
                               f"{y1 - h * sf.meters_per_pixel:g} to {y1:g} m)")
         depth = self.depth(frame, "query frame")
         # the gray channel alone needs no network: the bilateral RGB the default features start with
-        feats = self._rgb(frame.left, "ground") if self.config.align.channels == "gray" else \
-            self.extractor(frame.left, "ground")
+        if self.projections is not None:   # the learned channels of the bilateral RGB
+            feats = self.projections.ground(self._rgb(frame.left, "ground"))
+        elif self.config.align.channels == "gray":
+            feats = self._rgb(frame.left, "ground")
+        else:
+            feats = self.extractor(frame.left, "ground")
         al = self._searcher(prior.radius_m)
         chans, mask = al.bev(feats, depth)
         cells = int(mask.sum())
@@ -185,11 +300,17 @@ class CrossViewLocalizer:
         for dyaw in offsets:
             yaw = wrap_angle(prior.yaw + math.radians(float(dyaw)))
             crop = al._crop(Pose2(prior.x, prior.y, yaw))
-            r = sum(cv2.matchTemplate(c, t, cv2.TM_CCOEFF_NORMED, mask=mask) for c, t in zip(crop, chans)) / len(chans)
-            r = np.nan_to_num(r, nan=-1.0, posinf=-1.0, neginf=-1.0)
+            with np.errstate(invalid="ignore"):   # a flat window (beyond the map) is +-inf in some channels
+                r = sum(cv2.matchTemplate(c, t, cv2.TM_CCOEFF_NORMED, mask=mask) for c, t in zip(crop, chans)) / len(chans)
+            r = raw = np.nan_to_num(r, nan=-1.0, posinf=-1.0, neginf=-1.0)
             c, s = math.cos(yaw), math.sin(yaw)
             wx, wy = prior.x + c * dx - s * dy, prior.y + s * dx + c * dy
             ok = in_disc.copy()
+            if predicted is not None:   # log of the predicted belief, in units of the temperature
+                pp, sm, sd = predicted
+                dyaw_p = float(wrap_angle(yaw - pp.yaw))
+                r = r - self.config.temperature * (((wx - pp.x) ** 2 + (wy - pp.y) ** 2) / (2 * sm * sm)
+                                                    + dyaw_p * dyaw_p / (2 * math.radians(sd) ** 2))
             if self.drivable is not None:
                 flat, inside = sf.pixel_index(np.stack([wx, wy], -1))
                 ok &= inside & self.drivable.reshape(-1)[np.maximum(flat, 0)]
@@ -197,13 +318,13 @@ class CrossViewLocalizer:
             ys.append(wy[ok])
             yaws.append(np.full(int(ok.sum()), yaw))
             scores.append(r[ok])
-            surfaces.append((r, ok, yaw))
+            surfaces.append((r, ok, yaw, raw))
         score = np.concatenate(scores)
         if score.size == 0:
             return empty
         # the answer: the best position, sub-pixel on its heading's surface
         best = int(np.argmax([sc.max() if sc.size else -np.inf for sc in scores]))
-        r, ok, yaw = surfaces[best]
+        r, ok, yaw, raw = surfaces[best]
         i, j = np.unravel_index(int(np.argmax(np.where(ok, r, -np.inf))), r.shape)
         di = _parabola_peak(r[i - 1, j], r[i, j], r[i + 1, j]) if 0 < i < r.shape[0] - 1 else 0.0
         dj = _parabola_peak(r[i, j - 1], r[i, j], r[i, j + 1]) if 0 < j < r.shape[1] - 1 else 0.0
@@ -216,4 +337,190 @@ class CrossViewLocalizer:
         p /= p.sum()
         keep = np.argsort(-p, kind="stable")[: self.config.top_k]
         cand = np.stack([np.concatenate(xs)[keep], np.concatenate(ys)[keep], np.concatenate(yaws)[keep]], 1)
-        return CrossViewResult(pose, float(r[i, j]), cand, p[keep], cells)
+        return CrossViewResult(pose, float(raw[i, j]), cand, p[keep], cells)
+
+
+class CrossViewTracker:
+    """Cross-view localization over a sequence (see the module docstring): :meth:`predict` with the odometry
+    since the previous frame (dx, dy, dyaw in the previous vehicle frame; non-finite: unknown, the next frame
+    searches its wide prior), then :meth:`localize` with the frame's wide prior."""
+
+    def __init__(self, localizer: CrossViewLocalizer):
+        self.localizer = localizer
+        self.reset()
+
+    def reset(self) -> None:
+        self.pose: Pose2 | None = None   # the last answer moved by the odometry since (None: lost)
+
+    def predict(self, motion) -> None:
+        m = np.asarray(motion, np.float64).reshape(-1)
+        if self.pose is None:
+            return
+        if m.shape != (3,) or not np.all(np.isfinite(m)):
+            self.pose = None
+            return
+        self.pose = self.pose @ Pose2(*m)
+
+    def localize(self, frame, prior: Prior) -> CrossViewResult:
+        """The frame's pose: ``fuse``, across ``prior`` with the moved answer as a Gaussian belief; ``gate``,
+        within ``track_radius_m`` of the moved answer; across ``prior`` alone where the moved answer lies
+        farther outside ``prior`` than 3 ``track_sigma_m`` (``gate``: ``track_radius_m``)."""
+        cfg = self.localizer.config
+        use, predicted = prior, None
+        # lost: the moved answer lies farther outside the fix's disc than the belief reaches (3 sigma; gate: its
+        # search radius). Slightly outside is not lost: a fix drawn near its disc's edge puts a right answer there
+        reach = 3.0 * cfg.track_sigma_m if cfg.track == "fuse" else cfg.track_radius_m
+        if self.pose is not None and math.hypot(self.pose.x - prior.x, self.pose.y - prior.y) <= prior.radius_m + reach:
+            if cfg.track == "gate":
+                use = Prior(self.pose.x, self.pose.y, self.pose.yaw, min(cfg.track_radius_m, prior.radius_m),
+                            min(cfg.track_yaw_deg, prior.yaw_deg))
+            else:
+                predicted = (self.pose, cfg.track_sigma_m, cfg.track_sigma_deg)
+        res = self.localizer.localize(frame, use, predicted)
+        self.pose = res.pose
+        return res
+
+
+def localize_frames(localizer: CrossViewLocalizer, frames, priors, odometry=None, progress: bool = False,
+                    top: int = 32) -> dict:
+    """Localize ``frames`` (an iterable of frames) each within its prior of ``priors``; with ``odometry``
+    ((N, 3), row i the motion from frame i - 1 to i, row 0 unused) tracked by a :class:`CrossViewTracker`.
+    Returns arrays over the frames: ``estimates`` (N, 3; NaN where no answer), ``correlation``, ``cells``,
+    ``seconds`` and the posterior's ``top`` strongest entries ``top_poses`` (N, top, 3), ``top_probs``."""
+    from tqdm.auto import tqdm
+
+    priors = list(priors)
+    tracker = CrossViewTracker(localizer) if odometry is not None else None
+    n = len(priors)
+    est = np.full((n, 3), np.nan)
+    corr, cells, secs = np.full(n, np.nan), np.zeros(n, np.int64), np.zeros(n)
+    tp, tq = np.zeros((n, top, 3)), np.zeros((n, top))
+    import time
+
+    for i, f in enumerate(tqdm(frames, total=n, desc="cross-view", unit="frame", disable=not progress, leave=False)):
+        if i >= n:
+            raise ConfigError(f"localize_frames: more frames than the {n} priors")
+        t = time.perf_counter()
+        if tracker is not None:
+            if i > 0:
+                tracker.predict(odometry[i])
+            r = tracker.localize(f, priors[i])
+        else:
+            r = localizer.localize(f, priors[i])
+        secs[i] = time.perf_counter() - t
+        cells[i] = r.cells
+        if r.pose is not None:
+            est[i] = r.pose.as_array()
+            corr[i] = r.correlation
+            k = min(top, len(r.posterior))
+            tp[i, :k], tq[i, :k] = r.candidates[:k], r.posterior[:k]
+    return {"estimates": est, "correlation": corr, "cells": cells, "seconds": secs, "top_poses": tp, "top_probs": tq}
+
+
+def parse_prior(text: str, radius_m: float = 20.0, yaw_deg: float = 10.0) -> Prior:
+    """``"X,Y,YAW"`` (map metres, heading in degrees counter-clockwise from east) as a :class:`Prior` of
+    ``radius_m`` / ``yaw_deg``; ConfigError naming the text otherwise."""
+    parts = [p.strip() for p in str(text).split(",")]
+    try:
+        x, y, yaw = (float(p) for p in parts)
+    except ValueError:
+        raise ConfigError(f"prior: expected 'X,Y,YAW_DEG' (metres, metres, degrees) or 'truth', got {text!r}") from None
+    return Prior(x, y, math.radians(yaw), radius_m, yaw_deg)
+
+
+def localize_sequence(seq, satmap, out, prior: str | Prior = "truth", radius_m: float = 20.0, yaw_deg: float = 10.0,
+                      seed: int = 0, odometry: np.ndarray | None = None, roads=None,
+                      config: CrossViewConfig = CrossViewConfig(), progress: bool = False) -> dict:
+    """The no-database stage (``satloc localize --no-database``): every frame of ``seq`` (a
+    :class:`satloc.sequence.Sequence`) against ``satmap`` (a :class:`satloc.satmap.SatelliteMap`), with the
+    default features, into ``out/localization_cross.npz`` (frames, estimates (NaN: no answer), truth, errors,
+    correlation, cells, priors (x, y, yaw, radius, yaw range)). Returns the summary (also printed by the CLI).
+
+    ``prior``: ``"truth"``, a prior drawn around each frame's pose (``radius_m``, ``yaw_deg``, seeded by
+    ``seed``: a simulated GPS fix), or one :class:`Prior` (or ``"X,Y,YAW_DEG"``) for the first frame; the later
+    frames' then centre on the previous answer moved by ``odometry`` (needed then), ``radius_m`` wide. With
+    ``odometry`` ((N, 3), row i the motion from frame i - 1) the frames are tracked (:class:`CrossViewTracker`).
+    ``roads``: a :class:`satloc.geodata.vectors.RoadLines` whose lines bound the drivable area (in the map's
+    geo frame, or the sequence's)."""
+    import time
+
+    from tqdm.auto import tqdm
+
+    from .features import make_extractor
+    from .metrics import pose_errors
+    from .persist import save_npz
+
+    n = len(seq)
+    if n == 0:
+        raise ConfigError(f"sequence {seq.name!r}: no frames to localize")
+    poses = np.asarray(seq.poses, np.float64).reshape(n, 3)
+    fixed = None
+    if isinstance(prior, str) and prior.strip().lower() == "truth":
+        bad = np.flatnonzero(~np.all(np.isfinite(poses), axis=1))
+        if len(bad):
+            raise ConfigError(f"prior 'truth': frame {int(bad[0])} of sequence {seq.name!r} has no pose to draw a prior "
+                              "around; give the first frame's prior as 'X,Y,YAW_DEG' and track with odometry")
+        rng = np.random.default_rng(seed)
+        priors = [draw_prior(p, radius_m, yaw_deg, rng) for p in poses]
+    else:
+        fixed = prior if isinstance(prior, Prior) else parse_prior(prior, radius_m, yaw_deg)
+        if n > 1 and odometry is None:
+            raise ConfigError("prior: one prior is the first frame's; the later frames' follow the answers moved by "
+                              "the odometry: track (odometry) or give 'truth'")
+        priors = None
+    if odometry is not None:
+        odometry = np.asarray(odometry, np.float64)
+        if odometry.shape != (n, 3):
+            raise ConfigError(f"odometry: expected ({n}, 3), one motion per frame, got {odometry.shape}")
+    ext = make_extractor("default")
+    sf = SatelliteFeatures.compute(satmap, ext)
+    drivable = None
+    if roads is not None:
+        frame = getattr(satmap, "frame", None) or seq.geo_frame
+        if frame is None:
+            raise ConfigError("roads: neither the satellite map nor the sequence has a geo frame to put the road "
+                              "lines in")
+        r = roads.to_frame(frame)
+        drivable = drivable_from_roads(r.lines, r.widths, sf, config.drivable_margin_m)
+    cv = CrossViewLocalizer(seq.camera, sf, ext, config, drivable=drivable, labels=getattr(satmap, "labels", None))
+    tracker = CrossViewTracker(cv) if odometry is not None else None
+    est, corr, cells = np.full((n, 3), np.nan), np.full(n, np.nan), np.zeros(n, np.int64)
+    used = np.zeros((n, 5))
+    t0 = time.perf_counter()
+    for i in tqdm(range(n), desc="no database", unit="frame", disable=not progress, leave=False):
+        if tracker is not None and i > 0:
+            tracker.predict(odometry[i])
+        if priors is not None:
+            p = priors[i]
+        elif i == 0 or tracker.pose is None:
+            p = fixed if i == 0 else None
+        else:
+            p = Prior(tracker.pose.x, tracker.pose.y, tracker.pose.yaw, radius_m, yaw_deg)
+        if p is None:   # lost with no fix to fall back on: nothing to search
+            continue
+        used[i] = (p.x, p.y, p.yaw, p.radius_m, p.yaw_deg)
+        r = tracker.localize(seq[i], p) if tracker is not None else cv.localize(seq[i], p)
+        cells[i] = r.cells
+        if r.pose is not None:
+            est[i], corr[i] = r.pose.as_array(), r.correlation
+    secs = time.perf_counter() - t0
+    pe = pose_errors(est, poses)
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    save_npz(out / "localization_cross.npz", "localization",
+             {"frames": np.arange(n, dtype=np.int64), "estimates": est, "truth": poses, "errors": pe["error"],
+              "correlation": corr, "cells": cells, "priors": used},
+             {"method": "cross", "sequence": seq.name, "config": _plain_config(config), "prior": str(prior),
+              "radius_m": radius_m, "yaw_deg": yaw_deg, "seed": seed, "tracked": odometry is not None})
+    e = pe["error"][np.isfinite(pe["error"])]
+    return {"frames": n, "answered": int(np.isfinite(est[:, 0]).sum()), "tracked": odometry is not None,
+            "mean_m": float(e.mean()) if e.size else None, "median_m": float(np.median(e)) if e.size else None,
+            "within_1m": float(np.mean(np.nan_to_num(pe["error"], nan=np.inf) <= 1.0)) if e.size else None,
+            "lateral_within_1m": float(np.mean(np.nan_to_num(pe["lateral"], nan=np.inf) <= 1.0)) if e.size else None,
+            "s_per_frame": secs / n, "output": str(out / "localization_cross.npz")}
+
+
+def _plain_config(config: CrossViewConfig) -> dict:
+    from .config import to_dict
+
+    return to_dict(config)

@@ -118,6 +118,27 @@ def error_stats(errors, gross_m=None) -> dict:
     }
 
 
+def pose_errors(estimates, truth) -> dict:
+    """Per-query error components of (N, 3) ``estimates`` (x, y, yaw; NaN rows: not answered) against (N, 3)
+    ``truth``: ``error`` (planar distance, m), ``lateral`` and ``longitudinal`` (its absolute components across
+    and along the true heading, m) and ``heading_deg`` (absolute heading error); NaN where not answered."""
+    e = np.asarray(estimates, np.float64).reshape(-1, 3)
+    t = np.asarray(truth, np.float64).reshape(-1, 3)
+    if e.shape != t.shape:
+        raise ConfigError(f"pose_errors: {len(e)} estimates against {len(t)} true poses")
+    dx, dy = e[:, 0] - t[:, 0], e[:, 1] - t[:, 1]
+    c, s = np.cos(t[:, 2]), np.sin(t[:, 2])
+    dyaw = np.remainder(e[:, 2] - t[:, 2] + np.pi, 2 * np.pi) - np.pi
+    return {"error": np.hypot(dx, dy), "lateral": np.abs(-s * dx + c * dy), "longitudinal": np.abs(c * dx + s * dy),
+            "heading_deg": np.degrees(np.abs(dyaw))}
+
+
+def recall_within(values, radius: float) -> float:
+    """The fraction of all queries with ``values`` <= ``radius`` (NaN, a query not answered, is a miss)."""
+    v = _vector(values, "values")
+    return float(np.sum(np.isfinite(v) & (v <= radius)) / v.size) if v.size else float("nan")
+
+
 CIMethod = Literal["iid", "stationary"]
 
 

@@ -127,3 +127,47 @@ def plot_margins_along_route(queries: Sequence, frames: np.ndarray, margins: dic
                  "(below the red line: a look-alike wins)")
     _save(fig, Path(path))
     plt.close(fig)
+
+
+def plot_cross_posterior(satmap: SatelliteMap, candidates: np.ndarray, posterior: np.ndarray, prior, truth,
+                         estimate, path: str | Path, title: str = "") -> None:
+    """A no-database posterior (:mod:`satloc.crossview`) over its prior disc: the satellite map around the
+    prior (``prior``: a :class:`satloc.crossview.Prior`), the disc, the posterior's strongest positions
+    (``candidates`` (K, 3), ``posterior`` (K,); every position and heading drawn as a dot, the more probable on
+    top, so a position shows its strongest heading), the estimate and the truth (Pose2 or None)."""
+    plt = _pyplot()
+    fig, ax = plt.subplots(figsize=(6.2, 5.6))
+    h, w = satmap.image.shape[:2]
+    mpp = satmap.meters_per_pixel
+    x0, y0 = satmap.origin
+    ax.imshow(satmap.image, extent=(x0, x0 + w * mpp, y0 - h * mpp, y0), interpolation="bilinear")
+    p = np.asarray(posterior, np.float64)
+    c = np.asarray(candidates, np.float64)
+    if len(p):
+        rel = p / max(p.max(), 1e-300)
+        order = np.argsort(p)
+        order = order[rel[order] >= 1e-4]
+        sc = ax.scatter(c[order, 0], c[order, 1], c=np.log10(np.maximum(rel[order], 1e-4)), cmap="inferno",
+                        vmin=-4, vmax=0, s=10, alpha=0.9, linewidths=0)
+        cb = fig.colorbar(sc, ax=ax, shrink=0.8)
+        cb.set_label("log10 posterior / max")
+    t = np.linspace(0, 2 * np.pi, 181)
+    ax.plot(prior.x + prior.radius_m * np.cos(t), prior.y + prior.radius_m * np.sin(t), "--", color="white", lw=1.2,
+            label=f"prior (+-{prior.radius_m:g} m)")
+    ax.plot([prior.x], [prior.y], "s", mfc="none", mec="white", ms=8, mew=1.5)
+    if estimate is not None:
+        ax.plot([estimate.x], [estimate.y], "x", color="cyan", ms=12, mew=2.5, label="estimate")
+    if truth is not None:
+        ax.plot([truth.x], [truth.y], "o", mfc="none", mec="lime", ms=12, mew=2.5, label="truth")
+    r = prior.radius_m * 1.35
+    ax.set_xlim(prior.x - r, prior.x + r)
+    ax.set_ylim(prior.y - r, prior.y + r)
+    ax.set_xlabel("x east (m)")
+    ax.set_ylabel("y north (m)")
+    ax.legend(loc="lower right", fontsize=8)
+    parts = [title] if title else []
+    if truth is not None and estimate is not None:
+        parts.append(f"error {estimate.distance(truth):.2f} m")
+    ax.set_title(", ".join(parts), fontsize=10)
+    _save(fig, Path(path))
+    plt.close(fig)

@@ -47,6 +47,22 @@ FORMAT = "projections"
 MAX_NORM = 1e12  # of a loaded W (trained ones have sqrt(D)): projected float32 distances stay finite
 
 
+def load_torch_dict(path: Path, fmt: str) -> dict:
+    """The dict a satloc torch file of format ``fmt`` holds (loaded with ``weights_only=True`` on the CPU);
+    FormatError naming the file when it is missing, damaged, not a torch file or of another format or version."""
+    if not path.is_file():
+        raise FormatError(f"{path}: file not found")
+    check_zip(path)  # torch.load does not check the CRCs: a flipped bit would load as another weight
+    try:
+        obj = torch.load(path, weights_only=True, map_location="cpu")
+    except Exception as e:  # torch raises several types for damaged or non-torch files
+        raise FormatError(f"{path}: damaged or not a torch file ({type(e).__name__}: {str(e)[:200]})") from e
+    if not isinstance(obj, dict) or obj.get("format") != fmt:
+        raise FormatError(f"{path}: not a satloc '{fmt}' file")
+    check_header(obj, fmt, path)
+    return obj
+
+
 @dataclass(frozen=True)
 class ProjectionConfig:
     neighbors: int = 20             # |N(i)|
@@ -106,16 +122,7 @@ class Projections:
     @staticmethod
     def load(path: str | Path) -> "Projections":
         path = Path(path)
-        if not path.is_file():
-            raise FormatError(f"{path}: file not found")
-        check_zip(path)  # torch.load does not check the CRCs: a flipped bit would load as another weight
-        try:
-            obj = torch.load(path, weights_only=True, map_location="cpu")
-        except Exception as e:  # torch raises several types for damaged or non-torch files
-            raise FormatError(f"{path}: damaged or not a torch file ({type(e).__name__}: {str(e)[:200]})") from e
-        if not isinstance(obj, dict) or obj.get("format") != FORMAT:
-            raise FormatError(f"{path}: not a satloc '{FORMAT}' file")
-        check_header(obj, FORMAT, path)
+        obj = load_torch_dict(path, FORMAT)
         w = {}
         for k in ("W_g", "W_s"):
             t = obj.get(k)

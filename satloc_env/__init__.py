@@ -20,6 +20,7 @@ The package is layered by trade; each layer imports only those below it (checked
 * :mod:`satloc_env.experiments`: tables, sweeps, tuning, evaluation on real data, benchmarks, scale-out;
 * :mod:`satloc_env.cli`: the ``satloc`` command, on top.
 """
+from satloc import __version__  # noqa: F401  (one version for both packages: the distribution's)
 from satloc._moved import alias_modules as _alias_modules
 
 from .envs import ACTIVE_ID, ENV_ID, REPLAY_ID, ActionError, EnvConfig, ReplayConfig, SatLocEnv, SatLocReplayEnv

@@ -223,6 +223,11 @@ def cmd_bench(args) -> int:
 
         for n in args.num_envs:
             print(json.dumps(bench_env(args.resolution, args.steps, args.scene or "city", num_envs=n)), flush=True)
+    elif args.what == "crossview":
+        from satloc_env.experiments.bench import bench_crossview
+
+        for row in bench_crossview(args.scene or "city", args.frames or 40, work=args.work or None, progress=not args.quiet):
+            print(json.dumps(row), flush=True)
     elif args.what == "active":
         from satloc_env.experiments.bench import bench_active
 
@@ -236,7 +241,7 @@ def cmd_bench(args) -> int:
     elif args.what == "vo":
         from satloc_env.experiments.bench import bench_vo
 
-        for row in bench_vo(args.scene or "residential", args.frames, args.work or None, args.kitti or None,
+        for row in bench_vo(args.scene or "residential", args.frames or 250, args.work or None, args.kitti or None,
                             progress=not args.quiet):
             print(json.dumps(row), flush=True)
     else:
@@ -338,7 +343,95 @@ def cmd_train_projection(args) -> int:
     return 0
 
 
+def _query_odometry(args, seq):
+    """--track's motion between the frames of ``seq``: stereo visual odometry, or the poses plus noise."""
+    from satloc.track import noisy_odometry
+
+    if args.odometry == "visual":
+        from satloc.vo import visual_odometry
+
+        return visual_odometry(seq, progress=not args.quiet)
+    if not np.all(np.isfinite(seq.poses)):
+        raise SatlocError(f"{args.queries}: --odometry noisy_truth simulates odometry from the frames' "
+                          "poses, and some frames have none")
+    return noisy_odometry(seq.poses, tuple(args.odometry_noise), args.odometry_seed)
+
+
+def cmd_localize_no_database(args) -> int:
+    from satloc.crossview import CrossViewConfig, localize_sequence
+    from satloc.satmap import SatelliteMap
+
+    if args.build:
+        raise SatlocError(f"--no-database localizes against the satellite map alone; it takes no build directory "
+                          f"(got {args.build!r})")
+    if not args.satellite:
+        raise SatlocError("--no-database needs --satellite: a satellite map directory (map.json inside) or a "
+                          "georeferenced image")
+    for flag in ("mode", "refine", "device"):
+        if getattr(args, flag):
+            raise SatlocError(f"--{flag} is an option of the database localizer, not of --no-database")
+    from satloc.datasets import open_sequence
+
+    seq = open_sequence(args.queries)   # a satloc sequence, a KITTI raw drive or a Malaga extract
+    sat = Path(args.satellite)
+    if (sat / "map.json").is_file():
+        satmap = SatelliteMap.load(sat)
+    elif sat.exists():
+        from satloc.geodata.georef import load_map
+
+        frame = seq.geo_frame
+        if frame is None:
+            raise SatlocError(f"{sat}: a georeferenced image needs the sequence's geo frame (its poses in a local "
+                              f"metric frame of the Earth); sequence {args.queries} has none: give a map directory")
+        xy = np.asarray(seq.poses, np.float64)[:, :2]
+        xy = xy[np.all(np.isfinite(xy), axis=1)]
+        if len(xy) == 0:
+            raise SatlocError(f"{args.queries}: no frame has a pose to take the map's region from")
+        m = (20.0 if args.radius is None else args.radius) + 60.0
+        satmap = load_map(sat, None, frame=frame, region=(float(xy[:, 0].min() - m), float(xy[:, 1].min() - m),
+                                                          float(xy[:, 0].max() + m), float(xy[:, 1].max() + m)))
+    else:
+        raise SatlocError(f"{sat}: satellite map not found")
+    roads = None
+    if args.roads:
+        from satloc.geodata.vectors import read_road_lines
+
+        roads = read_road_lines(args.roads)
+    cfg = _stage_config(CrossViewConfig, args.config, {})
+    odometry = _query_odometry(args, seq) if args.track else None
+    s = localize_sequence(seq, satmap, args.out or ".", args.prior or "truth",
+                          20.0 if args.radius is None else args.radius, 10.0 if args.yaw is None else args.yaw,
+                          0 if args.prior_seed is None else args.prior_seed, odometry, roads, cfg,
+                          progress=not args.quiet)
+    print(json.dumps(s))
+    return 0
+
+
+def cmd_train_crossview(args) -> int:
+    from satloc_env.experiments.train_crossview import train_crossview_scenes
+
+    cfg = _yaml_dict(args.config) if args.config else {}
+    if args.scenes:
+        cfg["scenes"] = list(args.scenes)
+    if args.frames is not None:
+        cfg["frames"] = args.frames
+    if args.epochs is not None:
+        cfg.setdefault("train", {})["epochs"] = args.epochs
+    log = (lambda m: None) if args.quiet else (lambda m: print(m, file=sys.stderr, flush=True))
+    s = train_crossview_scenes(args.out, cfg, progress=not args.quiet, log=log)
+    print(json.dumps({k: s[k] for k in ("trained_on", "frames", "best_epoch", "train_s")}
+                     | {"weights": str(Path(args.out) / "crossview.pt")}))
+    return 0
+
+
 def cmd_localize(args) -> int:
+    if args.no_database:
+        return cmd_localize_no_database(args)
+    if not args.build:
+        raise SatlocError("localize: give a build directory (satloc build), or --no-database --satellite MAP")
+    for flag in ("satellite", "roads", "prior", "radius", "yaw", "prior_seed"):
+        if getattr(args, flag) is not None:
+            raise SatlocError(f"--{flag.replace('_', '-')} is an option of --no-database")
     from satloc.localizer import LocalizerConfig
     from satloc.pipeline import localize
 
@@ -348,18 +441,9 @@ def cmd_localize(args) -> int:
     odometry, queries = None, args.queries
     if cfg.track:  # the motion between the sequence's frames: stereo visual odometry, or the poses plus noise
         from satloc.sequence import Sequence
-        from satloc.track import noisy_odometry
 
         seq = queries = Sequence.load(args.queries)
-        if args.odometry == "visual":
-            from satloc.vo import visual_odometry
-
-            odometry = visual_odometry(seq, progress=not args.quiet)
-        else:
-            if not np.all(np.isfinite(seq.poses)):
-                raise SatlocError(f"{args.queries}: --odometry noisy_truth simulates odometry from the frames' "
-                                  "poses, and some frames have none")
-            odometry = noisy_odometry(seq.poses, tuple(args.odometry_noise), args.odometry_seed)
+        odometry = _query_odometry(args, seq)
     s = localize(args.build, queries, cfg, args.out or args.build, progress=not args.quiet, odometry=odometry)
     s.pop("errors")
     print(json.dumps(s))
@@ -367,7 +451,10 @@ def cmd_localize(args) -> int:
 
 
 def build_parser() -> argparse.ArgumentParser:
+    from satloc import __version__
+
     p = argparse.ArgumentParser(prog="satloc", description=__doc__)
+    p.add_argument("--version", action="version", version=f"satloc {__version__}")
     sub = p.add_subparsers(dest="command", required=True)
 
     d = sub.add_parser("demo", help="record, build, learn, localize with GO/NP/full/full+align, tracked too, on the default scene; "
@@ -465,21 +552,22 @@ def build_parser() -> argparse.ArgumentParser:
     r.set_defaults(func=cmd_record)
 
     b = sub.add_parser("bench", help="print benchmark figures as JSON lines")
-    b.add_argument("what", choices=["env", "localize", "vo", "active", "osm"])
+    b.add_argument("what", choices=["env", "localize", "vo", "active", "osm", "crossview"])
     b.add_argument("--resolution", choices=["half", "full"], default="half")
     b.add_argument("--steps", type=int, default=2000, help="env: steps timed (of all cars together)")
     b.add_argument("--num-envs", type=int, nargs="+", default=[1],
                    help="env: cars stepped together, one run each (e.g. 1 8): 1 is the single environment, more the "
                         "batched vector environment (satloc_env.envs.vector)")
     b.add_argument("--scene", default=None, help="env: city; localize: loop (the longest route); vo: residential; "
-                                                 "active: the active map (active_grid)")
+                                                 "active: the active map (active_grid); crossview: city")
     b.add_argument("--episodes", type=int, default=20, help="active: episodes per agent")
     b.add_argument("--ways", type=int, nargs="+", default=[1000, 10000],
                    help="osm: sizes of the synthetic OpenStreetMap extracts loaded (ways)")
     b.add_argument("--sizes-km", type=float, nargs="+", default=[0.25, 1.0, 4.0], help="localize: database sizes")
     b.add_argument("--queries", type=int, default=40, help="localize: queries timed per size")
-    b.add_argument("--frames", type=int, default=250,
-                   help="vo: frames of the simulated drive (one per simulator step, 0.8 m at 8 m/s)")
+    b.add_argument("--frames", type=int, default=None,
+                   help="vo: frames of the simulated drive (one per simulator step, 0.8 m at 8 m/s; default 250); "
+                        "crossview: frames 5 m apart (default 40)")
     b.add_argument("--kitti", help="vo: a KITTI raw drive folder (default: the excerpt in ../shared/realdata)")
     b.add_argument("--work", help="localize, vo, osm: folder for recordings and builds (reused; default: a temp dir)")
     b.add_argument("--device", default="auto", help=f"localize: {DEVICE_HELP}")
@@ -503,8 +591,9 @@ def build_parser() -> argparse.ArgumentParser:
     tp.add_argument("--quiet", action="store_true")
     tp.set_defaults(func=cmd_train_projection)
 
-    lo = sub.add_parser("localize", help="localize the frames of a query sequence against a build")
-    lo.add_argument("build")
+    lo = sub.add_parser("localize", help="localize the frames of a query sequence against a build, or with "
+                                         "--no-database against a satellite map alone")
+    lo.add_argument("build", nargs="?", help="a build directory (satloc build); none with --no-database")
     lo.add_argument("--queries", required=True)
     lo.add_argument("--mode", choices=["full", "np", "go"], default=None)
     lo.add_argument("--refine", action="store_true", help="refine each estimate by bird's-eye alignment (satloc.align)")
@@ -516,11 +605,34 @@ def build_parser() -> argparse.ArgumentParser:
     lo.add_argument("--odometry-noise", type=float, nargs=2, default=[0.02, 0.01], metavar=("FRAC", "RAD"),
                     help="--odometry noisy_truth: noise std, fraction of the distance and radians per frame")
     lo.add_argument("--odometry-seed", type=int, default=0)
-    lo.add_argument("--out", help="where to write results (default: the build directory)")
+    lo.add_argument("--out", help="where to write results (default: the build directory; --no-database: the current one)")
     lo.add_argument("--device", default=None, help=f"{DEVICE_HELP}; the FCN of the query features")
-    lo.add_argument("--config", help="YAML with LocalizerConfig fields")
+    lo.add_argument("--config", help="YAML with LocalizerConfig fields (--no-database: CrossViewConfig fields)")
+    lo.add_argument("--no-database", action="store_true",
+                    help="localize with no database: each frame against --satellite within a prior (satloc.crossview)")
+    lo.add_argument("--satellite", help="--no-database: a satellite map directory or a georeferenced image (with a "
+                                        "sequence in a geo frame)")
+    lo.add_argument("--roads", help="--no-database: road centre lines (GeoJSON, GPKG, OSM ...) bounding where the "
+                                    "vehicle may be (default: the map's own road semantics)")
+    lo.add_argument("--prior", default=None, help="--no-database: 'truth' (default: a prior drawn around each "
+                    "frame's pose, a simulated GPS fix) or 'X,Y,YAW_DEG' (the first frame's; the rest tracked)")
+    lo.add_argument("--radius", type=float, default=None, help="--no-database: the prior's radius, metres (20)")
+    lo.add_argument("--yaw", type=float, default=None,
+                    help="--no-database: the prior's heading range, +- degrees (10)")
+    lo.add_argument("--prior-seed", type=int, default=None, help="--no-database --prior truth: the draws' seed (0)")
     lo.add_argument("--quiet", action="store_true")
     lo.set_defaults(func=cmd_localize)
+
+    tc = sub.add_parser("train-crossview", help="learn the cross-view projections W_g, W_s for localizing with no "
+                                               "database, on scenes other than the evaluation ones")
+    tc.add_argument("--scenes", nargs="+", default=None, help="training scenes (default: fcn_train/suburb_a, "
+                                                              "fcn_train/suburb_b, fcn_train/town_b)")
+    tc.add_argument("--out", required=True, help="folder for the recordings, crossview.pt and the learning curve")
+    tc.add_argument("--frames", type=int, default=None, help="frames per scene (default 120, 4 m apart)")
+    tc.add_argument("--epochs", type=int, default=None)
+    tc.add_argument("--config", help="YAML with TrainCrossConfig fields (scenes, frames, spacing_m, train: ...)")
+    tc.add_argument("--quiet", action="store_true")
+    tc.set_defaults(func=cmd_train_crossview)
 
     sub.add_parser("train-features", help="train the semantic/edge FCN on simulator renders (see its --help)")
 

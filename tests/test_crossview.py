@@ -122,4 +122,131 @@ def test_example_tracks_with_the_odometry_beside_the_recording(rec, tmp_path):
                        capture_output=True, text=True, timeout=600)
     assert r.returncode == 0, r.stderr
     last = r.stdout.strip().splitlines()[-1]
-    assert last.startswith("6 frames, tracked, prior +-20 m") and "within 1 m" in last
+    assert last.startswith("6 frames, tracked (fuse), prior +-20 m") and "within 1 m" in last
+
+
+def _true_odometry(poses):
+    """Each frame's motion since the previous one in the previous vehicle frame (row 0 NaN)."""
+    out = np.full((len(poses), 3), np.nan)
+    for k in range(1, len(poses)):
+        out[k] = Pose2(*poses[k - 1]).between(Pose2(*poses[k])).as_array()
+    return out
+
+
+def test_tracker_fuses_the_moved_answer_and_starts_again_after_unknown_motion(setup):
+    from satloc.crossview import CrossViewTracker, draw_prior, localize_frames
+
+    seq, cv = setup
+    truth = np.asarray(seq.poses)
+    priors = [draw_prior(t, 20.0, 10.0, np.random.default_rng([7, i])) for i, t in enumerate(truth)]
+    r = localize_frames(cv, list(seq), priors, _true_odometry(truth))
+    e = np.hypot(*(r["estimates"][:, :2] - truth[:, :2]).T)
+    # tracked with the true motion: every frame after the first within 1 m (measured: max about 0.5 m)
+    assert np.all(e[1:] < 1.0), np.round(e, 2)
+    assert r["top_probs"].shape == (len(seq), 32) and np.all(r["top_probs"].sum(1) <= 1 + 1e-6)
+    t = CrossViewTracker(cv)
+    t.pose = Pose2(*truth[0])
+    t.predict([1.0, 0.0, 0.0])
+    assert t.pose is not None and math.isclose(t.pose.x, truth[0, 0] + math.cos(truth[0, 2]), abs_tol=1e-9)
+    t.predict([float("nan"), 0.0, 0.0])   # an unknown motion: lost, the next frame searches its prior alone
+    assert t.pose is None
+
+
+def test_drivable_from_roads_and_parse_prior(setup):
+    from satloc.crossview import drivable_from_roads, parse_prior
+
+    _, cv = setup
+    sf = cv.satfeat
+    x0, y1 = sf.origin
+    mpp = sf.meters_per_pixel
+    line = np.array([[x0 + 10.0, y1 - 20.0], [x0 + 50.0, y1 - 20.0]])
+    m = drivable_from_roads([line], [6.0], sf, margin_m=1.0)
+    rows = np.flatnonzero(m[:, int(30.0 / mpp)])
+    # 6 m of road plus 1 m on each side: about 8 m of pixels across the line, centred on it
+    assert abs(len(rows) * mpp - 8.0) <= 2 * mpp and abs(rows.mean() * mpp - 20.0) <= mpp
+    with pytest.raises(ConfigError, match="no road line crosses"):
+        drivable_from_roads([line + 1e6], [6.0], sf)
+    p = parse_prior("10, 20, 90", radius_m=15.0)
+    assert (p.x, p.y, p.radius_m) == (10.0, 20.0, 15.0) and math.isclose(p.yaw, math.pi / 2)
+    with pytest.raises(ConfigError, match="X,Y,YAW_DEG"):
+        parse_prior("10,20")
+    with pytest.raises(ConfigError, match="prior.x: expected a finite number"):
+        parse_prior("nan,0,0")
+
+
+def test_cli_localizes_with_no_database(rec, tmp_path, capsys):
+    import json
+
+    from satloc.persist import load_npz
+    from satloc_env.cli import main
+
+    out = tmp_path / "cross"
+    args = ["localize", "--no-database", "--satellite", str(rec / "map"), "--queries", str(rec / "query"),
+            "--out", str(out), "--quiet"]
+    assert main(args) == 0
+    s = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    assert s["frames"] == 12 and s["answered"] == 12 and s["median_m"] < 1.0, s
+    a, meta = load_npz(out / "localization_cross.npz", "localization")
+    assert a["estimates"].shape == (12, 3) and np.all(a["priors"][:, 3] == 20.0) and meta["prior"] == "truth"
+    # the same seed: the same priors and answers
+    assert main(args + ["--out", str(tmp_path / "again")]) == 0
+    b, _ = load_npz(tmp_path / "again" / "localization_cross.npz", "localization")
+    assert np.array_equal(a["estimates"], b["estimates"])
+    capsys.readouterr()
+    # one prior for the first frame: the rest follow it with the odometry, so tracking is required
+    t = Sequence.load(rec / "query")[0].pose
+    first = f"{t.x + 8:.2f},{t.y - 5:.2f},{math.degrees(t.yaw) + 4:.2f}"
+    assert main(args[:-3] + ["--prior", first, "--out", str(tmp_path / "one"), "--quiet"]) == 2
+    assert "track (odometry) or give 'truth'" in capsys.readouterr().err
+    assert main(args[:-3] + ["--prior", first, "--track", "--odometry", "noisy_truth", "--out", str(tmp_path / "one"),
+                             "--quiet"]) == 0
+    s = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    assert s["tracked"] and s["answered"] >= 10 and s["median_m"] < 1.0, s
+    for bad, msg in ((["localize", "--no-database", "--queries", str(rec / "query")], "needs --satellite"),
+                     (["localize", "somebuild", "--no-database", "--satellite", str(rec / "map"), "--queries",
+                       str(rec / "query")], "takes no build directory"),
+                     (["localize", "--queries", str(rec / "query")], "give a build directory"),
+                     (args[:-3] + ["--prior", "1,2"], "X,Y,YAW_DEG"),
+                     (args[:-3] + ["--radius", "0"], "prior.radius_m")):
+        assert main(bad) == 2, bad
+        assert msg in capsys.readouterr().err, bad
+
+
+def test_env_localizer_cross(tmp_path, monkeypatch):
+    """SatLoc-v0 with localizer="cross": no database built, every step's info has the posterior and the error
+    of a localization from a GPS-like prior drawn from the episode's seed; the same seed, the same answers."""
+    import gymnasium as gym
+
+    import satloc_env  # noqa: F401
+
+    monkeypatch.setenv("SATLOC_CACHE", str(tmp_path / "cache"))
+    env = gym.make("satloc/SatLoc-v0", localizer="cross", localizer_track=True, localize_every=2, max_steps=20)
+    runs = []
+    for _ in range(2):
+        obs, info = env.reset(seed=5)
+        est = [info["estimate"].copy()]
+        errs = [info["error_m"]]
+        for _ in range(4):
+            obs, _, _, _, info = env.step(env.unwrapped.autopilot_action())
+            est.append(info["estimate"].copy())
+            errs.append(info["error_m"])
+        runs.append(np.array(est))
+        assert info["posterior_probs"].shape == (32,) and 0 < info["posterior_probs"].sum() <= 1 + 1e-6
+    assert np.array_equal(runs[0], runs[1])
+    # measured: about 0.4 m on every step
+    assert max(errs) < 1.5, errs
+    assert list((tmp_path / "cache" / "cross").glob("satellite_features-*.npz"))   # the map's features, cached
+    # the priors' generator takes nothing from the episode's other draws: the revisit change and the drift of a
+    # second, unseeded episode are those of the same env with no localizer
+    plain = gym.make("satloc/SatLoc-v0", localizer=None, change=0.5, max_steps=20)
+    seeds = []
+    for e in (env, plain):
+        e.reset(seed=9, options={"change": 0.5})
+        e.reset(options={"change": 0.5})
+        seeds.append((e.unwrapped.change_seed, e.unwrapped.wander_seed))
+    assert seeds[0] == seeds[1] and seeds[0][0] is not None
+    env.close(), plain.close()
+    with pytest.raises(ConfigError, match="prior.radius_m"):
+        gym.make("satloc/SatLoc-v0", localizer="cross", prior_radius_m=0.0)
+    with pytest.raises(ConfigError, match="localizer_refine"):
+        gym.make("satloc/SatLoc-v0", localizer="cross", localizer_refine=True)

@@ -17,8 +17,9 @@ def test_ids_registered():
 
 @pytest.mark.parametrize("env_id", IDS)
 def test_check_env(env_id):
-    # localizer=None: this checks the driving env's API; the default localizer="auto" would build the scene's
-    # localizer cache (minutes). tests/test_env_localizer.py runs check_env with a small localizer.
+    # localizer=None: this checks the driving env's API; the default localizer="cross" would localize every
+    # step, "auto" build the scene's localizer cache (minutes). tests/test_env_localizer.py runs check_env with
+    # a small localizer.
     env = gym.make(env_id, scene="city", depth=True, labels=True, localizer=None)
     check_env(env.unwrapped, skip_render_check=True)
     env.close()

@@ -226,7 +226,7 @@ def test_build_dir_path_and_auto(build_dir, tmp_path, monkeypatch):
     entry.parent.mkdir()
     entry.symlink_to(build_dir, target_is_directory=True)
     monkeypatch.setattr(autoloc, "_build_entry", lambda *a, **k: pytest.fail("cache hit expected"))
-    auto = gym.make(ID, scene="city", localizer_mode="go")  # localizer="auto" is the default
+    auto = gym.make(ID, scene="city", localizer="auto", localizer_mode="go")
     assert auto.unwrapped.config.localizer == "auto" and auto.unwrapped.localizer is None  # resolved at reset
     _, info = auto.reset(seed=0)
     check_info(info, k=LocalizerConfig().posterior_k)

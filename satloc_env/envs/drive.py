@@ -6,8 +6,8 @@ keyword to ``gymnasium.make`` and the per-episode ones (see :data:`EPISODE_KEYS`
 actions that are not 2 finite numbers raise :class:`ActionError` (a ValueError), finite ones are clipped to
 the action space (see :class:`SatLocEnv`).
 
-With a localizer (``localizer=``: ``"auto"``, the default, a build directory or a
-:class:`satloc.localizer.Localizer`), every ``localize_every`` steps the stereo pair the agent sees is
+With a localizer (``localizer=``: ``"cross"``, the default, no database; ``"auto"``, the paper's method built
+from the scene's database pass; a build directory or a :class:`satloc.localizer.Localizer`), every ``localize_every`` steps the stereo pair the agent sees is
 localized against the satellite map and the result goes into ``info`` (see :class:`SatLocEnv`).
 """
 from __future__ import annotations
@@ -82,14 +82,18 @@ class EnvConfig:
                                             # ground (satloc_env.world.capture); None: the scene's; fixed when made
     anisotropy: int = 1                     # >1: anisotropic texture filtering (sharper far ground, ~4x slower on llvmpipe)
     zfar_m: float = 150.0
-    localizer: str | None = "auto"          # None/"none": off; "auto": cached build of the scene's database
-                                            # pass (satloc_env.envs.auto_localizer); else a build directory; a Localizer
+    localizer: str | None = "cross"         # None/"none": off; "cross": no database, the satellite map alone
+                                            # from a GPS-like prior (satloc_env.envs.cross_localizer); "auto": the
+                                            # paper's method, a cached build of the scene's database pass
+                                            # (satloc_env.envs.auto_localizer); else a build directory; a Localizer
                                             # instance given as the keyword is stored here as "<instance>"
     localizer_mode: Literal["full", "np", "go"] = "full"   # for "auto" / a build directory
     localizer_refine: bool = False          # for "auto" / a build directory: bird's-eye alignment (satloc.align)
     localizer_track: bool = False           # fuse each localization into a belief moved by the odometry
                                             # observations (satloc.track); a new episode starts a new belief
     localize_every: int = 1                 # localize at the steps that are multiples of this (reset: step 0)
+    prior_radius_m: float = 20.0            # "cross": each localization's prior, drawn around the true pose as a
+    prior_yaw_deg: float = 10.0             # GPS fix gives it: within this radius and heading range
     reward: Literal["none", "neg_error"] = "none"  # neg_error: minus the localization error (metres)
 
     def __post_init__(self):
@@ -110,6 +114,9 @@ class EnvConfig:
             v = getattr(self, k)
             if v is not None and not 0.0 <= v <= 1.0:   # False for NaN
                 raise ConfigError(f"{k}: expected a value in [0, 1] (or None: the scene's), got {v}")
+        from satloc.crossview import Prior
+
+        Prior(0.0, 0.0, 0.0, self.prior_radius_m, self.prior_yaw_deg)   # a prior's checks, naming the field
         for k in ("max_steps", "anisotropy", "localize_every"):
             if getattr(self, k) < 1:
                 raise ConfigError(f"{k}: expected an integer >= 1, got {getattr(self, k)}")
@@ -141,6 +148,9 @@ class ActionError(ValueError):
     """An action the environment cannot apply (wrong shape or type, NaN or inf); the message says what was
     expected. A ValueError, as gymnasium's own checks raise for bad actions."""
 
+
+#: the spawn key of the seed sequence the GPS-like priors of ``localizer="cross"`` are drawn from
+PRIOR_SPAWN_KEY = 104729
 
 #: the value of ``EnvConfig.localizer`` when a :class:`satloc.localizer.Localizer` instance was passed.
 LOCALIZER_INSTANCE = "<instance>"
@@ -246,10 +256,12 @@ def check_reset_options(options: Any, episode_keys: frozenset, cls: type) -> dic
     return options
 
 
-def check_localizer_config(cfg, have_instance: bool, allow_auto: bool = True):
+def check_localizer_config(cfg, have_instance: bool, allow_auto: bool = True, allow_cross: bool | None = None):
     """``cfg`` (an env config dataclass with the fields ``localizer``, ``localizer_track``, ``localize_every`` and
     ``reward``) with ``localizer`` normalised ("none" -> None, a build directory -> its path); raises
-    :class:`ConfigError` for a bad combination."""
+    :class:`ConfigError` for a bad combination. ``allow_cross`` (default: ``allow_auto``): whether ``"cross"``
+    (:mod:`satloc_env.envs.cross_localizer`) is allowed."""
+    allow_cross = allow_auto if allow_cross is None else allow_cross
     loc = cfg.localizer
     if loc is not None and loc.strip().lower() == "none":
         cfg = dataclasses.replace(cfg, localizer=None)
@@ -260,12 +272,19 @@ def check_localizer_config(cfg, have_instance: bool, allow_auto: bool = True):
     if loc == "auto" and not allow_auto:
         raise ConfigError("localizer: 'auto' builds a localizer from a simulated scene's database pass, which a "
                           "replay has not; expected None, 'none', a build directory or a satloc.localizer.Localizer")
-    if loc not in (None, "auto", LOCALIZER_INSTANCE):
+    if loc == "cross" and not allow_cross:
+        raise ConfigError("localizer: 'cross' localizes from a prior drawn around the true pose, which this "
+                          "environment has not; expected None, 'none', a build directory or a satloc.localizer.Localizer")
+    if loc == "cross" and getattr(cfg, "localizer_refine", False):
+        raise ConfigError("localizer_refine: the 'cross' localizer aligns the bird's-eye view already; refinement "
+                          "is an option of 'auto' and build directories")
+    if loc not in (None, "auto", "cross", LOCALIZER_INSTANCE):
         p = Path(loc).expanduser()
         if not (p / "build.json").is_file():
             auto = " 'auto'," if allow_auto else ""
             raise ConfigError(f"localizer: {loc!r} is not a build directory (no build.json); expected None, "
-                              f"'none',{auto} a directory written by `satloc build` or a satloc.localizer.Localizer")
+                              f"'none',{auto}{' cross,' if allow_cross else ''} a directory written by `satloc build` "
+                              "or a satloc.localizer.Localizer")
         cfg = dataclasses.replace(cfg, localizer=str(p))
     if cfg.localizer_track and loc is None:
         raise ConfigError("localizer_track: tracking needs a localizer (localizer is None)")
@@ -412,6 +431,11 @@ class LocalizationState:
         return self.arrays is not None
 
     @property
+    def needs_prior(self) -> bool:
+        """A localizer with no database (``localizer="cross"``) starts each localization from a prior."""
+        return getattr(self.localizer, "needs_prior", False)
+
+    @property
     def needs_frame_depth(self) -> bool:
         """A localizer configured with ``depth_source="frame"`` reads the depth stored in the frame."""
         return self.localizer is not None and getattr(self.localizer.config, "depth_source", "stereo") == "frame"
@@ -424,7 +448,9 @@ class LocalizationState:
         elif self.motion_known:
             self.odo_since = compose_motion(self.odo_since, o)
 
-    def localize(self, frame: Frame, step: int) -> None:
+    def localize(self, frame: Frame, step: int, prior=None) -> None:
+        """``prior``: where the vehicle is believed to be (a :class:`satloc.crossview.Prior`), for a localizer
+        that needs one (``needs_prior``: ``localizer="cross"``)."""
         loc = self.localizer
         if loc is None:
             return
@@ -440,7 +466,8 @@ class LocalizationState:
                 tracker.reset()                   # moved by an unknown amount: start a new belief
             self.odo_since, self.motion_known = np.zeros(3), True
         try:
-            r = loc.localize(frame, tracker=tracker)
+            r = (loc.localize(frame, tracker=tracker, prior=prior) if self.needs_prior else
+                 loc.localize(frame, tracker=tracker))
         except ConfigError as e:  # no grid sample with valid depth (e.g. a wall fills the view): no result
             self.error = str(e)
             self.arrays = {"estimate": np.full(3, np.nan), "posterior_poses": np.zeros((k, 3)),
@@ -541,7 +568,11 @@ class SatLocEnv(SharedSpecMixin, gym.Env):
     ``info``: ``pose`` (x, y, yaw), ``odometry_true``, ``route_s``, ``off_road``, ``route_complete``,
     ``step`` - all fixed-shape numpy values.
 
-    Localization (``localizer`` not None / ``"none"``). ``localizer`` is ``"auto"`` (default: a localizer
+    Localization (``localizer`` not None / ``"none"``). ``localizer`` is ``"cross"`` (the default: no database,
+    the scene's satellite map alone, each localization from a prior drawn around the true pose within
+    ``prior_radius_m`` / ``prior_yaw_deg`` as a GPS fix gives it, :mod:`satloc_env.envs.cross_localizer`; the
+    first use of a scene costs seconds; the posterior's candidates are positions and headings within the prior,
+    ``inlier_score`` its best correlation), ``"auto"`` (the paper's method: a localizer
     built from the scene's database pass, cached on disk by :mod:`satloc_env.envs.auto_localizer`; the first use of a
     scene costs minutes), a build directory of ``satloc build`` + ``satloc train-projection`` (loaded in mode
     ``localizer_mode``), or a :class:`satloc.localizer.Localizer` given as the ``localizer`` keyword (its own
@@ -560,7 +591,8 @@ class SatLocEnv(SharedSpecMixin, gym.Env):
     * ``localized_step`` int64: the step the result was computed at.
 
     With ``localizer_track`` each localization is fused into a belief over the candidate poses that the
-    odometry observations move between localizations (:mod:`satloc.track`): the posterior, estimate and
+    odometry observations move between localizations (:mod:`satloc.track`; ``"cross"``: the previous answer
+    moved by them, :class:`satloc.crossview.CrossViewTracker`): the posterior, estimate and
     error are then the tracked ones. The belief starts again at every reset. A Localizer instance whose
     ``config.track`` is set is tracked too.
 
@@ -634,7 +666,7 @@ class SatLocEnv(SharedSpecMixin, gym.Env):
             self.config = dataclasses.replace(self.config, localizer_mode=instance.config.mode,
                                               localizer_refine=instance.config.refine,
                                               localizer_track=self.config.localizer_track or instance.config.track)
-        elif self.config.localizer not in (None, "auto"):
+        elif self.config.localizer not in (None, "auto", "cross"):
             from .auto_localizer import load_cached_localizer
 
             self.localizer = load_cached_localizer(self.config.localizer, self.config.localizer_mode,
@@ -735,6 +767,12 @@ class SatLocEnv(SharedSpecMixin, gym.Env):
                                             refine=cfg.localizer_refine, satellite_gap=cfg.satellite_gap)
             self._loc_identity = {"source": f"the auto localizer of scene {scene.name!r}"}
             self._check_localizer_camera()
+        elif self.config.localizer == "cross":
+            from .cross_localizer import CrossEnvConfig, cross_localizer
+
+            self.localizer = cross_localizer(scene.satmap, self.camera, key,
+                                             CrossEnvConfig(track=self.config.localizer_track))
+            self._loc_identity = {"source": f"the cross-view localizer of scene {scene.name!r}"}
         elif self.localizer is not None:
             self._check_localizer_map(scene)
         self._scene, self._scene_key = scene, key
@@ -797,6 +835,14 @@ class SatLocEnv(SharedSpecMixin, gym.Env):
         self.appearance = Appearance(app, rng)
         self.steps = 0
         self._loc.reset()                      # tracking (localizer_track): a new belief each episode
+        # "cross": the GPS-like priors, from a child of the episode's seed sequence with a spawn key of its own and
+        # the episode's number since the last seeded reset (spawning would move the other children's counter)
+        self._episodes_since_seed = 0 if seed is not None else getattr(self, "_episodes_since_seed", -1) + 1
+        self._prior_rng = None
+        if self._loc.needs_prior:
+            ss = self.np_random.bit_generator.seed_seq
+            self._prior_rng = np.random.default_rng(np.random.SeedSequence(
+                ss.entropy, spawn_key=tuple(ss.spawn_key) + (PRIOR_SPAWN_KEY, self._episodes_since_seed)))
         obs = self._observe(np.zeros(3, np.float32))
         self._vo = None
         if cfg.odometry == "visual":           # its first pair: the reference of the first step's motion
@@ -911,7 +957,13 @@ class SatLocEnv(SharedSpecMixin, gym.Env):
         """Localize the last observed stereo pair; keeps the result for ``info`` and ``render``."""
         if self.localizer is None:
             return
-        self._loc.localize(self._frame(), self.steps)
+        prior = None
+        if self._loc.needs_prior:
+            from satloc.crossview import draw_prior
+
+            cfg = self._episode
+            prior = draw_prior(self.pose, cfg.prior_radius_m, cfg.prior_yaw_deg, self._prior_rng)
+        self._loc.localize(self._frame(), self.steps, prior)
 
     def _frame(self) -> Frame:
         """The last observed stereo pair as the localizer's query frame."""

@@ -80,7 +80,7 @@ from satloc.errors import ConfigError, SatlocWarning
 from satloc.geodata.radiometry import Radiometry
 from satloc.geoframe import GeoFrame
 from satloc.geometry import StereoCamera, arc_length, wrap_angle
-from satloc.persist import atomic_dir, atomic_path
+from satloc.persist import atomic_dir, atomic_path, write_json
 from satloc.projection import ProjectionConfig
 from satloc.satmap import SatelliteMap
 from satloc.sequence import Sequence
@@ -88,6 +88,7 @@ from satloc.sequence import Sequence
 from .scene_run import (
     METHOD_NAMES,
     MODES,
+    CrossAreaConfig,
     _stage_done,
     _stamp,
     build_and_learn,
@@ -142,6 +143,10 @@ class EvaluateConfig:
     odometry_seed: int = 0
     kitti: KittiOptions = field(default_factory=KittiOptions)
     malaga: MalagaConfig = field(default_factory=MalagaConfig)
+    # also localize the same queries with no database (satloc.crossview), each from a prior drawn around its
+    # pose (the OXTS / GPS fix) within cross_area.prior_radius_m, single and tracked by the same odometry
+    no_database: bool = False
+    cross_area: CrossAreaConfig = field(default_factory=CrossAreaConfig)
 
     def __post_init__(self):
         if self.resolution not in RESOLUTIONS:
@@ -420,6 +425,18 @@ def evaluate(database: str | Path, satellite: str | Path, out: str | Path, confi
                                                      "frames_without_lidar", "frames_without_ground", "lidar",
                                                      "reused")}
     summary = localize_and_report(cfg, name, db, q, sel, bdir, sm, out, head, times, progress, log, odo)
+    if cfg.no_database:   # the same queries against the satellite map alone, from priors around their poses
+        from .cross_area import CROSS_NAMES, run_cross
+
+        t = time.perf_counter()
+        codo = odo if odo is not None else tracked_odometry(cfg, parent, in_parent[sel], out / "odometry_visual.npz")
+        res = run_cross(q, sel, cfg.cross_area, codo, cfg.odometry, out / "cross_area", db.poses, name, sm, None,
+                        progress, log)
+        summary["no_database"] = {row: {k: v for k, v in m.items() if not isinstance(v, np.ndarray)}
+                                  for row, m in res.items()}
+        summary["no_database_names"] = dict(CROSS_NAMES)
+        times["no_database_s"] = time.perf_counter() - t
+        write_json(out / "summary.json", summary)
     write_results(out, summary, f"{name} [{LIDAR_MOSAIC} self-check]" if mosaic else name)
     return summary
 
@@ -428,6 +445,10 @@ def result_rows(summary: dict, sequence: str) -> list[dict]:
     rows = []
     for mode, m in summary["modes"].items():
         rows.append({"method": METHOD_NAMES[mode], "sequence": sequence, "mean_m": m["mean_m"], "std_m": m["std_m"],
+                     "median_m": m["median_m"], "within_1m": m["within_1m"], "queries": m["queries"]})
+    names = summary.get("no_database_names", {})
+    for row, m in summary.get("no_database", {}).items():
+        rows.append({"method": names.get(row, row), "sequence": sequence, "mean_m": m["mean_m"], "std_m": m["std_m"],
                      "median_m": m["median_m"], "within_1m": m["within_1m"], "queries": m["queries"]})
     return rows
 

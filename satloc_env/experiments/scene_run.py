@@ -34,6 +34,7 @@ import numpy as np
 from satloc.baselines import EfmConfig, FabMapConfig
 from satloc.config import added_field, from_dict, to_dict
 from satloc.context import ContextConfig
+from satloc.crossview import CrossViewConfig, Prior
 from satloc.errors import ConfigError, FormatError
 from satloc.geometry import Pose2, wrap_angle
 from satloc.localizer import Localization, LocalizerConfig
@@ -104,7 +105,23 @@ class CompareConfig:
         return "residential" if scene_label(test_scene) == "city" else "city"
 
 
-PROTOCOLS = ("revisit", "city", "residential")
+@dataclass
+class CrossAreaConfig:
+    """Table I's ``cross-area`` protocol (:mod:`satloc_env.experiments.cross_area`): the revisit queries localized
+    with no database (:mod:`satloc.crossview`), each from a prior drawn around its true pose (seeded per query)."""
+
+    prior_radius_m: float = 20.0
+    prior_yaw_deg: float = 10.0
+    seed: int = 0
+    crossview: CrossViewConfig = field(default_factory=CrossViewConfig)
+
+    def __post_init__(self):
+        Prior(0.0, 0.0, 0.0, self.prior_radius_m, self.prior_yaw_deg)   # the same checks as a prior's
+
+
+PROTOCOLS = ("revisit", "city", "residential", "cross-area")
+#: the protocols a Table I configuration runs by default (cross-area: satloc_env.experiments.cross_area)
+DEFAULT_PROTOCOLS = ("revisit", "city", "residential")
 #: odometry sources of the tracked modes: ``visual``, stereo visual odometry of the recorded frames
 #: (satloc.vo: the passes are recorded a frame every DENSE_SPACING_M metres and the queries taken from them as
 #: far apart as the pass asks, spaced_frames; the odometry between two queries composed over the frames between
@@ -147,10 +164,11 @@ class ExperimentConfig:
     # table1: the protocols (revisit: the query pass above; city: a seeded random ``city_database_fraction`` of
     # the database pass is the database, the rest the queries; residential: the database pass and a second
     # pass, both one frame every speed x 1 s), and the baselines run beside the modes
-    protocols: tuple[str, ...] = PROTOCOLS
+    protocols: tuple[str, ...] = DEFAULT_PROTOCOLS
     city_database_fraction: float = 0.4
     split_seed: int = 0
     compare: CompareConfig = field(default_factory=CompareConfig)
+    cross_area: CrossAreaConfig = field(default_factory=CrossAreaConfig)
     pictures: bool = True                   # draw errors_along_route.png and a few posteriors per mode
 
     def __post_init__(self):
@@ -213,14 +231,16 @@ def covered_queries(db: Sequence, q: Sequence, radius_m: float) -> np.ndarray:
 
 def record_config(cfg: ExperimentConfig) -> RecordConfig:
     """The recording of an experiment's scene: the database pass and the revisit (query) pass (recorded
-    densely for visual odometry: :func:`dense_pass`)."""
+    densely for visual odometry, :func:`dense_pass`, where a tracked mode or the ``cross-area`` protocol's
+    tracked row needs it)."""
     wander = {"wander_m": cfg.wander_m, "speed_wander": cfg.speed_wander}
     return RecordConfig(scene=cfg.scene, aliasing=cfg.aliasing, satellite_gap=cfg.satellite_gap,
                         database=PassConfig(max_frames=cfg.database_frames, **wander),
                         query=dense_pass(cfg, PassConfig(lane_offset_m=cfg.query_lane_m, spacing_m=cfg.query_spacing_m,
                                                          occlusion=cfg.occlusion, appearance=cfg.appearance,
                                                          change=cfg.change, seed=1, max_frames=cfg.query_frames,
-                                                         **wander)))
+                                                         **wander),
+                                         tracked=is_tracked(cfg) or "cross-area" in cfg.protocols))
 
 
 def is_tracked(cfg) -> bool:
@@ -228,11 +248,12 @@ def is_tracked(cfg) -> bool:
     return any("track" in m.split("+") for m in getattr(cfg, "modes", ()))
 
 
-def dense_pass(cfg, p: PassConfig) -> PassConfig:
-    """A query pass as recorded: where tracked modes use ``cfg.odometry == "visual"``, a frame every
-    :data:`DENSE_SPACING_M` metres (the queries are then the frames ``p.spacing_m`` apart,
-    :func:`spaced_frames`; ``max_frames`` scaled to cover as much), else ``p`` itself."""
-    if (not is_tracked(cfg) or getattr(cfg, "odometry", "noisy_truth") != "visual"
+def dense_pass(cfg, p: PassConfig, tracked: bool | None = None) -> PassConfig:
+    """A query pass as recorded: where tracked modes (``tracked``, default :func:`is_tracked`) use
+    ``cfg.odometry == "visual"``, a frame every :data:`DENSE_SPACING_M` metres (the queries are then the frames
+    ``p.spacing_m`` apart, :func:`spaced_frames`; ``max_frames`` scaled to cover as much), else ``p`` itself."""
+    tracked = is_tracked(cfg) if tracked is None else tracked
+    if (not tracked or getattr(cfg, "odometry", "noisy_truth") != "visual"
             or p.spacing_m <= DENSE_SPACING_M):
         return p
     k = max(1, int(round(p.spacing_m / DENSE_SPACING_M)))

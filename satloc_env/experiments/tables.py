@@ -41,9 +41,9 @@ import numpy as np
 
 from satloc.baselines import Efm, FabMap
 from satloc.config import from_dict, to_dict
-from satloc.errors import ConfigError
+from satloc.errors import ConfigError, FormatError
 from satloc.metrics import ci_method, pr_curve, precision_recall, precision_recall_ci, select_threshold
-from satloc.persist import atomic_path, load_npz, read_json, save_npz, write_json
+from satloc.persist import atomic_path, header, load_npz, read_json, save_npz, write_json
 from satloc.satmap import SatelliteMap
 from satloc.sequence import Sequence
 from satloc_env.envs.record import (
@@ -58,6 +58,7 @@ from satloc_env.envs.record import (
 from satloc_env.world.capture import DEFAULT_GAP
 from satloc_env.world.scene import load_scene
 
+from .cross_area import CROSS_NAMES, cross_area, cross_area_rows, write_cross_area
 from .scale import Runner, Unit
 from .scene_run import (  # noqa: F401
     BASELINE_NAMES,
@@ -88,8 +89,9 @@ from .scene_run import (  # noqa: F401
 
 
 def method_name(method: str) -> str:
-    """Display name of a mode of :data:`satloc_env.experiments.scene_run.METHOD_NAMES` or a baseline."""
-    return BASELINE_NAMES.get(method) or METHOD_NAMES[method]
+    """Display name of a mode of :data:`satloc_env.experiments.scene_run.METHOD_NAMES`, a baseline or a row of
+    the cross-area protocol."""
+    return BASELINE_NAMES.get(method) or CROSS_NAMES.get(method) or METHOD_NAMES[method]
 
 
 def trained_fabmap(cc: CompareConfig, test_scene: str, out: Path, progress: bool = True, log=print) -> Path:
@@ -916,6 +918,8 @@ def _table1_unit(cfg: ExperimentConfig, label: str, sdir: Path, protocol: str, t
     """One protocol of Table I on a scene whose shared stages are done (:func:`_stages_unit`, FAB-MAP's
     training): ``revisit`` in ``sdir``, the others in ``sdir/protocol_<name>`` (:func:`_protocol`);
     :func:`compare`'s results."""
+    if protocol == "cross-area":
+        return cross_area(cfg, label, sdir, progress, log)
     db = Sequence.load(sdir / "rec" / "database")
     if protocol != "revisit":
         return _protocol(cfg, protocol, label, sdir, db, read_json(sdir / "record.json")["config"], progress, log)
@@ -925,12 +929,33 @@ def _table1_unit(cfg: ExperimentConfig, label: str, sdir: Path, protocol: str, t
                    progress, log)
 
 
+def _kept_rows(out: Path, ran: set, log=print) -> list[dict]:
+    """The rows of an earlier ``out/table1.json`` whose (scene, protocol) this run did not redo, so that a run
+    of some protocols (say ``protocols: [cross-area]`` on a finished table) adds its rows instead of dropping
+    the others; a damaged or foreign file keeps nothing."""
+    try:
+        old = read_json(out / "table1.json")
+        old = old["rows"] if old.get("format") == "table1" else []
+    except (OSError, FormatError, KeyError, ValueError, AttributeError):
+        return []
+    kept = [r for r in old if isinstance(r, dict) and (r.get("scene"), r.get("protocol")) not in ran
+            and all(c in r for c in TABLE1_COLUMNS)]
+    if kept:
+        log(f"table1: keeping {len(kept)} rows of {out / 'table1.json'} (scenes x protocols not run now: "
+            + ", ".join(sorted({f"{r['scene']} {r['protocol']}" for r in kept})) + ")")
+    return kept
+
+
 def table1(out: str | Path, scenes: tuple[str, ...] = ("city", "residential"), config: dict | None = None,
            progress: bool = True, log=print, runner: Runner | None = None) -> list[dict]:
     """Every method (the modes and the baselines of ``compare``) under each protocol of ``protocols`` on each
     scene: ``revisit`` in ``out/<scene>`` (as :func:`run_scene`, same stages), ``city`` and ``residential`` in
     ``out/<scene>/protocol_<name>`` (see :func:`protocol_split`). Writes ``table1.csv``
     (method,scene,mean_m,std_m,protocol), ``table1.md`` and ``table1.json`` into ``out``; returns the rows.
+    With ``cross-area`` among the protocols (:mod:`satloc_env.experiments.cross_area`) also ``cross_area.csv``
+    and ``cross_area.md``: its rows beside every method localized on the same queries. Rows of an earlier
+    ``table1.json`` in ``out`` for scenes x protocols not run this time are kept in the files
+    (:func:`_kept_rows`); the rows returned are this run's.
 
     Units (``runner``, :mod:`satloc_env.experiments.scale`): each scene's shared stages (recording, build:
     :func:`_stages_unit`) and FAB-MAP's training, then each scene x protocol (:func:`_table1_unit`)."""
@@ -957,13 +982,20 @@ def table1(out: str | Path, scenes: tuple[str, ...] = ("city", "residential"), c
                                                         "within_10m", "failure_rate", "ci95_low", "ci95_high")},
                          "queries": m["queries"], "s_per_query": round(m["s_per_query"], 4),
                          "odometry": odometry_label(cfgs[i], method), "ci_method": m.get("ci_method", "")})
+    table = _kept_rows(out, {(labels[i], p) for i, p in jobs}, log) + rows
     with atomic_path(out / "table1.csv", suffix=".csv") as tmp:
         with open(tmp, "w", newline="") as f:
             w = csv.writer(f)
             w.writerow(TABLE1_COLUMNS)
-            for r in rows:
+            for r in table:
                 w.writerow([f"{r[c]:.3f}" if isinstance(r[c], float) else r[c] for c in TABLE1_COLUMNS])
-    write_json(out / "table1.json", {"format": "table1", "rows": rows})
+    write_json(out / "table1.json", dict(header("table1"), rows=table))
     with atomic_path(out / "table1.md", suffix=".md") as tmp:
-        tmp.write_text(markdown_table(rows))
+        tmp.write_text(markdown_table(table))
+    cross = [i for i, c in enumerate(cfgs) if "cross-area" in c.protocols]
+    if cross:   # the no-database rows beside every method localized on the same (revisit) queries
+        ca = cfgs[cross[0]].cross_area
+        write_cross_area(out, [r for i in cross for r in cross_area_rows(out / labels[i], labels[i])],
+                         f"the no-database rows from a +-{ca.prior_radius_m:g} m / +-{ca.prior_yaw_deg:g} degree "
+                         f"prior drawn per query (seed {ca.seed})")
     return rows
