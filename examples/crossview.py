@@ -35,6 +35,7 @@ from satloc.errors import ConfigError, run_script
 from satloc.features import make_extractor
 from satloc.metrics import pose_errors
 from satloc.satmap import SatelliteMap
+from satloc.track import compose_motion
 
 
 def main(argv=None):
@@ -82,10 +83,9 @@ def main(argv=None):
         steps = np.load(path, allow_pickle=False)["steps"]
         odo = np.full((len(idx), 3), np.nan)
         for k in range(1, len(idx)):   # the odometry between consecutive evaluated frames, composed
-            x = y = th = 0.0
-            for dx, dy, dth in steps[idx[k - 1] + 1:idx[k] + 1]:
-                x, y, th = x + math.cos(th) * dx - math.sin(th) * dy, y + math.sin(th) * dx + math.cos(th) * dy, th + dth
-            odo[k] = (x, y, th)
+            odo[k] = np.zeros(3)
+            for step in steps[idx[k - 1] + 1:idx[k] + 1]:
+                odo[k] = compose_motion(odo[k], step)
     r = localize_frames(cv, (seq[int(i)] for i in idx), priors, odo, top=cfg.top_k if a.temperatures else 32)
     pe = pose_errors(r["estimates"], truth)
     for k, i in enumerate(idx):

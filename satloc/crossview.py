@@ -32,6 +32,7 @@ answer or after an unknown motion, the prior alone is searched. :func:`localize_
 from __future__ import annotations
 
 import math
+import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -158,11 +159,16 @@ def drivable_from_features(satfeat: SatelliteFeatures, min_prob: float = 0.5, ma
         raise ConfigError(f"crossview.drivable 'semantic' needs the default features (RGB, edge and {NUM_CLASSES} "
                           f"class probabilities), got {f.shape[2]} channels; use drivable: none")
     p = sum(f[..., 4 + c].astype(np.float32) for c in DRIVABLE)
-    mask = (p >= min_prob).astype(np.uint8)
-    r = int(round(margin_m / satfeat.meters_per_pixel))
+    return _grown(p >= min_prob, margin_m, satfeat.meters_per_pixel)
+
+
+def _grown(mask: np.ndarray, margin_m: float, meters_per_pixel: float) -> np.ndarray:
+    """(H, W) bool ``mask`` grown by ``margin_m`` (a disc)."""
+    m = mask.astype(np.uint8)
+    r = int(round(margin_m / meters_per_pixel))
     if r > 0:
-        mask = cv2.dilate(mask, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * r + 1, 2 * r + 1)))
-    return mask.astype(bool)
+        m = cv2.dilate(m, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * r + 1, 2 * r + 1)))
+    return m.astype(bool)
 
 
 def drivable_from_labels(labels: np.ndarray, satfeat: SatelliteFeatures, margin_m: float = 1.0) -> np.ndarray:
@@ -173,13 +179,10 @@ def drivable_from_labels(labels: np.ndarray, satfeat: SatelliteFeatures, margin_
     if lab.shape != satfeat.features.shape[:2]:
         raise ConfigError(f"crossview.drivable 'labels': the label raster is {lab.shape}, the map "
                           f"{satfeat.features.shape[:2]}")
-    mask = np.isin(lab, DRIVABLE).astype(np.uint8)
+    mask = np.isin(lab, DRIVABLE)
     if not mask.any():
         raise ConfigError("crossview.drivable 'labels': the map's labels hold no road, lane marking or parking")
-    r = int(round(margin_m / satfeat.meters_per_pixel))
-    if r > 0:
-        mask = cv2.dilate(mask, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * r + 1, 2 * r + 1)))
-    return mask.astype(bool)
+    return _grown(mask, margin_m, satfeat.meters_per_pixel)
 
 
 def drivable_from_roads(lines, widths, satfeat: SatelliteFeatures, margin_m: float = 1.0) -> np.ndarray:
@@ -382,31 +385,37 @@ class CrossViewTracker:
 
 
 def localize_frames(localizer: CrossViewLocalizer, frames, priors, odometry=None, progress: bool = False,
-                    top: int = 32) -> dict:
+                    top: int = 32, follow: tuple[float, float] | None = None) -> dict:
     """Localize ``frames`` (an iterable of frames) each within its prior of ``priors``; with ``odometry``
     ((N, 3), row i the motion from frame i - 1 to i, row 0 unused) tracked by a :class:`CrossViewTracker`.
-    Returns arrays over the frames: ``estimates`` (N, 3; NaN where no answer), ``correlation``, ``cells``,
-    ``seconds`` and the posterior's ``top`` strongest entries ``top_poses`` (N, top, 3), ``top_probs``."""
+    A prior may be None where ``follow`` (radius metres, heading degrees) is given: that frame's prior is the
+    tracker's moved answer that wide (no fix of its own; skipped while the track is lost). Returns arrays over
+    the frames: ``estimates`` (N, 3; NaN where no answer), ``correlation``, ``cells``, ``seconds``, ``priors``
+    (N, 5: x, y, yaw, radius, heading range of the prior searched; zeros where none) and the posterior's
+    ``top`` strongest entries ``top_poses`` (N, top, 3), ``top_probs``."""
     from tqdm.auto import tqdm
 
     priors = list(priors)
     tracker = CrossViewTracker(localizer) if odometry is not None else None
     n = len(priors)
     est = np.full((n, 3), np.nan)
-    corr, cells, secs = np.full(n, np.nan), np.zeros(n, np.int64), np.zeros(n)
+    corr, cells, secs, used = np.full(n, np.nan), np.zeros(n, np.int64), np.zeros(n), np.zeros((n, 5))
     tp, tq = np.zeros((n, top, 3)), np.zeros((n, top))
-    import time
-
     for i, f in enumerate(tqdm(frames, total=n, desc="cross-view", unit="frame", disable=not progress, leave=False)):
         if i >= n:
             raise ConfigError(f"localize_frames: more frames than the {n} priors")
+        if tracker is not None and i > 0:
+            tracker.predict(odometry[i])
+        p = priors[i]
+        if p is None:
+            if follow is None or tracker is None:
+                raise ConfigError(f"localize_frames: frame {i} has no prior, and none follows the track")
+            if tracker.pose is None:   # lost with no fix to fall back on: nothing to search
+                continue
+            p = Prior(tracker.pose.x, tracker.pose.y, tracker.pose.yaw, *follow)
+        used[i] = (p.x, p.y, p.yaw, p.radius_m, p.yaw_deg)
         t = time.perf_counter()
-        if tracker is not None:
-            if i > 0:
-                tracker.predict(odometry[i])
-            r = tracker.localize(f, priors[i])
-        else:
-            r = localizer.localize(f, priors[i])
+        r = tracker.localize(f, p) if tracker is not None else localizer.localize(f, p)
         secs[i] = time.perf_counter() - t
         cells[i] = r.cells
         if r.pose is not None:
@@ -414,7 +423,8 @@ def localize_frames(localizer: CrossViewLocalizer, frames, priors, odometry=None
             corr[i] = r.correlation
             k = min(top, len(r.posterior))
             tp[i, :k], tq[i, :k] = r.candidates[:k], r.posterior[:k]
-    return {"estimates": est, "correlation": corr, "cells": cells, "seconds": secs, "top_poses": tp, "top_probs": tq}
+    return {"estimates": est, "correlation": corr, "cells": cells, "seconds": secs, "priors": used,
+            "top_poses": tp, "top_probs": tq}
 
 
 def parse_prior(text: str, radius_m: float = 20.0, yaw_deg: float = 10.0) -> Prior:
@@ -442,19 +452,15 @@ def localize_sequence(seq, satmap, out, prior: str | Prior = "truth", radius_m: 
     ``odometry`` ((N, 3), row i the motion from frame i - 1) the frames are tracked (:class:`CrossViewTracker`).
     ``roads``: a :class:`satloc.geodata.vectors.RoadLines` whose lines bound the drivable area (in the map's
     geo frame, or the sequence's)."""
-    import time
-
-    from tqdm.auto import tqdm
-
+    from .config import to_dict
     from .features import make_extractor
-    from .metrics import pose_errors
+    from .metrics import pose_errors, recall_within
     from .persist import save_npz
 
     n = len(seq)
     if n == 0:
         raise ConfigError(f"sequence {seq.name!r}: no frames to localize")
     poses = np.asarray(seq.poses, np.float64).reshape(n, 3)
-    fixed = None
     if isinstance(prior, str) and prior.strip().lower() == "truth":
         bad = np.flatnonzero(~np.all(np.isfinite(poses), axis=1))
         if len(bad):
@@ -463,11 +469,11 @@ def localize_sequence(seq, satmap, out, prior: str | Prior = "truth", radius_m: 
         rng = np.random.default_rng(seed)
         priors = [draw_prior(p, radius_m, yaw_deg, rng) for p in poses]
     else:
-        fixed = prior if isinstance(prior, Prior) else parse_prior(prior, radius_m, yaw_deg)
+        first = prior if isinstance(prior, Prior) else parse_prior(prior, radius_m, yaw_deg)
         if n > 1 and odometry is None:
             raise ConfigError("prior: one prior is the first frame's; the later frames' follow the answers moved by "
                               "the odometry: track (odometry) or give 'truth'")
-        priors = None
+        priors = [first] + [None] * (n - 1)
     if odometry is not None:
         odometry = np.asarray(odometry, np.float64)
         if odometry.shape != (n, 3):
@@ -483,44 +489,19 @@ def localize_sequence(seq, satmap, out, prior: str | Prior = "truth", radius_m: 
         r = roads.to_frame(frame)
         drivable = drivable_from_roads(r.lines, r.widths, sf, config.drivable_margin_m)
     cv = CrossViewLocalizer(seq.camera, sf, ext, config, drivable=drivable, labels=getattr(satmap, "labels", None))
-    tracker = CrossViewTracker(cv) if odometry is not None else None
-    est, corr, cells = np.full((n, 3), np.nan), np.full(n, np.nan), np.zeros(n, np.int64)
-    used = np.zeros((n, 5))
-    t0 = time.perf_counter()
-    for i in tqdm(range(n), desc="no database", unit="frame", disable=not progress, leave=False):
-        if tracker is not None and i > 0:
-            tracker.predict(odometry[i])
-        if priors is not None:
-            p = priors[i]
-        elif i == 0 or tracker.pose is None:
-            p = fixed if i == 0 else None
-        else:
-            p = Prior(tracker.pose.x, tracker.pose.y, tracker.pose.yaw, radius_m, yaw_deg)
-        if p is None:   # lost with no fix to fall back on: nothing to search
-            continue
-        used[i] = (p.x, p.y, p.yaw, p.radius_m, p.yaw_deg)
-        r = tracker.localize(seq[i], p) if tracker is not None else cv.localize(seq[i], p)
-        cells[i] = r.cells
-        if r.pose is not None:
-            est[i], corr[i] = r.pose.as_array(), r.correlation
-    secs = time.perf_counter() - t0
+    r = localize_frames(cv, (seq[i] for i in range(n)), priors, odometry, progress, follow=(radius_m, yaw_deg))
+    est = r["estimates"]
     pe = pose_errors(est, poses)
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     save_npz(out / "localization_cross.npz", "localization",
              {"frames": np.arange(n, dtype=np.int64), "estimates": est, "truth": poses, "errors": pe["error"],
-              "correlation": corr, "cells": cells, "priors": used},
-             {"method": "cross", "sequence": seq.name, "config": _plain_config(config), "prior": str(prior),
+              "correlation": r["correlation"], "cells": r["cells"], "priors": r["priors"]},
+             {"method": "cross", "sequence": seq.name, "config": to_dict(config), "prior": str(prior),
               "radius_m": radius_m, "yaw_deg": yaw_deg, "seed": seed, "tracked": odometry is not None})
     e = pe["error"][np.isfinite(pe["error"])]
     return {"frames": n, "answered": int(np.isfinite(est[:, 0]).sum()), "tracked": odometry is not None,
             "mean_m": float(e.mean()) if e.size else None, "median_m": float(np.median(e)) if e.size else None,
-            "within_1m": float(np.mean(np.nan_to_num(pe["error"], nan=np.inf) <= 1.0)) if e.size else None,
-            "lateral_within_1m": float(np.mean(np.nan_to_num(pe["lateral"], nan=np.inf) <= 1.0)) if e.size else None,
-            "s_per_frame": secs / n, "output": str(out / "localization_cross.npz")}
-
-
-def _plain_config(config: CrossViewConfig) -> dict:
-    from .config import to_dict
-
-    return to_dict(config)
+            "within_1m": recall_within(pe["error"], 1.0) if e.size else None,
+            "lateral_within_1m": recall_within(pe["lateral"], 1.0) if e.size else None,
+            "s_per_frame": float(r["seconds"].mean()), "output": str(out / "localization_cross.npz")}

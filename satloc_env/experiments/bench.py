@@ -402,10 +402,10 @@ def bench_crossview(scene: str = "city", frames: int = 40, radius_m: float = 20.
     from satloc.crossview import CrossViewLocalizer, draw_prior, localize_frames
     from satloc.dictionary import SatelliteFeatures
     from satloc.features import make_extractor
+    from satloc.geometry import Pose2
     from satloc.metrics import pose_errors
     from satloc.satmap import SatelliteMap
     from satloc.sequence import Sequence
-    from satloc.track import compose_motion
     from satloc_env.envs.record import PassConfig, make_env, record_pass
 
     work = Path(work) if work else Path(tempfile.mkdtemp(prefix="satloc_bench_cross_"))
@@ -437,10 +437,8 @@ def bench_crossview(scene: str = "city", frames: int = 40, radius_m: float = 20.
     priors = [draw_prior(p, radius_m, yaw_deg, rng) for p in truth]
     # the true motion between frames as the tracked row's odometry: its time, not the odometry's, is measured
     odo = np.full((len(seq), 3), np.nan)
-    from satloc.geometry import Pose2
-
     for i in range(1, len(seq)):
-        odo[i] = compose_motion(np.zeros(3), Pose2(*truth[i - 1]).between(Pose2(*truth[i])).as_array())
+        odo[i] = Pose2(*truth[i - 1]).between(Pose2(*truth[i])).as_array()
     cv.localize(seq[0], priors[0])   # warm-up: the first call's allocations (no network runs on the ground image)
     for name, o in (("single frame", None), ("tracked (fuse)", odo)):
         r = localize_frames(cv, list(seq), priors, o, progress)

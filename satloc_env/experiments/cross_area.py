@@ -20,7 +20,6 @@ longitudinal recall within 1 / 3 / 5 m and the median heading error (``cross_are
 """
 from __future__ import annotations
 
-import csv
 import hashlib
 import json
 import time
@@ -35,7 +34,7 @@ from satloc.dictionary import SatelliteFeatures
 from satloc.errors import ConfigError, FormatError
 from satloc.features import make_extractor
 from satloc.metrics import pose_errors, recall_within
-from satloc.persist import atomic_path, header, load_npz, read_json, save_npz, write_json
+from satloc.persist import atomic_path, header, load_npz, save_npz, write_json
 from satloc.satmap import SatelliteMap
 from satloc.sequence import Sequence
 
@@ -45,9 +44,11 @@ from .scene_run import (
     CrossAreaConfig,
     ExperimentConfig,
     _covered,
+    earlier_rows,
     sequence_identity,
     table_stats,
     tracked_odometry,
+    write_rows_csv,
 )
 
 #: bump when the no-database localizer's answers change for the same settings (its stamps then miss)
@@ -133,7 +134,7 @@ def run_cross(q: Sequence, sel: np.ndarray, ca: CrossAreaConfig, odometry: np.nd
             a = {"frames": np.asarray(sel, np.int64), "estimates": est, "truth": truth,
                  "errors": pose_errors(est, truth)["error"], "inlier_score": r["correlation"],
                  "inlier": np.isfinite(est[:, 0]), "top_poses": r["top_poses"], "top_probs": r["top_probs"],
-                 "prior": np.array([[p.x, p.y, p.yaw, p.radius_m, p.yaw_deg] for p in priors])}
+                 "prior": r["priors"]}
             save_npz(npz, "localization", a, {"method": row, "sequence": q.name, "stamp": stamp, "s_per_query": secs})
             if row == "cross":   # the pictures of earlier results are stale
                 for old in out.glob("posterior_cross_q*.png"):
@@ -240,21 +241,11 @@ def write_cross_area(out: str | Path, rows: list[dict], prior: str = "") -> None
     if not rows:
         raise ConfigError("cross-area: no method was localized on the cross-area queries")
     scenes = {r["scene"] for r in rows}
-    try:
-        old = read_json(out / "cross_area.json", "cross_area")
-        kept = [r for r in old["rows"] if isinstance(r, dict) and r.get("scene") not in scenes
-                and all(c in r for c in CROSS_COLUMNS)]
-        prior = prior or old.get("prior", "")
-    except (FormatError, KeyError, TypeError):
-        kept = []
+    kept, old = earlier_rows(out / "cross_area.json", "cross_area", CROSS_COLUMNS, lambda r: r.get("scene") in scenes)
+    prior = prior or old.get("prior", "")
     rows = kept + list(rows)
     write_json(out / "cross_area.json", dict(header("cross_area"), prior=prior, rows=rows))
-    with atomic_path(out / "cross_area.csv", suffix=".csv") as tmp:
-        with open(tmp, "w", newline="") as f:
-            w = csv.writer(f)
-            w.writerow(CROSS_COLUMNS)
-            for r in rows:
-                w.writerow([f"{r[c]:.3f}" if isinstance(r[c], float) else r[c] for c in CROSS_COLUMNS])
+    write_rows_csv(out / "cross_area.csv", CROSS_COLUMNS, rows)
     lines = []
     for scene in dict.fromkeys(r["scene"] for r in rows):
         part = [r for r in rows if r["scene"] == scene]

@@ -672,6 +672,29 @@ def aliasing(out: str | Path, scenes: tuple[str, ...] = ("city", "residential"),
     return rows
 
 
+def earlier_rows(path: Path, fmt: str, columns, redone) -> tuple[list[dict], dict]:
+    """The rows of an earlier table file ``path`` (JSON of format ``fmt`` with ``rows``) that this run does not
+    redo (``redone(row)`` false) and that have every one of ``columns``, and the file itself; none from a
+    missing, damaged or foreign file. A run of part of a table adds its rows instead of dropping the others."""
+    try:
+        old = read_json(path)
+        if not isinstance(old, dict) or old.get("format") != fmt or not isinstance(old.get("rows"), list):
+            return [], {}
+    except (OSError, FormatError):
+        return [], {}
+    return [r for r in old["rows"] if isinstance(r, dict) and all(c in r for c in columns) and not redone(r)], old
+
+
+def write_rows_csv(path: Path, columns, rows: list[dict]) -> None:
+    """``rows`` as CSV (``columns`` in order; floats to 3 decimals), written atomically."""
+    with atomic_path(path, suffix=".csv") as tmp:
+        with open(tmp, "w", newline="") as f:
+            w = csv.writer(f)
+            w.writerow(columns)
+            for r in rows:
+                w.writerow([f"{r[c]:.3f}" if isinstance(r[c], float) else r[c] for c in columns])
+
+
 def markdown_table(rows: list[dict]) -> str:
     """Table I as Markdown: one table per protocol (rows without ``protocol``: one table), a column group per
     scene: mean (std), the 95 % bootstrap interval of the mean, median, within 1 m, the failure rate and

@@ -41,7 +41,7 @@ import numpy as np
 
 from satloc.baselines import Efm, FabMap
 from satloc.config import from_dict, to_dict
-from satloc.errors import ConfigError, FormatError
+from satloc.errors import ConfigError
 from satloc.metrics import ci_method, pr_curve, precision_recall, precision_recall_ci, select_threshold
 from satloc.persist import atomic_path, header, load_npz, read_json, save_npz, write_json
 from satloc.satmap import SatelliteMap
@@ -75,6 +75,7 @@ from .scene_run import (  # noqa: F401
     check_recordings,
     covered_queries,
     dense_pass,
+    earlier_rows,
     is_tracked,
     localize_and_report,
     markdown_table,
@@ -85,6 +86,7 @@ from .scene_run import (  # noqa: F401
     spaced_frames,
     table_stats,
     tracked_odometry,
+    write_rows_csv,
 )
 
 
@@ -930,16 +932,11 @@ def _table1_unit(cfg: ExperimentConfig, label: str, sdir: Path, protocol: str, t
 
 
 def _kept_rows(out: Path, ran: set, log=print) -> list[dict]:
-    """The rows of an earlier ``out/table1.json`` whose (scene, protocol) this run did not redo, so that a run
-    of some protocols (say ``protocols: [cross-area]`` on a finished table) adds its rows instead of dropping
-    the others; a damaged or foreign file keeps nothing."""
-    try:
-        old = read_json(out / "table1.json")
-        old = old["rows"] if old.get("format") == "table1" else []
-    except (OSError, FormatError, KeyError, ValueError, AttributeError):
-        return []
-    kept = [r for r in old if isinstance(r, dict) and (r.get("scene"), r.get("protocol")) not in ran
-            and all(c in r for c in TABLE1_COLUMNS)]
+    """The rows of an earlier ``out/table1.json`` whose (scene, protocol) this run did not redo (so that a run
+    of some protocols, say ``protocols: [cross-area]`` on a finished table, adds its rows instead of dropping
+    the others: :func:`satloc_env.experiments.scene_run.earlier_rows`)."""
+    kept, _ = earlier_rows(out / "table1.json", "table1", TABLE1_COLUMNS,
+                           lambda r: (r.get("scene"), r.get("protocol")) in ran)
     if kept:
         log(f"table1: keeping {len(kept)} rows of {out / 'table1.json'} (scenes x protocols not run now: "
             + ", ".join(sorted({f"{r['scene']} {r['protocol']}" for r in kept})) + ")")
@@ -983,12 +980,7 @@ def table1(out: str | Path, scenes: tuple[str, ...] = ("city", "residential"), c
                          "queries": m["queries"], "s_per_query": round(m["s_per_query"], 4),
                          "odometry": odometry_label(cfgs[i], method), "ci_method": m.get("ci_method", "")})
     table = _kept_rows(out, {(labels[i], p) for i, p in jobs}, log) + rows
-    with atomic_path(out / "table1.csv", suffix=".csv") as tmp:
-        with open(tmp, "w", newline="") as f:
-            w = csv.writer(f)
-            w.writerow(TABLE1_COLUMNS)
-            for r in table:
-                w.writerow([f"{r[c]:.3f}" if isinstance(r[c], float) else r[c] for c in TABLE1_COLUMNS])
+    write_rows_csv(out / "table1.csv", TABLE1_COLUMNS, table)
     write_json(out / "table1.json", dict(header("table1"), rows=table))
     with atomic_path(out / "table1.md", suffix=".md") as tmp:
         tmp.write_text(markdown_table(table))
