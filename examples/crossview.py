@@ -1,5 +1,5 @@
 """Localize the frames of a recorded pass with no database: each frame against the satellite map alone, from a
-prior drawn around its true pose as a GPS fix would give (satloc.crossview).
+prior drawn around its true pose as a GPS fix would give (satloc.localizers.crossview).
 
     satloc demo --out satloc_demo                      # or: satloc record --scene city --out satloc_demo/rec
     python examples/crossview.py --recording satloc_demo/rec --frames 40
@@ -9,7 +9,7 @@ within ``--radius`` metres of the truth with a heading within ``--yaw`` degrees 
 one line per frame and the summary: mean and median error, the fractions within 1 m, within 1 m laterally and
 longitudinally, the median heading error and the time per frame.
 
-``--track``: the frames are localized in order by a :class:`satloc.crossview.CrossViewTracker`, the previous
+``--track``: the frames are localized in order by a :class:`satloc.localizers.crossview.CrossViewTracker`, the previous
 answer moved by the visual odometry between them (``odometry_visual.npz`` beside the recording's passes, which
 `satloc demo` and the experiments write): ``--track-mode gate`` searches ``--track-radius`` metres and
 ``--track-yaw`` degrees around it, ``fuse`` the whole GPS-like prior with it as a Gaussian belief of
@@ -28,14 +28,14 @@ from pathlib import Path
 import numpy as np
 
 from satloc import Sequence
-from satloc.align import AlignConfig
-from satloc.crossview import CrossViewConfig, CrossViewLocalizer, draw_prior, localize_frames
-from satloc.dictionary import SatelliteFeatures
 from satloc.errors import ConfigError, run_script
+from satloc.evaluation.metrics import pose_errors
 from satloc.features import make_extractor
-from satloc.metrics import pose_errors
+from satloc.features.dictionary import SatelliteFeatures
+from satloc.localizers.crossview import CrossViewConfig, CrossViewLocalizer, draw_prior, localize_frames
 from satloc.satmap import SatelliteMap
-from satloc.track import compose_motion
+from satloc.tracking.align import AlignConfig
+from satloc.tracking.track import compose_motion
 
 
 def main(argv=None):

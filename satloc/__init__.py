@@ -9,7 +9,6 @@ from .satmap import SatelliteMap
 from .sequence import Frame, Sequence, SequenceWriter
 
 
-
 def _version() -> str:
     """The installed distribution's version (``pip show satloc``); run from a checkout that is not installed,
     the ``version`` of the ``pyproject.toml`` beside the package, else ``"unknown"``."""
@@ -30,7 +29,15 @@ __version__ = _version()
 
 # modules that moved after 0.1.0: the old names still import, with a FutureWarning naming the new one
 MOVED = {"satloc.georef": "satloc.geodata.georef", "satloc.radiometry": "satloc.geodata.radiometry",
-         "satloc.vectors": "satloc.geodata.vectors"}
+         "satloc.vectors": "satloc.geodata.vectors",
+         # 0.2.0: the method arranged by trade (localizers, tracking, features, evaluation)
+         "satloc.localizer": "satloc.localizers.database", "satloc.crossview": "satloc.localizers.crossview",
+         "satloc.track": "satloc.tracking.track", "satloc.vo": "satloc.tracking.vo",
+         "satloc.align": "satloc.tracking.align", "satloc.extractor": "satloc.features.extractor",
+         "satloc.fcn": "satloc.features.fcn", "satloc.context": "satloc.features.context",
+         "satloc.dictionary": "satloc.features.dictionary", "satloc.projection": "satloc.features.projection",
+         "satloc.crossview_learn": "satloc.features.crossview_learn", "satloc.nn": "satloc.features.nn",
+         "satloc.metrics": "satloc.evaluation.metrics", "satloc.plots": "satloc.evaluation.plots"}
 from ._moved import alias_modules as _alias_modules  # noqa: E402
 
 __getattr__ = _alias_modules(__name__, MOVED)

@@ -1,5 +1,5 @@
 """Compiled inner loops of the localizer (numba). Each is the plain-loop form of a formula in
-:mod:`satloc.localizer`; the numpy reference of the co-occurrence score is kept in the tests."""
+:mod:`satloc.localizers.database`; the numpy reference of the co-occurrence score is kept in the tests."""
 from __future__ import annotations
 
 import math

@@ -3,7 +3,7 @@
 A setting is ``"auto"`` (the default: the current CUDA device when ``torch.cuda.is_available()``, else the
 CPU), ``"cpu"``, ``"cuda"`` or ``"cuda:N"``. Models and tensors go to the device; results come back as numpy
 arrays on the CPU, and saved weights stay CPU tensors. On the CPU the computation is the one it always was
-(torch's thread settings, e.g. :func:`satloc.fcn.torch_threads`, still apply).
+(torch's thread settings, e.g. :func:`satloc.features.fcn.torch_threads`, still apply).
 
 The device is how a stage runs, not what it makes: the configs mark it with :func:`device_field`, and
 :func:`satloc.config.to_dict` with ``runtime=False`` leaves it out of the keys of cached stages.

@@ -25,15 +25,24 @@ import numpy as np
 from tqdm import tqdm
 
 from .config import from_dict, to_dict
-from .context import ContextConfig
 from .device import check_device, device_field, resolve_device
-from .dictionary import Dictionary, GridConfig, SatelliteFeatures, build_dictionary
 from .errors import ConfigError, FormatError
-from .features import FEATURE_SETS, make_extractor
-from .localizer import Localization, Localizer, LocalizerConfig
-from .metrics import error_stats, worst_case_errors
+from .evaluation.metrics import error_stats, worst_case_errors
+from .features.context import ContextConfig
+from .features.dictionary import Dictionary, GridConfig, SatelliteFeatures, build_dictionary
+from .features.pixelwise import FEATURE_SETS, make_extractor
+from .features.projection import ProjectionConfig, Projections, plot_loss, train_projections
+from .localizers.crossview import (
+    CrossViewConfig,
+    CrossViewLocalizer,
+    Prior,
+    draw_prior,
+    drivable_from_roads,
+    localize_frames,
+    parse_prior,
+)
+from .localizers.database import Localization, Localizer, LocalizerConfig
 from .persist import header, nonfinite_path, read_json, save_npz, write_json
-from .projection import ProjectionConfig, Projections, plot_loss, train_projections
 from .satmap import SatelliteMap
 from .sequence import Sequence, camera_from_dict
 
@@ -170,10 +179,10 @@ def localize(build_dir: str | Path, queries: str | Path, config: LocalizerConfig
     """Localize every frame of ``queries`` (or the frames ``select``); returns (and writes to ``out/``)
     estimates, errors, inlier decisions and the top of each posterior.
 
-    With ``config.track`` the frames are tracked (:mod:`satloc.track`) and ``odometry`` (N, 3) gives, for each
+    With ``config.track`` the frames are tracked (:mod:`satloc.tracking.track`) and ``odometry`` (N, 3) gives, for each
     localized frame, the motion since the previous localized one (row 0 is not used; a non-finite row is a
     motion not known, e.g. visual odometry lost: the belief starts anew there); e.g.
-    :func:`satloc.vo.visual_odometry` of the frames or :func:`satloc.track.noisy_odometry` of their poses. ``on_result(i, localization)`` is
+    :func:`satloc.tracking.vo.visual_odometry` of the frames or :func:`satloc.tracking.track.noisy_odometry` of their poses. ``on_result(i, localization)`` is
     called for each frame localized (``i``: its position in ``select``), e.g. to keep posteriors to draw."""
     loc = localizer or load_localizer(build_dir, config, progress=progress)
     seq = Sequence.load(queries) if not isinstance(queries, Sequence) else queries
@@ -184,7 +193,7 @@ def localize(build_dir: str | Path, queries: str | Path, config: LocalizerConfig
     if loc.config.track:
         if odometry is None:
             raise ConfigError("tracking (config.track) needs odometry: an (N, 3) array of the motion between the "
-                              "localized frames, e.g. satloc.track.noisy_odometry(poses, noise)")
+                              "localized frames, e.g. satloc.tracking.track.noisy_odometry(poses, noise)")
         odometry = np.asarray(odometry, np.float64)
         if odometry.shape != (len(idx), 3):
             raise ConfigError(f"odometry: expected a ({len(idx)}, 3) array, one row per localized frame; got shape "
@@ -212,7 +221,7 @@ def localize(build_dir: str | Path, queries: str | Path, config: LocalizerConfig
         top_poses[i], top_probs[i] = r.top(k)
     secs = time.perf_counter() - t0
     err = np.hypot(est[:, 0] - truth[:, 0], est[:, 1] - truth[:, 1])
-    # a frame not answered is a gross failure: its error is the worst answer on the map (satloc.metrics)
+    # a frame not answered is a gross failure: its error is the worst answer on the map (satloc.evaluation.metrics)
     gross = np.where(np.all(np.isfinite(truth[:, :2]), axis=1),
                      worst_case_errors(np.nan_to_num(truth[:, :2]), loc.candidates[:, :2]), np.nan)
     known = np.isfinite(gross)
@@ -229,3 +238,69 @@ def localize(build_dir: str | Path, queries: str | Path, config: LocalizerConfig
         write_json(out / f"localization_{loc.config.name}.json", dict(header("localization_summary"), **summary))
     summary["errors"] = err
     return summary
+
+
+def localize_no_database(seq, satmap, out, prior: str | Prior = "truth", radius_m: float = 20.0,
+                         yaw_deg: float = 10.0, seed: int = 0, odometry: np.ndarray | None = None, roads=None,
+                         config: CrossViewConfig = CrossViewConfig(), progress: bool = False) -> dict:
+    """The no-database stage (``satloc localize --no-database``): every frame of ``seq`` (a
+    :class:`satloc.sequence.Sequence`) against ``satmap`` (a :class:`satloc.satmap.SatelliteMap`), with the
+    default features, into ``out/localization_cross.npz`` (frames, estimates (NaN: no answer), truth, errors,
+    correlation, cells, priors (x, y, yaw, radius, yaw range)). Returns the summary (also printed by the CLI).
+
+    ``prior``: ``"truth"``, a prior drawn around each frame's pose (``radius_m``, ``yaw_deg``, seeded by
+    ``seed``: a simulated GPS fix), or one :class:`Prior` (or ``"X,Y,YAW_DEG"``) for the first frame; the later
+    frames' then centre on the previous answer moved by ``odometry`` (needed then), ``radius_m`` wide. With
+    ``odometry`` ((N, 3), row i the motion from frame i - 1) the frames are tracked (:class:`CrossViewTracker`).
+    ``roads``: a :class:`satloc.geodata.vectors.RoadLines` whose lines bound the drivable area (in the map's
+    geo frame, or the sequence's)."""
+    from .evaluation.metrics import pose_errors, recall_within
+
+    n = len(seq)
+    if n == 0:
+        raise ConfigError(f"sequence {seq.name!r}: no frames to localize")
+    poses = np.asarray(seq.poses, np.float64).reshape(n, 3)
+    if isinstance(prior, str) and prior.strip().lower() == "truth":
+        bad = np.flatnonzero(~np.all(np.isfinite(poses), axis=1))
+        if len(bad):
+            raise ConfigError(f"prior 'truth': frame {int(bad[0])} of sequence {seq.name!r} has no pose to draw a prior "
+                              "around; give the first frame's prior as 'X,Y,YAW_DEG' and track with odometry")
+        rng = np.random.default_rng(seed)
+        priors = [draw_prior(p, radius_m, yaw_deg, rng) for p in poses]
+    else:
+        first = prior if isinstance(prior, Prior) else parse_prior(prior, radius_m, yaw_deg)
+        if n > 1 and odometry is None:
+            raise ConfigError("prior: one prior is the first frame's; the later frames' follow the answers moved by "
+                              "the odometry: track (odometry) or give 'truth'")
+        priors = [first] + [None] * (n - 1)
+    if odometry is not None:
+        odometry = np.asarray(odometry, np.float64)
+        if odometry.shape != (n, 3):
+            raise ConfigError(f"odometry: expected ({n}, 3), one motion per frame, got {odometry.shape}")
+    ext = make_extractor("default")
+    sf = SatelliteFeatures.compute(satmap, ext)
+    drivable = None
+    if roads is not None:
+        frame = getattr(satmap, "frame", None) or seq.geo_frame
+        if frame is None:
+            raise ConfigError("roads: neither the satellite map nor the sequence has a geo frame to put the road "
+                              "lines in")
+        r = roads.to_frame(frame)
+        drivable = drivable_from_roads(r.lines, r.widths, sf, config.drivable_margin_m)
+    cv = CrossViewLocalizer(seq.camera, sf, ext, config, drivable=drivable, labels=getattr(satmap, "labels", None))
+    r = localize_frames(cv, (seq[i] for i in range(n)), priors, odometry, progress, follow=(radius_m, yaw_deg))
+    est = r["estimates"]
+    pe = pose_errors(est, poses)
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    save_npz(out / "localization_cross.npz", "localization",
+             {"frames": np.arange(n, dtype=np.int64), "estimates": est, "truth": poses, "errors": pe["error"],
+              "correlation": r["correlation"], "cells": r["cells"], "priors": r["priors"]},
+             {"method": "cross", "sequence": seq.name, "config": to_dict(config), "prior": str(prior),
+              "radius_m": radius_m, "yaw_deg": yaw_deg, "seed": seed, "tracked": odometry is not None})
+    e = pe["error"][np.isfinite(pe["error"])]
+    return {"frames": n, "answered": int(np.isfinite(est[:, 0]).sum()), "tracked": odometry is not None,
+            "mean_m": float(e.mean()) if e.size else None, "median_m": float(np.median(e)) if e.size else None,
+            "within_1m": recall_within(pe["error"], 1.0) if e.size else None,
+            "lateral_within_1m": recall_within(pe["lateral"], 1.0) if e.size else None,
+            "s_per_frame": float(r["seconds"].mean()), "output": str(out / "localization_cross.npz")}

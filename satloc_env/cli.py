@@ -333,8 +333,8 @@ def cmd_build(args) -> int:
 
 
 def cmd_train_projection(args) -> int:
+    from satloc.features.projection import ProjectionConfig
     from satloc.pipeline import train_projection
-    from satloc.projection import ProjectionConfig
 
     p = train_projection(args.build, _stage_config(ProjectionConfig, args.config, {"device": args.device}),
                          progress=not args.quiet)
@@ -345,10 +345,10 @@ def cmd_train_projection(args) -> int:
 
 def _query_odometry(args, seq):
     """--track's motion between the frames of ``seq``: stereo visual odometry, or the poses plus noise."""
-    from satloc.track import noisy_odometry
+    from satloc.tracking.track import noisy_odometry
 
     if args.odometry == "visual":
-        from satloc.vo import visual_odometry
+        from satloc.tracking.vo import visual_odometry
 
         return visual_odometry(seq, progress=not args.quiet)
     if not np.all(np.isfinite(seq.poses)):
@@ -358,7 +358,8 @@ def _query_odometry(args, seq):
 
 
 def cmd_localize_no_database(args) -> int:
-    from satloc.crossview import CrossViewConfig, localize_sequence
+    from satloc.localizers.crossview import CrossViewConfig
+    from satloc.pipeline import localize_no_database
     from satloc.satmap import SatelliteMap
 
     if args.build:
@@ -399,7 +400,7 @@ def cmd_localize_no_database(args) -> int:
         roads = read_road_lines(args.roads)
     cfg = _stage_config(CrossViewConfig, args.config, {})
     odometry = _query_odometry(args, seq) if args.track else None
-    s = localize_sequence(seq, satmap, args.out or ".", args.prior or "truth",
+    s = localize_no_database(seq, satmap, args.out or ".", args.prior or "truth",
                           20.0 if args.radius is None else args.radius, 10.0 if args.yaw is None else args.yaw,
                           0 if args.prior_seed is None else args.prior_seed, odometry, roads, cfg,
                           progress=not args.quiet)
@@ -432,7 +433,7 @@ def cmd_localize(args) -> int:
     for flag in ("satellite", "roads", "prior", "radius", "yaw", "prior_seed"):
         if getattr(args, flag) is not None:
             raise SatlocError(f"--{flag.replace('_', '-')} is an option of --no-database")
-    from satloc.localizer import LocalizerConfig
+    from satloc.localizers.database import LocalizerConfig
     from satloc.pipeline import localize
 
     cfg = _stage_config(LocalizerConfig, args.config, {"mode": args.mode, "refine": True if args.refine else None,
@@ -596,11 +597,11 @@ def build_parser() -> argparse.ArgumentParser:
     lo.add_argument("build", nargs="?", help="a build directory (satloc build); none with --no-database")
     lo.add_argument("--queries", required=True)
     lo.add_argument("--mode", choices=["full", "np", "go"], default=None)
-    lo.add_argument("--refine", action="store_true", help="refine each estimate by bird's-eye alignment (satloc.align)")
+    lo.add_argument("--refine", action="store_true", help="refine each estimate by bird's-eye alignment (satloc.tracking.align)")
     lo.add_argument("--track", action="store_true",
-                    help="track the sequence with odometry (satloc.track)")
+                    help="track the sequence with odometry (satloc.tracking.track)")
     lo.add_argument("--odometry", choices=("visual", "noisy_truth"), default="visual",
-                    help="--track: stereo visual odometry of the frames (satloc.vo; the default) or the frames' "
+                    help="--track: stereo visual odometry of the frames (satloc.tracking.vo; the default) or the frames' "
                          "poses plus noise")
     lo.add_argument("--odometry-noise", type=float, nargs=2, default=[0.02, 0.01], metavar=("FRAC", "RAD"),
                     help="--odometry noisy_truth: noise std, fraction of the distance and radians per frame")
@@ -609,7 +610,7 @@ def build_parser() -> argparse.ArgumentParser:
     lo.add_argument("--device", default=None, help=f"{DEVICE_HELP}; the FCN of the query features")
     lo.add_argument("--config", help="YAML with LocalizerConfig fields (--no-database: CrossViewConfig fields)")
     lo.add_argument("--no-database", action="store_true",
-                    help="localize with no database: each frame against --satellite within a prior (satloc.crossview)")
+                    help="localize with no database: each frame against --satellite within a prior (satloc.localizers.crossview)")
     lo.add_argument("--satellite", help="--no-database: a satellite map directory or a georeferenced image (with a "
                                         "sequence in a geo frame)")
     lo.add_argument("--roads", help="--no-database: road centre lines (GeoJSON, GPKG, OSM ...) bounding where the "

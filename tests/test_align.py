@@ -1,4 +1,4 @@
-"""Bird's-eye alignment (satloc.align): geometry against a ground image synthesised from the map itself."""
+"""Bird's-eye alignment (satloc.tracking.align): geometry against a ground image synthesised from the map itself."""
 import math
 
 import cv2
@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from satloc import ConfigError, Pose2, StereoCamera
-from satloc.align import AlignConfig, BevAligner, posterior_peaks
+from satloc.tracking.align import AlignConfig, BevAligner, posterior_peaks
 
 
 def textured_map(size_px=600, mpp=0.2, seed=3):

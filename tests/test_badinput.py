@@ -27,11 +27,11 @@ import pytest
 
 import satloc_env
 from satloc import ConfigError
+from satloc.features.projection import ProjectionConfig
 from satloc.geoframe import GeoFrame
 from satloc.geometry import Pose2
-from satloc.localizer import LocalizerConfig
+from satloc.localizers.database import LocalizerConfig
 from satloc.pipeline import BuildConfig, build, load_localizer
-from satloc.projection import ProjectionConfig
 from satloc.sequence import Sequence
 from satloc_env.envs import auto_localizer as autoloc
 from satloc_env.envs.drive import (

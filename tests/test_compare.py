@@ -210,7 +210,7 @@ def test_table2_calibrates_on_other_passes_and_reports_the_test(tmp_path):
     """table2() end to end on a tiny configuration of loop: the thresholds come from the calibration passes
     (other seeds and spacing, on another place: loop_calib, recorded and built against its own map), the test
     figures are computed at them, with intervals, beside the oracle."""
-    from satloc.metrics import precision_recall
+    from satloc.evaluation.metrics import precision_recall
     from satloc_env.experiments.tables import TABLE2_COLUMNS, table2
 
     # satellite_gap 0: two ring scenes, whose captures would cost more than the rest of this test; what is

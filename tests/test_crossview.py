@@ -1,4 +1,4 @@
-"""Localization with no database (satloc.crossview, issue 36): a revisit frame of `city` against the captured
+"""Localization with no database (satloc.localizers.crossview, issue 36): a revisit frame of `city` against the captured
 satellite map (the default gap) from a +-20 m / +-10 degree prior, with the shipped features (trained on
 scenes/fcn_train, none of them `city`), and bad priors."""
 from __future__ import annotations
@@ -12,10 +12,10 @@ import numpy as np
 import pytest
 
 from satloc import ConfigError, Sequence
-from satloc.crossview import CrossViewConfig, CrossViewLocalizer, Prior
-from satloc.dictionary import SatelliteFeatures
 from satloc.features import make_extractor
+from satloc.features.dictionary import SatelliteFeatures
 from satloc.geometry import Pose2
+from satloc.localizers.crossview import CrossViewConfig, CrossViewLocalizer, Prior
 from satloc.satmap import SatelliteMap
 from satloc_env.envs.record import PassConfig, RecordConfig, record_passes
 
@@ -82,7 +82,7 @@ def test_bad_priors_get_clear_errors(setup):
         Prior(t.x, t.y, t.yaw, yaw_deg=-1.0)
     with pytest.raises(ConfigError, match="outside the satellite map"):
         cv.localize(seq[0], Prior(t.x + 5000.0, t.y, t.yaw))
-    with pytest.raises(ConfigError, match="must be a satloc.crossview.Prior"):
+    with pytest.raises(ConfigError, match="must be a satloc.localizers.crossview.Prior"):
         cv.localize(seq[0], Pose2(t.x, t.y, t.yaw))
     with pytest.raises(ConfigError, match="crossview.drivable"):
         CrossViewConfig(drivable="roads")
@@ -134,7 +134,7 @@ def _true_odometry(poses):
 
 
 def test_tracker_fuses_the_moved_answer_and_starts_again_after_unknown_motion(setup):
-    from satloc.crossview import CrossViewTracker, draw_prior, localize_frames
+    from satloc.localizers.crossview import CrossViewTracker, draw_prior, localize_frames
 
     seq, cv = setup
     truth = np.asarray(seq.poses)
@@ -153,7 +153,7 @@ def test_tracker_fuses_the_moved_answer_and_starts_again_after_unknown_motion(se
 
 
 def test_drivable_from_roads_and_parse_prior(setup):
-    from satloc.crossview import drivable_from_roads, parse_prior
+    from satloc.localizers.crossview import drivable_from_roads, parse_prior
 
     _, cv = setup
     sf = cv.satfeat

@@ -1,4 +1,4 @@
-"""Learned cross-view projections (satloc.crossview_learn, issue 36): the correlation surfaces training
+"""Learned cross-view projections (satloc.features.crossview_learn, issue 36): the correlation surfaces training
 differentiates are OpenCV's masked NCC, training lowers the loss on a few frames, files round-trip and damaged
 ones are refused, the shipped projections were trained on scenes disjoint from every evaluation scene, and
 `satloc train-crossview` refuses an evaluation scene."""
@@ -13,16 +13,16 @@ import pytest
 import torch
 
 from satloc import ConfigError, FormatError, Sequence
-from satloc.crossview import SHIPPED_PROJECTIONS, CrossViewConfig, CrossViewLocalizer, draw_prior
-from satloc.crossview_learn import (
+from satloc.features import make_extractor
+from satloc.features.crossview_learn import (
     CrossTrainConfig,
     CrossViewProjections,
     samples_from_sequence,
     surfaces,
     train_crossview,
 )
-from satloc.dictionary import SatelliteFeatures
-from satloc.features import make_extractor
+from satloc.features.dictionary import SatelliteFeatures
+from satloc.localizers.crossview import SHIPPED_PROJECTIONS, CrossViewConfig, CrossViewLocalizer, draw_prior
 from satloc.satmap import SatelliteMap
 from satloc_env.envs.record import PassConfig, RecordConfig, record_passes
 
@@ -40,11 +40,11 @@ def data(tmp_path_factory):
 
 
 def test_surfaces_are_what_the_localizer_computes(data):
-    """Training's surfaces (torch, differentiable) against the localizer's: satloc.align's normalisation of the
+    """Training's surfaces (torch, differentiable) against the localizer's: satloc.tracking.align's normalisation of the
     BEV and of the whole map, the map resampled at the pose, cv2's masked TM_CCOEFF_NORMED."""
-    from satloc.align import BevAligner
-    from satloc.dictionary import FrameDepth
     from satloc.features import BilateralRGB
+    from satloc.features.dictionary import FrameDepth
+    from satloc.tracking.align import BevAligner
 
     seq, sm, sf, s, cfg = data
     assert s["ground"].shape[1] == 3 and s["sat"].shape[1] == sf.dim and s["far"].shape[1] == 3

@@ -14,12 +14,12 @@ from test_method import synthetic_dictionary
 from satloc import ConfigError
 from satloc.config import from_dict, to_dict
 from satloc.device import check_device, resolve_device
-from satloc.fcn import FCNPredictor, SegEdgeNet, ViewNet, default_predictor, load_fcn, save_fcn
 from satloc.features import make_extractor
+from satloc.features.fcn import FCNPredictor, SegEdgeNet, ViewNet, default_predictor, load_fcn, save_fcn
+from satloc.features.projection import ProjectionConfig, train_projections
 from satloc.labels import NUM_CLASSES
-from satloc.localizer import LocalizerConfig
+from satloc.localizers.database import LocalizerConfig
 from satloc.pipeline import BuildConfig
-from satloc.projection import ProjectionConfig, train_projections
 from satloc_env.cli import main
 from satloc_env.experiments.train_features import TrainConfig, class_weights, train_features, train_view
 

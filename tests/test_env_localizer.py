@@ -15,11 +15,11 @@ from gymnasium.utils.env_checker import check_env
 
 import satloc_env  # noqa: F401  (registers the ids)
 from satloc import ConfigError
-from satloc.localizer import LocalizerConfig
+from satloc.features.projection import ProjectionConfig
+from satloc.localizers.database import LocalizerConfig
 from satloc.persist import read_json
 from satloc.pipeline import BuildConfig, load_localizer
-from satloc.projection import ProjectionConfig
-from satloc.track import Tracker, compose_motion
+from satloc.tracking.track import Tracker, compose_motion
 from satloc_env.envs import auto_localizer as autoloc
 from satloc_env.envs.drive import ESTIMATE_RGB, PANEL_PX, PosteriorView, compose_view
 

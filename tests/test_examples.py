@@ -32,8 +32,8 @@ def test_example_stress_runs_and_writes_its_table_and_curve(tmp_path):
 @pytest.fixture(scope="module")
 def small_city_build(tmp_path_factory):
     """A small localizer build of city's database pass (its first 25 m, RGB features)."""
+    from satloc.features.projection import ProjectionConfig
     from satloc.pipeline import BuildConfig
-    from satloc.projection import ProjectionConfig
     from satloc_env.envs import auto_localizer as autoloc
 
     return autoloc.auto_build_dir("city", None, "half", progress=False, cache_dir=tmp_path_factory.mktemp("cache"),

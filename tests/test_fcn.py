@@ -1,4 +1,4 @@
-"""Tests of the FCN features (satloc.fcn) and their training (satloc_env.experiments.train_features)."""
+"""Tests of the FCN features (satloc.features.fcn) and their training (satloc_env.experiments.train_features)."""
 from __future__ import annotations
 
 import cv2
@@ -8,7 +8,8 @@ import torch
 from torch import nn
 
 from satloc import ConfigError, FormatError
-from satloc.fcn import (
+from satloc.features import FeatureStack
+from satloc.features.fcn import (
     DEFAULT_WEIGHTS,
     FORMAT,
     EdgeFeatures,
@@ -19,7 +20,6 @@ from satloc.fcn import (
     load_fcn,
     save_fcn,
 )
-from satloc.features import FeatureStack
 from satloc.labels import NUM_CLASSES
 from satloc_env.experiments.train_features import TrainConfig, class_weights, label_boundaries, train_view
 
@@ -120,7 +120,7 @@ def test_prefetch_runs_one_batch_that_the_calls_reuse(monkeypatch):
 def test_localizer_prefetch_passes_the_left_images_once():
     from types import SimpleNamespace
 
-    from satloc.localizer import Localizer
+    from satloc.localizers.database import Localizer
     from satloc.sequence import Frame
 
     seen = []

@@ -222,8 +222,8 @@ def load_sequence_dir(d: Path):
 
 # --- build artefacts -----------------------------------------------------------------------------------
 def _dictionary():
-    from satloc.context import ContextConfig
-    from satloc.dictionary import Dictionary, GridConfig
+    from satloc.features.context import ContextConfig
+    from satloc.features.dictionary import Dictionary, GridConfig
 
     rng = np.random.default_rng(3)
     n, f = 40, 5
@@ -234,7 +234,7 @@ def _dictionary():
 
 
 def check_dictionary(d) -> None:
-    from satloc.dictionary import Dictionary
+    from satloc.features.dictionary import Dictionary
 
     assert isinstance(d, Dictionary)
     n = len(d.g)
@@ -263,20 +263,20 @@ def make_dictionary(d: Path) -> None:
 
 
 def load_dictionary(d: Path):
-    from satloc.dictionary import Dictionary
+    from satloc.features.dictionary import Dictionary
 
     return Dictionary.load(d / "dictionary.npz")
 
 
 def make_satfeat(d: Path) -> None:
-    from satloc.dictionary import SatelliteFeatures
+    from satloc.features.dictionary import SatelliteFeatures
 
     f = np.random.default_rng(4).random((30, 40, 9)).astype(np.float16)
     SatelliteFeatures(f, 0.5, (100.0, 250.0), "rgb").save(d / "satellite_features.npz")
 
 
 def check_satfeat(sf) -> None:
-    from satloc.dictionary import SatelliteFeatures
+    from satloc.features.dictionary import SatelliteFeatures
 
     assert isinstance(sf, SatelliteFeatures)
     f = sf.features
@@ -290,13 +290,13 @@ def digest_satfeat(sf) -> dict:
 
 
 def load_satfeat(d: Path):
-    from satloc.dictionary import SatelliteFeatures
+    from satloc.features.dictionary import SatelliteFeatures
 
     return SatelliteFeatures.load(d / "satellite_features.npz")
 
 
 def make_projections(d: Path) -> None:
-    from satloc.projection import Projections
+    from satloc.features.projection import Projections
 
     rng = np.random.default_rng(5)
     Projections(np.eye(9, dtype=np.float32) + 0.01 * rng.random((9, 9), dtype=np.float32),
@@ -305,7 +305,7 @@ def make_projections(d: Path) -> None:
 
 
 def check_projections(p) -> None:
-    from satloc.projection import Projections
+    from satloc.features.projection import Projections
 
     assert isinstance(p, Projections)
     for w in (p.W_g, p.W_s):
@@ -321,7 +321,7 @@ def digest_projections(p) -> dict:
 
 
 def load_projections(d: Path):
-    from satloc.projection import Projections
+    from satloc.features.projection import Projections
 
     return Projections.load(d / "projections.pt")
 
@@ -331,9 +331,9 @@ BUILD_CAMERA = StereoCamera.kitti().resized(96, 40)
 
 def make_build(d: Path) -> None:
     """A tiny build through the pipeline (dictionary, satellite features, projections, satellite table)."""
-    from satloc.context import ContextConfig
+    from satloc.features.context import ContextConfig
+    from satloc.features.projection import ProjectionConfig
     from satloc.pipeline import BuildConfig, build, train_projection
-    from satloc.projection import ProjectionConfig
     from satloc_env.envs.auto_localizer import load_cached_localizer
 
     rng = np.random.default_rng(6)
@@ -358,7 +358,7 @@ def load_build(d: Path):
 
 
 def check_localizer(loc) -> None:
-    from satloc.localizer import Localizer
+    from satloc.localizers.database import Localizer
 
     assert isinstance(loc, Localizer)
     check_dictionary(loc.dictionary)
@@ -387,9 +387,9 @@ def digest_localizer(loc) -> dict:
 
 def make_autoloc(d: Path) -> None:
     from satloc.config import to_dict
+    from satloc.features.projection import ProjectionConfig
     from satloc.persist import FORMAT_VERSION, header, write_json
     from satloc.pipeline import BuildConfig
-    from satloc.projection import ProjectionConfig
     from satloc_env.envs.record import RecordConfig
 
     key = {"scene": "fuzz", "source": "/somewhere/fuzz.yaml", "scene_sha256": "0" * 64, "aliasing": 0.0,
@@ -417,7 +417,7 @@ def check_autoloc(key) -> None:
 def make_fcn(d: Path) -> None:
     import torch
 
-    from satloc.fcn import SegEdgeNet, ViewNet, save_fcn
+    from satloc.features.fcn import SegEdgeNet, ViewNet, save_fcn
 
     torch.manual_seed(0)
     views = {"ground": ViewNet(SegEdgeNet(NUM_CLASSES, (2, 3)).eval(), 0.5),
@@ -427,7 +427,7 @@ def make_fcn(d: Path) -> None:
 
 
 def load_fcn_file(d: Path):
-    from satloc.fcn import load_fcn
+    from satloc.features.fcn import load_fcn
 
     return load_fcn(d / "fcn.pt")
 
@@ -435,7 +435,7 @@ def load_fcn_file(d: Path):
 def check_fcn(loaded) -> None:
     import torch
 
-    from satloc.fcn import VIEWS, SegEdgeNet
+    from satloc.features.fcn import VIEWS, SegEdgeNet
 
     views, training = loaded
     assert views and set(views) <= set(VIEWS) and isinstance(training, dict)

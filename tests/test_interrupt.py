@@ -27,10 +27,10 @@ import torch
 from test_process import TINY_SCENE, communicate_or_kill
 
 from satloc import ConfigError, FormatError
-from satloc.localizer import LocalizerConfig
+from satloc.features.projection import Projections
+from satloc.localizers.database import LocalizerConfig
 from satloc.persist import _host_tag, remove_stale_temps
 from satloc.pipeline import load_localizer, train_projection
-from satloc.projection import Projections
 from satloc_env.envs import auto_localizer as autoloc
 from satloc_env.envs.record import load_recording
 
@@ -81,7 +81,7 @@ if argv[0] == "cli":
     entry(argv[1:])
 import logging
 from satloc.pipeline import BuildConfig
-from satloc.projection import ProjectionConfig
+from satloc.features.projection import ProjectionConfig
 from satloc_env.envs.auto_localizer import auto_build_dir
 logging.basicConfig(level=logging.INFO, format="%(message)s")  # the cache's announcements, without progress bars
 if started:
@@ -302,7 +302,7 @@ def test_build_interrupted(work, ref):
     shutil.rmtree(out)
     shutil.copytree(ref / "build", out)
     (work / "grid24.yaml").write_text(BUILD_CFG + "grid: {step_px: 24}\n")
-    r = run(cli(*args, "grid24.yaml", at=("satloc.dictionary:Dictionary.save:1:SIGKILL",)), work)
+    r = run(cli(*args, "grid24.yaml", at=("satloc.features.dictionary:Dictionary.save:1:SIGKILL",)), work)
     assert r.rc == -signal.SIGKILL, r
     assert not npz_equal(out / "dictionary.npz", ref / "build" / "dictionary.npz")   # the new one is written
     assert not (out / "build.json").exists() and not (out / "projections.pt").exists()
@@ -329,7 +329,7 @@ def test_train_projection_interrupted(work, ref):
         shutil.copy2(ref / "build" / f, out / f)
     args = ("train-projection", "build2", "--config", "proj.yaml", "--quiet")
     # Ctrl-C in the second epoch (after the 5th batch loss): one line, 130, nothing written, no projections
-    r = run(cli(*args, at=("satloc.projection:ranking_loss:5:SIGINT",)), work)
+    r = run(cli(*args, at=("satloc.features.projection:ranking_loss:5:SIGINT",)), work)
     assert_sigint_exit(r)
     assert temps(out) == [] and sorted(p.name for p in out.iterdir()) == ["build.json", "dictionary.npz",
                                                                            "satellite_features.npz"]
@@ -338,7 +338,7 @@ def test_train_projection_interrupted(work, ref):
     # SIGKILL right after projections.pt is written: it is whole (the uninterrupted run's); projection.json,
     # which describes it, is not there yet (an earlier one, for other projections, was removed first)
     shutil.copy2(ref / "build" / "projection.json", out / "projection.json")
-    r = run(cli(*args, at=("satloc.projection:Projections.save:1:SIGKILL",)), work)
+    r = run(cli(*args, at=("satloc.features.projection:Projections.save:1:SIGKILL",)), work)
     assert r.rc == -signal.SIGKILL, r
     assert projections_equal(out / "projections.pt", ref / "build" / "projections.pt")
     assert not (out / "projection.json").exists()

@@ -4,10 +4,10 @@ import numpy as np
 import pytest
 
 from satloc import ConfigError, FormatError, Frame, Pose2, SatelliteMap, Sequence, StereoCamera
-from satloc.dictionary import Dictionary, GridConfig, SatelliteFeatures, build_dictionary, ground_samples
 from satloc.features import BilateralRGB
-from satloc.localizer import Localizer, LocalizerConfig, candidate_poses
-from satloc.projection import ProjectionConfig, Projections, evaluate_loss, train_projections
+from satloc.features.dictionary import Dictionary, GridConfig, SatelliteFeatures, build_dictionary, ground_samples
+from satloc.features.projection import ProjectionConfig, Projections, evaluate_loss, train_projections
+from satloc.localizers.database import Localizer, LocalizerConfig, candidate_poses
 
 
 def flat_ground_depth(cam: StereoCamera) -> np.ndarray:
@@ -149,7 +149,7 @@ def test_clear_errors():
 
 
 def test_metric_context_windows_are_box_means():
-    from satloc.context import ContextConfig, ground_context, satellite_context
+    from satloc.features.context import ContextConfig, ground_context, satellite_context
 
     rng = np.random.default_rng(3)
     fmap = rng.random((60, 80, 5)).astype(np.float32)

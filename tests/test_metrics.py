@@ -1,11 +1,11 @@
-"""satloc.metrics on hand-made cases whose answers are worked out by hand below."""
+"""satloc.evaluation.metrics on hand-made cases whose answers are worked out by hand below."""
 import math
 
 import numpy as np
 import pytest
 
 from satloc import ConfigError
-from satloc.metrics import (
+from satloc.evaluation.metrics import (
     PRCurve,
     bootstrap_ci,
     error_stats,
@@ -226,7 +226,7 @@ def _ar1(n, rho, rng):
 
 
 def test_block_bootstrap_widens_intervals_of_a_persistent_sequence_and_covers():
-    from satloc.metrics import bootstrap_ci, stationary_block_length
+    from satloc.evaluation.metrics import bootstrap_ci, stationary_block_length
 
     rng = np.random.default_rng(5)
     x = _ar1(300, 0.9, rng)
@@ -247,7 +247,7 @@ def test_block_bootstrap_widens_intervals_of_a_persistent_sequence_and_covers():
 
 
 def test_block_bootstrap_is_seeded_and_checks_its_arguments():
-    from satloc.metrics import bootstrap_ci, bootstrap_indices, ci_method
+    from satloc.evaluation.metrics import bootstrap_ci, bootstrap_indices, ci_method
 
     x = _ar1(120, 0.7, np.random.default_rng(1))
     assert bootstrap_ci(x, method="stationary", seed=3) == bootstrap_ci(x, method="stationary", seed=3)
@@ -266,7 +266,7 @@ def test_block_bootstrap_is_seeded_and_checks_its_arguments():
 
 
 def test_paired_bootstrap_cancels_what_the_queries_share():
-    from satloc.metrics import bootstrap_ci, paired_bootstrap_ci
+    from satloc.evaluation.metrics import bootstrap_ci, paired_bootstrap_ci
 
     rng = np.random.default_rng(2)
     hard = np.abs(_ar1(300, 0.9, rng)) * 5          # how hard each query is: shared by both methods
@@ -284,7 +284,7 @@ def test_paired_bootstrap_cancels_what_the_queries_share():
 def test_joined_passes_are_resampled_each_within_itself():
     """Two passes laid end to end (inside, then outside the map): the step of "truly inside" between them
     does not set the block length, no block runs across, and each pass keeps its size in every resample."""
-    from satloc.metrics import ci_method, grouped_bootstrap_indices, precision_recall_ci
+    from satloc.evaluation.metrics import ci_method, grouped_bootstrap_indices, precision_recall_ci
 
     rng = np.random.default_rng(4)
     n_in, n_out = 150, 100

@@ -48,3 +48,37 @@ def test_python_m_with_an_old_name_says_where_it_went():
     assert "satloc_env.determinism moved to satloc_env.experiments.determinism: run python -m " \
            "satloc_env.experiments.determinism" in r.stderr
     assert "Traceback" not in r.stderr
+
+
+METHOD_USER = textwrap.dedent("""
+    import warnings
+    warnings.simplefilter("default")
+    import satloc
+    from satloc.localizer import Localizer, LocalizerConfig     # line 5
+    from satloc.crossview import CrossViewLocalizer            # line 6
+    import satloc.track as track                               # line 7
+    metrics = satloc.metrics                                   # line 8
+    from satloc.features import make_extractor                 # the package keeps the old module's names
+    from satloc.crossview import localize_sequence              # line 10: a module warned already ...
+    import satloc.localizers.database, satloc.localizers.crossview, satloc.tracking.track, satloc.evaluation.metrics
+    import satloc.features.pixelwise, satloc.pipeline
+    assert Localizer is satloc.localizers.database.Localizer
+    assert CrossViewLocalizer is satloc.localizers.crossview.CrossViewLocalizer
+    assert track is satloc.tracking.track and metrics is satloc.evaluation.metrics
+    assert make_extractor is satloc.features.pixelwise.make_extractor
+    assert localize_sequence is satloc.pipeline.localize_no_database
+    print("ok")
+""")
+
+
+def test_the_method_arranged_by_trade_keeps_its_old_names(tmp_path):
+    script = tmp_path / "user.py"
+    script.write_text(METHOD_USER)
+    r = subprocess.run([sys.executable, str(script)], capture_output=True, text=True, timeout=300)
+    assert r.returncode == 0, r.stderr
+    assert r.stdout == "ok\n"
+    warned = [ln for ln in r.stderr.splitlines() if "FutureWarning" in ln]
+    assert [w.split(": FutureWarning: ")[0].rsplit(":", 1)[1] for w in warned] == ["5", "6", "7", "8", "10"], r.stderr
+    assert "satloc.localizer moved to satloc.localizers.database" in warned[0]
+    assert "satloc.metrics moved to satloc.evaluation.metrics" in warned[3]
+    assert "localize_sequence moved to satloc.pipeline.localize_no_database" in warned[4]

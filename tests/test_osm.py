@@ -362,7 +362,8 @@ def test_snapped_routes_go_round_one_way_streets():
     # the other way round it may not: it goes round the block (down, along the bottom, up the right side)
     xy, _ = snapped_route(rg, np.array([[15.0, 70.0], [105.0, 70.0]]), False, GraphParams())
     assert np.min(xy[:, 1]) < 15
-    from satloc_env.world.roadgraph import RoadGraphError, graph_from_lines as gfl
+    from satloc_env.world.roadgraph import RoadGraphError
+    from satloc_env.world.roadgraph import graph_from_lines as gfl
 
     trap = gfl([BLOCK_LINES[0]], [7.0], 120, 80, GraphParams(), oneway=[1])
     with pytest.raises(RoadGraphError, match=r"\[1\]: no way leads there .* one-way"):

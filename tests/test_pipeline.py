@@ -6,9 +6,9 @@ import pytest
 import yaml
 
 from satloc import Sequence
-from satloc.localizer import LocalizerConfig
+from satloc.features.projection import ProjectionConfig
+from satloc.localizers.database import LocalizerConfig
 from satloc.pipeline import BuildConfig, build, load_localizer, localize, train_projection
-from satloc.projection import ProjectionConfig
 from satloc_env.cli import main
 from satloc_env.envs.record import PassConfig, RecordConfig, record_passes
 

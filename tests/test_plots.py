@@ -2,9 +2,9 @@
 import cv2
 import numpy as np
 
+from satloc.evaluation.plots import plot_posterior
 from satloc.geometry import Pose2
-from satloc.localizer import Localization
-from satloc.plots import plot_posterior
+from satloc.localizers.database import Localization
 from satloc.satmap import SatelliteMap
 
 

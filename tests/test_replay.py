@@ -17,12 +17,12 @@ from gymnasium.utils.env_checker import check_env
 
 import satloc_env  # noqa: F401  (registers the ids)
 from satloc import ConfigError, SatelliteMap
+from satloc.features.projection import ProjectionConfig
 from satloc.geometry import Pose2
-from satloc.localizer import LocalizerConfig
+from satloc.localizers.database import LocalizerConfig
 from satloc.pipeline import BuildConfig, load_localizer
-from satloc.projection import ProjectionConfig
 from satloc.sequence import Frame, Sequence
-from satloc.track import Tracker, compose_motion, relative_motion
+from satloc.tracking.track import Tracker, compose_motion, relative_motion
 from satloc_env.envs import auto_localizer as autoloc
 from satloc_env.envs.drive import PANEL_PX, SatLocEnv, compose_view
 from satloc_env.envs.record import PassConfig, record_pass

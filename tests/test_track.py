@@ -1,4 +1,4 @@
-"""Tracking (satloc.track): the odometry-driven belief over candidate poses, and its use by the localizer."""
+"""Tracking (satloc.tracking.track): the odometry-driven belief over candidate poses, and its use by the localizer."""
 import math
 
 import numpy as np
@@ -6,8 +6,8 @@ import pytest
 from test_method import GridConfig, build_dictionary, tiny_setup
 
 from satloc import ConfigError, Pose2
-from satloc.localizer import Localizer, LocalizerConfig
-from satloc.track import TrackConfig, Tracker, compose_motion, noisy_odometry, relative_motion
+from satloc.localizers.database import Localizer, LocalizerConfig
+from satloc.tracking.track import TrackConfig, Tracker, compose_motion, noisy_odometry, relative_motion
 
 STEP = 5.0
 

@@ -72,7 +72,7 @@ def test_tune_runs_each_grid_on_the_calibration_scene_and_applies_its_rules(tmp_
     """End to end on a tiny calibration run: every grid point localized with its own value, the choices by
     the documented rules, tune.json and tune.md written."""
     from satloc.baselines.fabmap import FabMap, FabMapConfig
-    from satloc.track import TrackConfig
+    from satloc.tracking.track import TrackConfig
 
     exp = {"database_frames": 30, "query_frames": 4, "query_spacing_m": 6.0, "features": "rgb",
            "compare": {"fabmap": {"max_features": 150, "new_place_samples": 5}, "fabmap_train_frames": 6}}
@@ -107,7 +107,7 @@ def test_tune_runs_each_grid_on_the_calibration_scene_and_applies_its_rules(tmp_
         fm = FabMap.load(tmp_path / f"fabmap_vocabulary_size_{v}" / "fabmap" / "fabmap.npz")
         assert fm.config.vocabulary_size == v
     from satloc.baselines.efm import EfmConfig
-    from satloc.vo import VOConfig
+    from satloc.tracking.vo import VOConfig
 
     assert [r["value"] for r in by["efm.contrast_threshold"]] == [0.005, 0.04]
     assert res["chosen"]["efm.contrast_threshold"] == pick_lowest(by["efm.contrast_threshold"],

@@ -1,5 +1,5 @@
-"""Odometry from the sensors: stereo visual odometry (satloc.vo) on a simulated drive, the drifting wheel-odometry
-model (satloc.track.noisy_odometry's bias and scale error), and KITTI's OXTS odometry
+"""Odometry from the sensors: stereo visual odometry (satloc.tracking.vo) on a simulated drive, the drifting wheel-odometry
+model (satloc.tracking.track.noisy_odometry's bias and scale error), and KITTI's OXTS odometry
 (satloc.datasets.kitti.oxts_odometry) on our synthetic drive and, when present, the real excerpt in
 ../shared/realdata."""
 import math
@@ -13,8 +13,8 @@ from satloc import ConfigError, Frame, Pose2, Sequence
 from satloc.config import from_dict
 from satloc.datasets.kitti import OXTS_FIELDS, load_kitti, oxts_odometry
 from satloc.geometry import wrap_angle
-from satloc.track import noisy_odometry, relative_motion
-from satloc.vo import StereoVO, VOConfig, integrate_odometry, odometry_drift, visual_odometry
+from satloc.tracking.track import noisy_odometry, relative_motion
+from satloc.tracking.vo import StereoVO, VOConfig, integrate_odometry, odometry_drift, visual_odometry
 
 needs_real = pytest.mark.skipif(not REAL.is_dir(), reason="shared KITTI fixture absent")
 

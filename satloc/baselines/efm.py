@@ -35,7 +35,7 @@ RANSAC, and the database images are weighed by how many matches survive.
   ``min_inliers`` it falls back to the ratio-test match counts (unverified), normalised the same way, and when
   there is no match at all to the uniform distribution.
 * **Estimate**: the posterior-weighted mean pose of the top 3 database images
-  (:func:`satloc.localizer.top_k_estimate`, like every method here); ``candidates`` are the database poses,
+  (:func:`satloc.localizers.database.top_k_estimate`, like every method here); ``candidates`` are the database poses,
   so EFM cannot place a query between lanes: a query pass 1 m beside the database pass has a 1 m error floor.
 * **Inside/outside the map**: ``inlier_score`` is the best image's inlier count (0 when none reaches
   ``min_inliers``); ``inlier`` is ``inlier_score >= inlier_threshold``.
@@ -64,7 +64,7 @@ from tqdm import tqdm
 from ..config import from_dict, to_dict
 from ..errors import ConfigError, FormatError
 from ..geometry import StereoCamera
-from ..localizer import Localization, top_k_estimate
+from ..localizers.database import Localization, top_k_estimate
 from ..persist import ArraySpec, load_npz, save_npz
 from ..sequence import Frame, Sequence
 
@@ -91,7 +91,7 @@ class EfmConfig:
     ransac_confidence: float = 0.995
     min_inliers: int = 12                # a database image with fewer inliers gets similarity 0
     inlier_threshold: float = 50.0       # query declared inside the map when its best inlier count >= this
-                                         # (experiments pick it from the PR curve: satloc.metrics)
+                                         # (experiments pick it from the PR curve: satloc.evaluation.metrics)
     top_k: int = 3                       # the estimate averages the top-k database poses
 
     def __post_init__(self):

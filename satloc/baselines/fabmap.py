@@ -38,10 +38,10 @@ chooses among the paper's options it says so):
   the paper's simple motion model: the previous posterior moved to the places within ``motion_window``
   database indices (adjacent places; the previous new-place mass spread over all places).
 
-Output per query: a :class:`satloc.localizer.Localization` whose ``candidates`` are the database poses,
+Output per query: a :class:`satloc.localizers.database.Localization` whose ``candidates`` are the database poses,
 ``posterior`` the place posterior without the new place, renormalised (p(L_j | Z, at a place), smoothed over
 the places the same way; so it does not depend on the new-place model), ``estimate`` its top-3 weighted pose
-(:func:`satloc.localizer.top_k_estimate`), ``inlier_score`` = 1 - p(new place | Z) (the probability that
+(:func:`satloc.localizers.database.top_k_estimate`), ``inlier_score`` = 1 - p(new place | Z) (the probability that
 the query was taken at one of the database places), ``inlier`` = inlier_score >= ``inlier_threshold`` and
 ``num_samples`` the number of local features of the query.
 """
@@ -60,7 +60,7 @@ from tqdm import tqdm
 
 from ..config import from_dict, to_dict
 from ..errors import ConfigError, FormatError
-from ..localizer import Localization, top_k_estimate
+from ..localizers.database import Localization, top_k_estimate
 from ..persist import load_npz, save_npz
 from ..sequence import Frame, Sequence
 

@@ -51,7 +51,7 @@ frames alternate between 0.89 and 0.98 m (mean 0.94 m) while the image stamps ar
 time of that frame is ``meta["time_origin"]``.
 
 **Odometry** from the OXTS motion sensors (forward speed and yaw rate integrated between frames, not the
-positions): :func:`oxts_odometry`, in the convention of :func:`satloc.track.relative_motion`.
+positions): :func:`oxts_odometry`, in the convention of :func:`satloc.tracking.track.relative_motion`.
 """
 from __future__ import annotations
 
@@ -494,7 +494,7 @@ def oxts_odometry(sequence: Sequence, clock: str = "image", max_gap_s: float = 0
                   substeps: int = 20) -> np.ndarray:
     """(N, 3) odometry of a KITTI drive read by :func:`load_kitti` (or a view of it) from its OXTS motion
     sensors: row ``i`` is the motion (dx, dy, dyaw) from frame ``i - 1`` to frame ``i`` in frame ``i - 1``'s
-    vehicle frame (the convention of :func:`satloc.track.relative_motion`), row 0 NaN. Positions are not used:
+    vehicle frame (the convention of :func:`satloc.tracking.track.relative_motion`), row 0 NaN. Positions are not used:
     this is the wheel-odometry-like signal a vehicle has, to compare with visual odometry and the OXTS poses.
 
     The IMU's forward speed ``vf`` (m/s, parallel to the ground) and yaw rate ``wu`` (rad/s, about its up axis)

@@ -12,7 +12,7 @@ import numpy as np
 
 from satloc.config import from_dict, to_dict
 from satloc.errors import ConfigError
-from satloc.metrics import bootstrap_ci
+from satloc.evaluation.metrics import bootstrap_ci
 from satloc.persist import atomic_path, write_json
 from satloc_env.envs.active import ActiveLocEnv, belief_entropy
 
@@ -171,7 +171,7 @@ def evaluate_agents(config: EvalConfig | dict | None = None, out: str | Path = "
 def plot_episode(env: ActiveLocEnv, episode: dict, path: str | Path, title: str = "") -> None:
     """One panel per decision (and the end): the belief over the scene's satellite image (its 400 most
     probable candidates), the car (circle), the belief's mode (cross) and the path driven so far."""
-    from satloc.plots import _pyplot
+    from satloc.evaluation.plots import _pyplot
     from satloc_env.world.scene import load_scene
 
     plt = _pyplot()
@@ -211,7 +211,7 @@ def plot_episode(env: ActiveLocEnv, episode: dict, path: str | Path, title: str 
 
 
 def plot_learning_curve(curve: list[dict], path: Path, window: int = 100) -> None:
-    from satloc.plots import _pyplot
+    from satloc.evaluation.plots import _pyplot
 
     plt = _pyplot()
     fig, ax = plt.subplots(1, 2, figsize=(10, 3.6))

@@ -24,7 +24,7 @@ import numpy as np
 
 from satloc.errors import ConfigError, FormatError
 from satloc.geometry import Pose2
-from satloc.track import relative_motion
+from satloc.tracking.track import relative_motion
 from satloc_env.envs.active import ActiveLocEnv, K, belief_entropy
 
 __all__ = ["RandomAgent", "RouteAgent", "EntropyAgent", "LearnedAgent", "make_agent", "AGENTS", "POLICY_PATH"]

@@ -5,7 +5,7 @@ The car starts at a seeded random place on a scene's streets with a fresh tracke
 junction the agent picks a branch: the action is ``Discrete(3)``, the slots of :data:`satloc_env.envs.active_map.SLOTS`
 (left, straight, right), with ``info["action_mask"]`` (and :meth:`ActiveLocEnv.action_masks`, which
 sb3-contrib's ``MaskablePPO`` reads) saying which exist here; the way back is never offered. Between
-junctions the autopilot drives the chosen street and the tracked localizer (:class:`satloc.track.Tracker`)
+junctions the autopilot drives the chosen street and the tracked localizer (:class:`satloc.tracking.track.Tracker`)
 fuses a frame every ``fuse_every`` steps; a step is one recorded frame of the map, 5 m of driving on the
 shipped maps, so a decision costs about a dozen steps (a 60-70 m block). A junction with one branch is
 driven through without a decision.
@@ -16,7 +16,7 @@ conditions. The odometry between fused frames is the true relative motion plus n
 ``SatLoc-v0``'s ``noisy_truth``).
 
 **Episode end.** After each fused frame: *success* (terminated) when the belief locks
-(:meth:`satloc.track.Tracker.locked`: at least ``lock_mass`` of it within ``lock_m`` of its mode) with the
+(:meth:`satloc.tracking.track.Tracker.locked`: at least ``lock_mass`` of it within ``lock_m`` of its mode) with the
 mode within ``success_m`` (10 m) of the truth; *wrong lock* (terminated) when it locks elsewhere; truncated
 once ``budget_m`` metres are driven. A start whose belief locks (or that spends the budget) before the first
 junction is drawn again (``info["redraws"]``): there the choice cannot matter.
@@ -48,7 +48,7 @@ from scipy.spatial import cKDTree
 from satloc.config import from_dict, to_dict
 from satloc.errors import ConfigError
 from satloc.geometry import Pose2, wrap_angle
-from satloc.track import TrackConfig, Tracker, compose_motion, relative_motion
+from satloc.tracking.track import TrackConfig, Tracker, compose_motion, relative_motion
 
 from .active_map import SLOTS, ActiveMap
 from .drive import ActionError

@@ -2,7 +2,7 @@
 localizer's candidate poses on them, and the localizer's posterior of a frame every few metres of every leg.
 
 An agent of ``satloc/ActiveLoc-v0`` chooses at each junction which street to take; between junctions the
-tracked localizer (:class:`satloc.track.Tracker`) fuses the posteriors of the frames the car passes. Rendering
+tracked localizer (:class:`satloc.tracking.track.Tracker`) fuses the posteriors of the frames the car passes. Rendering
 and localizing those frames while an agent trains would cost about a second per decision on 2 cores, so they are
 done once per scene, here: :func:`build_active_map`
 
@@ -13,7 +13,7 @@ done once per scene, here: :func:`build_active_map`
    ``frame_spacing_m``;
 2. builds the method's dictionary and learns its projections on the database pass (the pipeline's stages);
 3. localizes every query frame with the full method, scoring every candidate (no vote pruning: what the
-   localizer does while a tracker has not locked, :mod:`satloc.track`) and keeps each posterior's non-zero
+   localizer does while a tracker has not locked, :mod:`satloc.tracking.track`) and keeps each posterior's non-zero
    entries (the co-occurrence score is 0 wherever no pair matches: 500-2,000 of the 18,000 candidates of
    ``active_grid``) down to ``min_relative`` of its largest (stored compactly, see :meth:`ActiveMap.save`). Keeping only the 256 largest, as a
    first version did, dropped up to 57 % of a frame's mass on that grid of look-alike blocks, where the
@@ -374,9 +374,9 @@ def build_active_map(config: ActiveMapConfig | dict | None = None, work: str | o
     (default ``work/<scene>.npz``). Finished stages in ``work`` are reused (the recorder's own resume and a
     stamp per stage). Returns the map's path."""
     from satloc.config import from_dict
-    from satloc.localizer import LocalizerConfig
+    from satloc.features.projection import ProjectionConfig
+    from satloc.localizers.database import LocalizerConfig
     from satloc.pipeline import BuildConfig, build, load_localizer, train_projection
-    from satloc.projection import ProjectionConfig
     from satloc.sequence import Sequence
     from satloc_env.world.scene import load_scene
 

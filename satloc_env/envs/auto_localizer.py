@@ -73,8 +73,8 @@ def cache_root(cache_dir: str | os.PathLike | None = None) -> Path:
 
 
 def _configs(max_frames, build_config, projection_config):
+    from satloc.features.projection import ProjectionConfig
     from satloc.pipeline import BuildConfig
-    from satloc.projection import ProjectionConfig
 
     rc = RecordConfig()
     db = replace(rc.database, max_frames=max_frames, depth=False)  # stereo depth unless the build wants true depth
@@ -175,7 +175,7 @@ def auto_build_dir(scene: str | os.PathLike, aliasing: float | None = None, reso
     """The cached build directory of ``scene``'s database pass; records and builds it on a miss.
 
     ``max_frames`` (stop the database pass early), ``build_config`` (:class:`satloc.pipeline.BuildConfig`) and
-    ``projection_config`` (:class:`satloc.projection.ProjectionConfig`) are for small builds (tests); they are
+    ``projection_config`` (:class:`satloc.features.projection.ProjectionConfig`) are for small builds (tests); they are
     part of the cache key. ``cache_dir`` overrides the cache root (see :func:`cache_root`).
     """
     key = cache_key(scene, aliasing, resolution, max_frames=max_frames, build_config=build_config,
@@ -249,7 +249,7 @@ def _stamp(build_dir: Path) -> tuple:
 
 @functools.lru_cache(maxsize=2)
 def _load(build_dir: str, mode: str, refine: bool, stamp: tuple):
-    from satloc.localizer import LocalizerConfig
+    from satloc.localizers.database import LocalizerConfig
     from satloc.pipeline import load_localizer
 
     return load_localizer(build_dir, LocalizerConfig(mode=mode, refine=refine))
@@ -303,8 +303,8 @@ def describe_entry(entry: str | os.PathLike) -> dict[str, Any]:
         raise FormatError(f"{path}: key: expected aliasing in [0, 1], speed_mps > 0 and resolution half or full, got "
                           f"{key['aliasing']!r}, {key['speed_mps']!r}, {key['resolution'][:20]!r}")
     from satloc.config import from_dict
+    from satloc.features.projection import ProjectionConfig
     from satloc.pipeline import BuildConfig
-    from satloc.projection import ProjectionConfig
 
     from .record import PassConfig
 

@@ -1,18 +1,18 @@
-"""The environment's ``localizer="cross"``: localization with no database (:mod:`satloc.crossview`).
+"""The environment's ``localizer="cross"``: localization with no database (:mod:`satloc.localizers.crossview`).
 
 Nothing is built before the first step but the satellite map's features (the shipped extractor's: 2-4 s for
 ``city``'s 1800 x 1800 px on 2 cores, not the minutes of a database pass and a build), cached on disk under
 ``$SATLOC_CACHE/cross/`` (default ``~/.cache/satloc``) by the map's pixels and georeference, and in memory
 once per process. Every localization starts from a
 prior as a GPS fix would give it: the environment draws it around the true pose, within ``prior_radius_m``
-metres and ``prior_yaw_deg`` degrees (:func:`satloc.crossview.draw_prior`, from a generator seeded by the
+metres and ``prior_yaw_deg`` degrees (:func:`satloc.localizers.crossview.draw_prior`, from a generator seeded by the
 episode's seed). The drivable area is the map's label raster (the scene's roads, as a real place's road vectors
-give them; :class:`satloc.crossview.CrossViewConfig` ``drivable: auto``). With ``localizer_track`` a :class:`satloc.crossview.CrossViewTracker` carries the answer from
+give them; :class:`satloc.localizers.crossview.CrossViewConfig` ``drivable: auto``). With ``localizer_track`` a :class:`satloc.localizers.crossview.CrossViewTracker` carries the answer from
 one localization to the next with the odometry observations.
 
 :class:`CrossEnvLocalizer` gives the interface the environments' localization loop
 (:class:`satloc_env.envs.drive.LocalizationState`) uses: ``localize(frame, tracker=None, prior=...)``
-returning a :class:`satloc.localizer.Localization` (candidates: the posterior's strongest positions and
+returning a :class:`satloc.localizers.database.Localization` (candidates: the posterior's strongest positions and
 headings; inlier score: the best correlation), ``tracker()``, ``camera``, ``satfeat``, ``extractor`` and
 ``config``.
 """
@@ -27,12 +27,12 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from satloc import __version__ as SATLOC_VERSION
-from satloc.crossview import CrossViewConfig, CrossViewLocalizer, CrossViewTracker, Prior
-from satloc.dictionary import SatelliteFeatures
 from satloc.errors import ConfigError, FormatError
 from satloc.features import make_extractor
+from satloc.features.dictionary import SatelliteFeatures
 from satloc.geometry import StereoCamera
-from satloc.localizer import Localization
+from satloc.localizers.crossview import CrossViewConfig, CrossViewLocalizer, CrossViewTracker, Prior
+from satloc.localizers.database import Localization
 
 __all__ = ["CrossEnvConfig", "CrossEnvLocalizer", "cross_localizer", "map_features"]
 
@@ -48,7 +48,7 @@ class CrossEnvConfig:
 
 
 class CrossEnvLocalizer:
-    """A :class:`satloc.crossview.CrossViewLocalizer` in an environment's localization loop (see the module
+    """A :class:`satloc.localizers.crossview.CrossViewLocalizer` in an environment's localization loop (see the module
     docstring)."""
 
     needs_prior = True

@@ -7,7 +7,7 @@ actions that are not 2 finite numbers raise :class:`ActionError` (a ValueError),
 the action space (see :class:`SatLocEnv`).
 
 With a localizer (``localizer=``: ``"cross"``, the default, no database; ``"auto"``, the paper's method built
-from the scene's database pass; a build directory or a :class:`satloc.localizer.Localizer`), every ``localize_every`` steps the stereo pair the agent sees is
+from the scene's database pass; a build directory or a :class:`satloc.localizers.database.Localizer`), every ``localize_every`` steps the stereo pair the agent sees is
 localized against the satellite map and the result goes into ``info`` (see :class:`SatLocEnv`).
 """
 from __future__ import annotations
@@ -32,7 +32,7 @@ from satloc.labels import NUM_CLASSES
 from satloc.persist import read_json
 from satloc.satmap import SatelliteMap
 from satloc.sequence import Frame
-from satloc.track import compose_motion
+from satloc.tracking.track import compose_motion
 from satloc_env.world.scene import Scene, load_scene
 
 from .occluders import Appearance, sample_occluders
@@ -71,7 +71,7 @@ class EnvConfig:
     labels: bool = False                    # add left-camera semantic labels to observations
     odometry: Literal["noisy_truth", "visual"] = "noisy_truth"   # what the odometry observation is: the true
                                             # motion plus noise, or stereo visual odometry of the rendered pair
-                                            # (satloc.vo; NaN where it fails)
+                                            # (satloc.tracking.vo; NaN where it fails)
     odometry_noise: tuple[float, float] = (0.02, 0.003)  # std: fraction of distance, radians per step
     aliasing: float | None = None           # scene knobs (None: the scene file's value)
     occlusion: float | None = None
@@ -88,9 +88,9 @@ class EnvConfig:
                                             # (satloc_env.envs.auto_localizer); else a build directory; a Localizer
                                             # instance given as the keyword is stored here as "<instance>"
     localizer_mode: Literal["full", "np", "go"] = "full"   # for "auto" / a build directory
-    localizer_refine: bool = False          # for "auto" / a build directory: bird's-eye alignment (satloc.align)
+    localizer_refine: bool = False          # for "auto" / a build directory: bird's-eye alignment (satloc.tracking.align)
     localizer_track: bool = False           # fuse each localization into a belief moved by the odometry
-                                            # observations (satloc.track); a new episode starts a new belief
+                                            # observations (satloc.tracking.track); a new episode starts a new belief
     localize_every: int = 1                 # localize at the steps that are multiples of this (reset: step 0)
     prior_radius_m: float = 20.0            # "cross": each localization's prior, drawn around the true pose as a
     prior_yaw_deg: float = 10.0             # GPS fix gives it: within this radius and heading range
@@ -114,7 +114,7 @@ class EnvConfig:
             v = getattr(self, k)
             if v is not None and not 0.0 <= v <= 1.0:   # False for NaN
                 raise ConfigError(f"{k}: expected a value in [0, 1] (or None: the scene's), got {v}")
-        from satloc.crossview import Prior
+        from satloc.localizers.crossview import Prior
 
         Prior(0.0, 0.0, 0.0, self.prior_radius_m, self.prior_yaw_deg)   # a prior's checks, naming the field
         for k in ("max_steps", "anisotropy", "localize_every"):
@@ -152,7 +152,7 @@ class ActionError(ValueError):
 #: the spawn key of the seed sequence the GPS-like priors of ``localizer="cross"`` are drawn from
 PRIOR_SPAWN_KEY = 104729
 
-#: the value of ``EnvConfig.localizer`` when a :class:`satloc.localizer.Localizer` instance was passed.
+#: the value of ``EnvConfig.localizer`` when a :class:`satloc.localizers.database.Localizer` instance was passed.
 LOCALIZER_INSTANCE = "<instance>"
 
 
@@ -222,12 +222,12 @@ def _split_localizer(config: dict, owner: str = "SatLocEnv", allow_auto: bool = 
     if isinstance(value, os.PathLike):
         config["localizer"] = os.fspath(value)
         return config, None
-    from satloc.localizer import Localizer
+    from satloc.localizers.database import Localizer
 
     if not isinstance(value, Localizer):
         auto = " 'auto'," if allow_auto else ""
         raise ConfigError(f"{owner} config.localizer: expected None, 'none',{auto} a build directory or a "
-                          f"satloc.localizer.Localizer, got {type(value).__name__} {value!r}")
+                          f"satloc.localizers.database.Localizer, got {type(value).__name__} {value!r}")
     config["localizer"] = LOCALIZER_INSTANCE
     return config, value
 
@@ -271,10 +271,10 @@ def check_localizer_config(cfg, have_instance: bool, allow_auto: bool = True, al
                           "localizer keyword; pass the instance itself")
     if loc == "auto" and not allow_auto:
         raise ConfigError("localizer: 'auto' builds a localizer from a simulated scene's database pass, which a "
-                          "replay has not; expected None, 'none', a build directory or a satloc.localizer.Localizer")
+                          "replay has not; expected None, 'none', a build directory or a satloc.localizers.database.Localizer")
     if loc == "cross" and not allow_cross:
         raise ConfigError("localizer: 'cross' localizes from a prior drawn around the true pose, which this "
-                          "environment has not; expected None, 'none', a build directory or a satloc.localizer.Localizer")
+                          "environment has not; expected None, 'none', a build directory or a satloc.localizers.database.Localizer")
     if loc == "cross" and getattr(cfg, "localizer_refine", False):
         raise ConfigError("localizer_refine: the 'cross' localizer aligns the bird's-eye view already; refinement "
                           "is an option of 'auto' and build directories")
@@ -284,7 +284,7 @@ def check_localizer_config(cfg, have_instance: bool, allow_auto: bool = True, al
             auto = " 'auto'," if allow_auto else ""
             raise ConfigError(f"localizer: {loc!r} is not a build directory (no build.json); expected None, "
                               f"'none',{auto}{' cross,' if allow_cross else ''} a directory written by `satloc build` "
-                              "or a satloc.localizer.Localizer")
+                              "or a satloc.localizers.database.Localizer")
         cfg = dataclasses.replace(cfg, localizer=str(p))
     if cfg.localizer_track and loc is None:
         raise ConfigError("localizer_track: tracking needs a localizer (localizer is None)")
@@ -421,7 +421,7 @@ class LocalizationState:
         self.arrays: dict | None = None     # latest result as info arrays (error_m is added by info())
         self.view: PosteriorView | None = None
         self.error: str | None = None       # message of the last frame that could not be localized
-        self.tracker = None                 # satloc.track.Tracker (track): made at the first localization
+        self.tracker = None                 # satloc.tracking.track.Tracker (track): made at the first localization
         self.odo_since = np.zeros(3)        # odometry since the last localization
         self.motion_known = True            # False: some motion since the last localization is unknown
 
@@ -449,7 +449,7 @@ class LocalizationState:
             self.odo_since = compose_motion(self.odo_since, o)
 
     def localize(self, frame: Frame, step: int, prior=None) -> None:
-        """``prior``: where the vehicle is believed to be (a :class:`satloc.crossview.Prior`), for a localizer
+        """``prior``: where the vehicle is believed to be (a :class:`satloc.localizers.crossview.Prior`), for a localizer
         that needs one (``needs_prior``: ``localizer="cross"``)."""
         loc = self.localizer
         if loc is None:
@@ -540,7 +540,7 @@ class SatLocEnv(SharedSpecMixin, gym.Env):
     Observation (Dict): ``left``, ``right`` uint8 RGB images; ``odometry`` float32 (dx, dy, dyaw) of the
     motion since the previous step in the previous vehicle frame: with ``odometry="noisy_truth"`` (the default)
     the true motion plus noise, with ``odometry="visual"`` the stereo visual odometry of the rendered pairs
-    (:class:`satloc.vo.StereoVO`; NaN on a step where it fails: the tracked localizer then starts a new belief);
+    (:class:`satloc.tracking.vo.StereoVO`; NaN on a step where it fails: the tracked localizer then starts a new belief);
     ``depth`` (float32 metres in [0, ``zfar_m``], 0 = nothing) and ``labels`` (uint8 class ids) when enabled.
     The ``odometry`` Box is unbounded, so ``check_env`` warns about it: the noise of ``noisy_truth`` is
     Gaussian, and ``visual`` reports NaN on a step it cannot measure.
@@ -575,7 +575,7 @@ class SatLocEnv(SharedSpecMixin, gym.Env):
     ``inlier_score`` its best correlation), ``"auto"`` (the paper's method: a localizer
     built from the scene's database pass, cached on disk by :mod:`satloc_env.envs.auto_localizer`; the first use of a
     scene costs minutes), a build directory of ``satloc build`` + ``satloc train-projection`` (loaded in mode
-    ``localizer_mode``), or a :class:`satloc.localizer.Localizer` given as the ``localizer`` keyword (its own
+    ``localizer_mode``), or a :class:`satloc.localizers.database.Localizer` given as the ``localizer`` keyword (its own
     mode holds; ``config.localizer`` then reads ``"<instance>"``). At reset and at every step that is a
     multiple of ``localize_every``, the observed (appearance-changed) stereo pair is localized; ``info`` then
     always carries the latest result, with K = the localizer's ``posterior_k``:
@@ -586,13 +586,13 @@ class SatLocEnv(SharedSpecMixin, gym.Env):
     * ``posterior_poses`` (K, 3) and ``posterior_probs`` (K,) float64: the K most probable candidate poses
       and their probabilities (zero-padded);
     * ``inlier`` np.bool_ and ``inlier_score`` float64 (single images: the peak / mean score; tracked: the
-      probability of being on the mapped path, :attr:`satloc.track.Tracker.p_on`; False means "probably
+      probability of being on the mapped path, :attr:`satloc.tracking.track.Tracker.p_on`; False means "probably
       outside the mapped area");
     * ``localized_step`` int64: the step the result was computed at.
 
     With ``localizer_track`` each localization is fused into a belief over the candidate poses that the
-    odometry observations move between localizations (:mod:`satloc.track`; ``"cross"``: the previous answer
-    moved by them, :class:`satloc.crossview.CrossViewTracker`): the posterior, estimate and
+    odometry observations move between localizations (:mod:`satloc.tracking.track`; ``"cross"``: the previous answer
+    moved by them, :class:`satloc.localizers.crossview.CrossViewTracker`): the posterior, estimate and
     error are then the tracked ones. The belief starts again at every reset. A Localizer instance whose
     ``config.track`` is set is tracked too.
 
@@ -630,7 +630,7 @@ class SatLocEnv(SharedSpecMixin, gym.Env):
         self.render_mode = render_mode
         config, instance = _split_localizer(config)
         self._loc = LocalizationState()        # the localizer in use and its latest result (see LocalizationState)
-        self._vo = None                        # satloc.vo.StereoVO of the episode (odometry="visual")
+        self._vo = None                        # satloc.tracking.vo.StereoVO of the episode (odometry="visual")
         self.config = from_dict(EnvConfig, config, "SatLocEnv config")
         self._check_localizer_config(instance is not None)
         self.camera = StereoCamera.preset(self.config.resolution)
@@ -692,7 +692,7 @@ class SatLocEnv(SharedSpecMixin, gym.Env):
     # --- localization state (kept in self._loc, shared code with the replay environment) ----------------
     @property
     def localizer(self):
-        """The :class:`satloc.localizer.Localizer` in use (None: off)."""
+        """The :class:`satloc.localizers.database.Localizer` in use (None: off)."""
         return self._loc.localizer
 
     @localizer.setter
@@ -846,7 +846,7 @@ class SatLocEnv(SharedSpecMixin, gym.Env):
         obs = self._observe(np.zeros(3, np.float32))
         self._vo = None
         if cfg.odometry == "visual":           # its first pair: the reference of the first step's motion
-            from satloc.vo import StereoVO
+            from satloc.tracking.vo import StereoVO
 
             self._vo = StereoVO(self.camera)
             self._vo.step(obs["left"], obs["right"])
@@ -959,7 +959,7 @@ class SatLocEnv(SharedSpecMixin, gym.Env):
             return
         prior = None
         if self._loc.needs_prior:
-            from satloc.crossview import draw_prior
+            from satloc.localizers.crossview import draw_prior
 
             cfg = self._episode
             prior = draw_prior(self.pose, cfg.prior_radius_m, cfg.prior_yaw_deg, self._prior_rng)

@@ -37,7 +37,7 @@ from satloc.geometry import Pose2
 from satloc.persist import read_json
 from satloc.satmap import SatelliteMap
 from satloc.sequence import Sequence
-from satloc.track import compose_motion
+from satloc.tracking.track import compose_motion
 
 from .drive import (
     LOCALIZER_INSTANCE,
@@ -77,14 +77,14 @@ class ReplayConfig:
     depth: bool = False                     # add a left-camera depth observation (the frame's own, else stereo)
     odometry: Literal["noisy_truth", "visual", "oxts"] = "noisy_truth"   # the odometry observation: the poses'
                                             # motion plus noise, the stereo visual odometry of the frames
-                                            # (satloc.vo), or a KITTI drive's OXTS speed and yaw rate, integrated
+                                            # (satloc.tracking.vo), or a KITTI drive's OXTS speed and yaw rate, integrated
     odometry_noise: tuple[float, float] = (0.02, 0.003)  # std: fraction of the distance, radians per step
     localizer: str | None = None            # None/"none": off; a build directory; a Localizer instance given
                                             # as the keyword is stored here as "<instance>"
     localizer_mode: Literal["full", "np", "go"] = "full"   # for a build directory
-    localizer_refine: bool = False          # for a build directory: bird's-eye alignment (satloc.align)
+    localizer_refine: bool = False          # for a build directory: bird's-eye alignment (satloc.tracking.align)
     localizer_track: bool = False           # fuse each localization into a belief moved by the odometry
-                                            # observations (satloc.track); a new episode starts a new belief
+                                            # observations (satloc.tracking.track); a new episode starts a new belief
     localize_every: int = 1                 # localize at reset and at the steps that are multiples of this
     reward: Literal["none", "neg_error"] = "none"  # neg_error: minus the localization error (metres)
 
@@ -145,7 +145,7 @@ class SatLocReplayEnv(SharedSpecMixin, gym.Env):
     episode's RNG: SatLoc-v0's model. Zero at reset. Where either frame has no pose the motion is unknown:
     the observation is zero, ``info["odometry_valid"]`` False and ``odometry_true`` NaN (with tracking, the
     next localization starts a new belief). ``odometry="visual"`` observes the stereo visual odometry of the
-    frames instead (:class:`satloc.vo.StereoVO`, from the previous step's pair to this one), ``odometry="oxts"``
+    frames instead (:class:`satloc.tracking.vo.StereoVO`, from the previous step's pair to this one), ``odometry="oxts"``
     a KITTI drive's forward speed and yaw rate integrated over the frames stepped
     (:func:`satloc.datasets.kitti.oxts_odometry`); where they fail the observation is zero and
     ``odometry_valid`` False. With ``depth=True``: ``depth`` float32 metres, 0 = invalid: the
@@ -163,7 +163,7 @@ class SatLocReplayEnv(SharedSpecMixin, gym.Env):
     .localization_error``.
 
     **Localizer**: None (default), a build directory (``satloc build`` + ``satloc train-projection``, loaded in
-    ``localizer_mode``, once per process) or a :class:`satloc.localizer.Localizer` (its own mode holds). It
+    ``localizer_mode``, once per process) or a :class:`satloc.localizers.database.Localizer` (its own mode holds). It
     must have been built for the sequence's camera (every :class:`StereoCamera` field; the message gives both
     cameras' differing values) and for the sequence's data: :class:`satloc.ConfigError`, naming the localizer
     (its build directory and recorded scene where known) and the sequence, when the two record different
@@ -194,7 +194,7 @@ class SatLocReplayEnv(SharedSpecMixin, gym.Env):
         config, map_instance = _split_instance(config, "map", SatelliteMap, "None, a map directory or a "
                                                "satloc.satmap.SatelliteMap")
         self._loc = LocalizationState()
-        self._vo = None                       # satloc.vo.StereoVO of the episode (odometry="visual")
+        self._vo = None                       # satloc.tracking.vo.StereoVO of the episode (odometry="visual")
         self._oxts = None                     # odometry="oxts": the drive's per-frame OXTS odometry
         cfg = from_dict(ReplayConfig, config, "SatLocReplayEnv config")
         cfg = check_localizer_config(cfg, loc_instance is not None, allow_auto=False)
@@ -265,7 +265,7 @@ class SatLocReplayEnv(SharedSpecMixin, gym.Env):
 
     @property
     def localizer(self):
-        """The :class:`satloc.localizer.Localizer` in use (None: off)."""
+        """The :class:`satloc.localizers.database.Localizer` in use (None: off)."""
         return self._loc.localizer
 
     @property
@@ -394,7 +394,7 @@ class SatLocReplayEnv(SharedSpecMixin, gym.Env):
         obs, from_stereo = self._observe(np.zeros(3, np.float32))
         self._vo = None
         if cfg.odometry == "visual":          # its first pair: the reference of the first step's motion
-            from satloc.vo import StereoVO
+            from satloc.tracking.vo import StereoVO
 
             self._vo = StereoVO(self.sequence.camera)
             self._vo.step(obs["left"], obs["right"])

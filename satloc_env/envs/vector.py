@@ -23,7 +23,7 @@ each car's episodes are truncated after n steps, as ``gym.make``'s TimeLimit tru
 Every action is checked before any car moves: a bad one raises :class:`~satloc_env.envs.drive.ActionError` naming its
 sub-environment and changes nothing. With a localizer, each sub-environment localizes its own frames;
 with ``batch_network`` (the default) the network part of the features of all the frames localized in a step
-runs first as one batch (:meth:`satloc.localizer.Localizer.prefetch`; 1.5 times the throughput of 8 single
+runs first as one batch (:meth:`satloc.localizers.database.Localizer.prefetch`; 1.5 times the throughput of 8 single
 calls on the 2-core CPU machine). Batched convolutions round differently: the network's outputs differ from
 the single environment's by about 1e-6, so results with a localizer match N single environments to that
 rounding (tested: the same estimates to 1e-6 m); ``batch_network=False`` keeps them bit for bit.

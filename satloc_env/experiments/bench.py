@@ -142,10 +142,10 @@ def bench_localize(sizes_km=(0.25, 1.0, 4.0), work=None, scene: str = "loop", qu
 
     from satloc.device import resolve_device
     from satloc.errors import ConfigError
+    from satloc.features.projection import ProjectionConfig
     from satloc.geometry import arc_length
-    from satloc.localizer import LocalizerConfig
+    from satloc.localizers.database import LocalizerConfig
     from satloc.pipeline import BuildConfig, build, load_localizer, train_projection
-    from satloc.projection import ProjectionConfig
     from satloc.sequence import Sequence
     from satloc_env.envs.record import record_passes
 
@@ -219,7 +219,7 @@ KITTI_EXCERPT = (Path(__file__).resolve().parents[3] / "shared" / "realdata" / "
 
 def _timed_vo(seq, config) -> tuple[np.ndarray, float]:
     """Visual odometry of ``seq`` (frames already in memory) and its wall time per frame in ms."""
-    from satloc.vo import visual_odometry
+    from satloc.tracking.vo import visual_odometry
 
     t0 = time.perf_counter()
     odo = visual_odometry(seq, config)
@@ -228,7 +228,7 @@ def _timed_vo(seq, config) -> tuple[np.ndarray, float]:
 
 def bench_vo(scene: str = "residential", frames: int = 250, work=None, kitti=None, progress: bool = True,
              config=None) -> "Iterator[dict]":
-    """Stereo visual odometry (:mod:`satloc.vo`) drift and speed, one JSON-able row per measurement.
+    """Stereo visual odometry (:mod:`satloc.tracking.vo`) drift and speed, one JSON-able row per measurement.
 
     Simulator: a drive of ``frames`` frames, one per simulator step (0.8 m at the recorder's 8 m/s), on the
     database route of ``scene`` in the right lane, recorded into ``work`` (reused when present; default a temp
@@ -236,7 +236,7 @@ def bench_vo(scene: str = "residential", frames: int = 250, work=None, kitti=Non
     (``depth_source: frame``). Real data: the KITTI excerpt ``kitti`` (default :data:`KITTI_EXCERPT`; a
     ``skipped`` row when it is absent): VO at full and half resolution against the OXTS poses and against the
     OXTS-integrated odometry (:func:`satloc.datasets.kitti.oxts_odometry`), which is itself measured against the
-    poses on both clocks. Drift figures are :func:`satloc.vo.odometry_drift`'s (translation error as % of the
+    poses on both clocks. Drift figures are :func:`satloc.tracking.vo.odometry_drift`'s (translation error as % of the
     distance, heading drift in degrees per 100 m; ``segments`` over 50 and 100 m windows where the drive is that
     long). ``ms_per_frame``: VO wall time on frames in memory (stereo depth included: ``stereo_ms_per_frame``)."""
     import dataclasses
@@ -245,7 +245,7 @@ def bench_vo(scene: str = "residential", frames: int = 250, work=None, kitti=Non
     from satloc.config import to_dict
     from satloc.sequence import Sequence
     from satloc.stereo import StereoDepth
-    from satloc.vo import VOConfig, integrate_odometry, odometry_drift
+    from satloc.tracking.vo import VOConfig, integrate_odometry, odometry_drift
     from satloc_env.envs.record import PassConfig, make_env, record_pass
 
     config = config or VOConfig()
@@ -390,20 +390,20 @@ def bench_osm(ways: tuple[int, ...] = (1_000, 10_000), work=None) -> Iterator[di
 
 def bench_crossview(scene: str = "city", frames: int = 40, radius_m: float = 20.0, yaw_deg: float = 10.0,
                     work=None, progress: bool = True) -> "Iterator[dict]":
-    """Localization with no database (:mod:`satloc.crossview`): seconds per frame and frames per second at half
+    """Localization with no database (:mod:`satloc.localizers.crossview`): seconds per frame and frames per second at half
     resolution (620x188) from a ``radius_m`` / ``yaw_deg`` prior, single frame and tracked (the tracker's
     ``fuse``: the whole prior searched each frame), one row each; and the one-off satellite features of the map.
     The frames: a drive of ``frames`` frames one every 5 m along ``scene``'s query lane, recorded into ``work``
     (reused; default a temp dir) and held in memory; priors drawn around the true poses (seed 0). Times are the
-    whole :meth:`satloc.crossview.CrossViewLocalizer.localize` (stereo depth, features, bird's-eye view,
+    whole :meth:`satloc.localizers.crossview.CrossViewLocalizer.localize` (stereo depth, features, bird's-eye view,
     search); ``error`` columns are reported so a speed is never read apart from what it gives."""
     import tempfile
 
-    from satloc.crossview import CrossViewLocalizer, draw_prior, localize_frames
-    from satloc.dictionary import SatelliteFeatures
+    from satloc.evaluation.metrics import pose_errors
     from satloc.features import make_extractor
+    from satloc.features.dictionary import SatelliteFeatures
     from satloc.geometry import Pose2
-    from satloc.metrics import pose_errors
+    from satloc.localizers.crossview import CrossViewLocalizer, draw_prior, localize_frames
     from satloc.satmap import SatelliteMap
     from satloc.sequence import Sequence
     from satloc_env.envs.record import PassConfig, make_env, record_pass

@@ -1,6 +1,6 @@
 """Table I's ``cross-area`` protocol: the revisit queries localized with no database (issue 36).
 
-The place is known only from above: :class:`satloc.crossview.CrossViewLocalizer` compares each query with the
+The place is known only from above: :class:`satloc.localizers.crossview.CrossViewLocalizer` compares each query with the
 scene's satellite map (the recording's map: the capture at the configured satellite gap, never the ground the
 camera sees) within a prior drawn around the query's true pose as a GPS fix gives it (``prior_radius_m``,
 ``prior_yaw_deg``; seeded by ``seed`` and the query's index, so every run draws the same priors). Nothing the
@@ -9,7 +9,7 @@ localizer uses was learned on the scene: the features are the shipped ``default`
 
 Two rows: ``cross`` ("No database"), each query on its own, and ``cross+track`` ("No database + track"), the
 queries in order, each frame's posterior multiplied by the previous answer moved by the tracked modes'
-odometry (:class:`satloc.crossview.CrossViewTracker`; :func:`satloc_env.experiments.scene_run.tracked_odometry`,
+odometry (:class:`satloc.localizers.crossview.CrossViewTracker`; :func:`satloc_env.experiments.scene_run.tracked_odometry`,
 visual odometry by default). The drivable area: the map's label raster where it has one (``drivable: auto``;
 in a simulated scene the generated roads, as a real place's road vectors would give them).
 
@@ -29,11 +29,11 @@ import numpy as np
 
 from satloc import __version__ as SATLOC_VERSION
 from satloc.config import to_dict
-from satloc.crossview import SHIPPED_PROJECTIONS, CrossViewLocalizer, draw_prior, localize_frames
-from satloc.dictionary import SatelliteFeatures
 from satloc.errors import ConfigError, FormatError
+from satloc.evaluation.metrics import pose_errors, recall_within
 from satloc.features import make_extractor
-from satloc.metrics import pose_errors, recall_within
+from satloc.features.dictionary import SatelliteFeatures
+from satloc.localizers.crossview import SHIPPED_PROJECTIONS, CrossViewLocalizer, draw_prior, localize_frames
 from satloc.persist import atomic_path, header, load_npz, save_npz, write_json
 from satloc.satmap import SatelliteMap
 from satloc.sequence import Sequence
@@ -172,8 +172,8 @@ def _pictures(ca: CrossAreaConfig, label: str, satmap: SatelliteMap, sdir: Path 
     the worst query (every position searched, not only the stored strongest), drawn where not drawn yet."""
     import dataclasses
 
+    from satloc.evaluation.plots import plot_cross_posterior
     from satloc.geometry import Pose2
-    from satloc.plots import plot_cross_posterior
 
     order = np.argsort(np.nan_to_num(errors, nan=1e9))
     picks = sorted({int(order[0]), int(order[len(order) // 2]), int(order[-1])})

@@ -26,7 +26,7 @@ Where the queries come from (exactly one):
 Only queries within ``coverage_m`` of the database path are evaluated (as in the synthetic experiments);
 every ``query_stride``-th of them. The tracked modes get the odometry between consecutive evaluated queries
 from ``odometry``: ``visual`` (the default: stereo visual odometry over every frame of the drive between them,
-:mod:`satloc.vo`), ``oxts`` (KITTI's forward speed and yaw rate, integrated) or ``noisy_truth`` (their true
+:mod:`satloc.tracking.vo`), ``oxts`` (KITTI's forward speed and yaw rate, integrated) or ``noisy_truth`` (their true
 poses plus noise).
 
 ``resolution``: ``"half"`` resizes images and camera by 1/2 (KITTI 1242x375 -> 621x188, the scale the
@@ -72,16 +72,16 @@ from typing import Any
 import numpy as np
 
 from satloc.config import from_dict, to_dict
-from satloc.context import ContextConfig
 from satloc.datasets import load_kitti, load_malaga
 from satloc.datasets.kitti import CAMERAS, IMU_HEIGHT_M, MISSING
 from satloc.datasets.malaga import MalagaConfig
 from satloc.errors import ConfigError, SatlocWarning
+from satloc.features.context import ContextConfig
+from satloc.features.projection import ProjectionConfig
 from satloc.geodata.radiometry import Radiometry
 from satloc.geoframe import GeoFrame
 from satloc.geometry import StereoCamera, arc_length, wrap_angle
 from satloc.persist import atomic_dir, atomic_path, write_json
-from satloc.projection import ProjectionConfig
 from satloc.satmap import SatelliteMap
 from satloc.sequence import Sequence
 
@@ -143,7 +143,7 @@ class EvaluateConfig:
     odometry_seed: int = 0
     kitti: KittiOptions = field(default_factory=KittiOptions)
     malaga: MalagaConfig = field(default_factory=MalagaConfig)
-    # also localize the same queries with no database (satloc.crossview), each from a prior drawn around its
+    # also localize the same queries with no database (satloc.localizers.crossview), each from a prior drawn around its
     # pose (the OXTS / GPS fix) within cross_area.prior_radius_m, single and tracked by the same odometry
     no_database: bool = False
     cross_area: CrossAreaConfig = field(default_factory=CrossAreaConfig)

@@ -33,18 +33,18 @@ import numpy as np
 
 from satloc.baselines import EfmConfig, FabMapConfig
 from satloc.config import added_field, from_dict, to_dict
-from satloc.context import ContextConfig
-from satloc.crossview import CrossViewConfig, Prior
 from satloc.errors import ConfigError, FormatError
+from satloc.evaluation.metrics import bootstrap_ci, ci_method, error_stats, stationary_block_length, worst_case_errors
+from satloc.features.context import ContextConfig
+from satloc.features.projection import ProjectionConfig
 from satloc.geometry import Pose2, wrap_angle
-from satloc.localizer import Localization, LocalizerConfig
-from satloc.metrics import bootstrap_ci, ci_method, error_stats, stationary_block_length, worst_case_errors
+from satloc.localizers.crossview import CrossViewConfig, Prior
+from satloc.localizers.database import Localization, LocalizerConfig
 from satloc.persist import atomic_path, header, read_json, write_json
 from satloc.pipeline import BuildConfig, build, load_localizer, localize, train_projection
-from satloc.projection import ProjectionConfig
 from satloc.satmap import SatelliteMap
 from satloc.sequence import Sequence
-from satloc.track import compose_motion, noisy_odometry
+from satloc.tracking.track import compose_motion, noisy_odometry
 from satloc_env.envs.record import (
     QUERY_CHANGE,
     PassConfig,
@@ -57,8 +57,8 @@ from satloc_env.envs.record import (
 from satloc_env.envs.vehicle import DEFAULT_SPEED_WANDER, DEFAULT_WANDER_M
 from satloc_env.world.scene import load_scene
 
-# "<mode>[+track][+align]": tracked over the query sequence with odometry (satloc.track), refined by bird's-eye
-# alignment (satloc.align)
+# "<mode>[+track][+align]": tracked over the query sequence with odometry (satloc.tracking.track), refined by bird's-eye
+# alignment (satloc.tracking.align)
 MODES = ("go", "np", "full", "full+align", "go+track", "np+track", "full+track", "full+track+align")
 _BASE_NAMES = {"go": "Ours-GO", "np": "Ours-NP", "full": "Ours-full"}
 _SUFFIX_NAMES = {"track": "track", "align": "BEV align"}
@@ -108,7 +108,7 @@ class CompareConfig:
 @dataclass
 class CrossAreaConfig:
     """Table I's ``cross-area`` protocol (:mod:`satloc_env.experiments.cross_area`): the revisit queries localized
-    with no database (:mod:`satloc.crossview`), each from a prior drawn around its true pose (seeded per query)."""
+    with no database (:mod:`satloc.localizers.crossview`), each from a prior drawn around its true pose (seeded per query)."""
 
     prior_radius_m: float = 20.0
     prior_yaw_deg: float = 10.0
@@ -123,10 +123,10 @@ PROTOCOLS = ("revisit", "city", "residential", "cross-area")
 #: the protocols a Table I configuration runs by default (cross-area: satloc_env.experiments.cross_area)
 DEFAULT_PROTOCOLS = ("revisit", "city", "residential")
 #: odometry sources of the tracked modes: ``visual``, stereo visual odometry of the recorded frames
-#: (satloc.vo: the passes are recorded a frame every DENSE_SPACING_M metres and the queries taken from them as
+#: (satloc.tracking.vo: the passes are recorded a frame every DENSE_SPACING_M metres and the queries taken from them as
 #: far apart as the pass asks, spaced_frames; the odometry between two queries composed over the frames between
 #: them); ``noisy_truth``, the true
-#: motion between queries plus noise and drift (satloc.track.noisy_odometry)
+#: motion between queries plus noise and drift (satloc.tracking.track.noisy_odometry)
 ODOMETRY = ("visual", "noisy_truth")
 #: frame spacing (metres) of passes whose queries are tracked by visual odometry
 DENSE_SPACING_M = 1.0
@@ -190,7 +190,7 @@ class ExperimentConfig:
 
 
 def table_stats(errors, truth, db_poses, seed: int = 0) -> dict:
-    """The error columns of every table row, one rule for every method (:mod:`satloc.metrics`): a query not
+    """The error columns of every table row, one rule for every method (:mod:`satloc.evaluation.metrics`): a query not
     answered is a gross failure, counted with the worst answer on the map (the farthest database pose from its
     truth); ``mean_m, std_m, median_m, within_1m, within_10m`` (error <= 1 m, 10 m), ``failure_rate`` and the
     95 % bootstrap interval of the mean (``ci95_low, ci95_high``, seeded) over the queries in their order along
@@ -284,10 +284,10 @@ def tracked_odometry(cfg, seq: Sequence, idx: np.ndarray, cache: Path | None = N
     """(len(idx), 3) the odometry the tracked modes move their belief by, from query ``idx[i - 1]`` to
     ``idx[i]`` of ``seq`` (row 0 NaN), by ``cfg.odometry``:
 
-    * ``visual``: every step of :func:`satloc.vo.visual_odometry` over ``seq`` (cached in ``cache``, an npz
+    * ``visual``: every step of :func:`satloc.tracking.vo.visual_odometry` over ``seq`` (cached in ``cache``, an npz
       reused for the same frames and VO configuration), composed between the queries;
     * ``oxts`` (a KITTI drive): :func:`satloc.datasets.kitti.oxts_odometry` of ``seq``, composed likewise;
-    * ``noisy_truth``: :func:`satloc.track.noisy_odometry` of the queries' true poses.
+    * ``noisy_truth``: :func:`satloc.tracking.track.noisy_odometry` of the queries' true poses.
 
     Composed odometry is NaN where a step between two queries failed (the belief starts anew there)."""
     idx = np.asarray(idx, np.int64)
@@ -325,10 +325,10 @@ def sequence_identity(seq: Sequence) -> str:
 
 
 def vo_steps(seq: Sequence, cache: Path | None = None, config=None, progress: bool = False) -> np.ndarray:
-    """(N, 3) :func:`satloc.vo.visual_odometry` of every frame of ``seq`` with ``config`` (default
+    """(N, 3) :func:`satloc.tracking.vo.visual_odometry` of every frame of ``seq`` with ``config`` (default
     ``VOConfig()``), cached in ``cache`` (kept apart by the pass's identity and the configuration)."""
     from satloc.persist import load_npz, save_npz
-    from satloc.vo import VOConfig, visual_odometry
+    from satloc.tracking.vo import VOConfig, visual_odometry
 
     config = config or VOConfig()
     key = {"frames": len(seq), "vo": to_dict(config), "name": seq.name, "identity": sequence_identity(seq)}
@@ -482,7 +482,7 @@ def localize_and_report(cfg, label: str, db: Sequence, q: Sequence, sel: np.ndar
     write_json(out / "summary.json", summary)
     if not getattr(cfg, "pictures", True):
         return summary
-    from satloc.plots import plot_errors_along_route, plot_posterior
+    from satloc.evaluation.plots import plot_errors_along_route, plot_posterior
 
     plot_errors_along_route(out, q, sel, cfg.modes, out / "errors_along_route.png")
     poses = q.poses
@@ -579,7 +579,7 @@ def aliasing_scene(cfg: ExperimentConfig, out: str | Path, progress: bool = True
     * co-occurrence cues (the modes GO, NP, full of ``cfg.modes``): log P(near) - log P(far), the posterior
       computed over *all* candidates (no vote pruning, no refinement, no tracking);
     * ``bev``: bird's-eye correlation of the query's ground view with the satellite image at every candidate
-      (:meth:`satloc.align.BevAligner.scan`), NCC(near) - NCC(far).
+      (:meth:`satloc.tracking.align.BevAligner.scan`), NCC(near) - NCC(far).
 
     A margin <= 0 means that cue, alone, prefers a place more than ``FAR_M`` m away: a gross failure of that
     cue (the bird's-eye refinement can still rescue it where the truth is among the posterior's few strongest
@@ -631,7 +631,7 @@ def aliasing_scene(cfg: ExperimentConfig, out: str | Path, progress: bool = True
                "measured_mask": [bool(v) for v in valid],    # every cue measured (the counts are over these)
                "margins": {c: [None if not np.isfinite(v) else round(float(v), 4) for v in margins[c]] for c in cues}}
     write_json(out / "aliasing.json", summary)
-    from satloc.plots import plot_margins_along_route
+    from satloc.evaluation.plots import plot_margins_along_route
 
     plot_margins_along_route(q, sel[valid], {c: m[valid] for c, m in margins.items()}, FAR_M, out / "aliasing.png",
                              f"{cfg.scene}: ")

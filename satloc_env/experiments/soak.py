@@ -4,7 +4,7 @@ Two phases, one process:
 
 * **env**: ``satloc/SatLoc-v0`` driven by its autopilot with a localizer and tracking (``localizer_track``) for
   ``steps`` steps, in episodes of at most ``episode_steps`` (a new episode with a new seed at every end);
-* **stream**: :meth:`satloc.localizer.Localizer.localize_stream` over ``queries`` queries, tracked, taken in a
+* **stream**: :meth:`satloc.localizers.database.Localizer.localize_stream` over ``queries`` queries, tracked, taken in a
   cycle from a short query pass that the env records into a temporary sequence folder, so that each query is
   read from disk (PNG files opened and closed) as ``satloc localize`` reads them.
 
@@ -219,7 +219,7 @@ def soak(cfg: SoakConfig = SoakConfig(), emit: Callable[[dict], None] | None = N
     import gymnasium as gym
 
     from satloc.sequence import Frame, Sequence
-    from satloc.track import relative_motion
+    from satloc.tracking.track import relative_motion
     from satloc_env.envs import ENV_ID
 
     emit = emit or (lambda d: None)

@@ -42,7 +42,7 @@ import numpy as np
 from satloc.baselines import Efm, FabMap
 from satloc.config import from_dict, to_dict
 from satloc.errors import ConfigError
-from satloc.metrics import ci_method, pr_curve, precision_recall, precision_recall_ci, select_threshold
+from satloc.evaluation.metrics import ci_method, pr_curve, precision_recall, precision_recall_ci, select_threshold
 from satloc.persist import atomic_path, header, load_npz, read_json, save_npz, write_json
 from satloc.satmap import SatelliteMap
 from satloc.sequence import Sequence
@@ -249,7 +249,7 @@ class Table2Config:
     # ``compare`` configures the baselines; its ``protocols`` are not used here
     outside_frames: int | None = None     # branch queries (None: the whole branch)
     radius_m: float = 10.0                # a true positive is declared inside, inside and within this
-    rule: str = "max_f1"                  # satloc.metrics.select_threshold's rule
+    rule: str = "max_f1"                  # satloc.evaluation.metrics.select_threshold's rule
     min_precision: float = 0.9            # rule "recall_at_precision"
     # calibration: a revisit of a ring and a branch pass (other seeds for occluders, appearance and drift,
     # queries every calibration_spacing_m) at another place: ``calibration_scene``'s own ring and branch (routes
@@ -282,8 +282,8 @@ class Table2Config:
 def operating_point(errors, scores, inside, rule: str = "max_f1", min_precision: float = 0.9,
                     radius_m: float = 10.0) -> dict:
     """One method's Table II row: its PR curve over the queries (a true positive is declared inside, truly
-    ``inside`` and within ``radius_m``), the threshold picked by :func:`satloc.metrics.select_threshold`'s
-    ``rule`` and the counts at it (:func:`satloc.metrics.precision_recall`): ``precision, recall, threshold,
+    ``inside`` and within ``radius_m``), the threshold picked by :func:`satloc.evaluation.metrics.select_threshold`'s
+    ``rule`` and the counts at it (:func:`satloc.evaluation.metrics.precision_recall`): ``precision, recall, threshold,
     tp, declared, positives, curve``."""
     curve = pr_curve(errors, scores, inside, radius_m)
     pick = select_threshold(curve, rule, min_precision)

@@ -1,4 +1,4 @@
-"""``satloc train-crossview``: learn the cross-view projections (:mod:`satloc.crossview_learn`) across places.
+"""``satloc train-crossview``: learn the cross-view projections (:mod:`satloc.features.crossview_learn`) across places.
 
 For each training scene, a revisit-like pass (another lane, occluders, another appearance and day, the map a
 capture at the scene's satellite gap) is recorded into ``out/<scene>/rec`` (reused when there), its frames
@@ -16,10 +16,15 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from satloc.config import from_dict, to_dict
-from satloc.crossview_learn import CrossTrainConfig, plot_learning_curve, samples_from_sequence, train_crossview
-from satloc.dictionary import SatelliteFeatures
 from satloc.errors import ConfigError
 from satloc.features import make_extractor
+from satloc.features.crossview_learn import (
+    CrossTrainConfig,
+    plot_learning_curve,
+    samples_from_sequence,
+    train_crossview,
+)
+from satloc.features.dictionary import SatelliteFeatures
 from satloc.persist import header, write_json
 from satloc.satmap import SatelliteMap
 from satloc.sequence import Sequence

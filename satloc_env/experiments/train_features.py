@@ -1,4 +1,4 @@
-"""Train the project's FCN (:mod:`satloc.fcn`) on images rendered by the simulator, whose labels are exact.
+"""Train the project's FCN (:mod:`satloc.features.fcn`) on images rendered by the simulator, whose labels are exact.
 
 ``train_features(out_dir)`` (or ``python -m satloc_env.experiments.train_features --out DIR``) writes ``DIR/fcn.pt``
 (the weights, both views) and ``DIR/fcn_report.json`` (configuration, timings, losses, held-out metrics).
@@ -62,7 +62,7 @@ from satloc.config import added_field, from_dict, to_dict
 from satloc.device import HELP as DEVICE_HELP
 from satloc.device import device_field, resolve_device
 from satloc.errors import ConfigError, SatlocError
-from satloc.fcn import FCNPredictor, SegEdgeNet, ViewNet, save_fcn, torch_threads
+from satloc.features.fcn import FCNPredictor, SegEdgeNet, ViewNet, save_fcn, torch_threads
 from satloc.labels import CLASSES, NUM_CLASSES
 from satloc.persist import header, write_json
 from satloc.satmap import SatelliteMap
@@ -501,7 +501,7 @@ def _train(out_dir: Path, scenes: list[str], heldout: list[str], cfg: TrainConfi
     return report
 
 
-DESCRIPTION = ("Train the semantic and edge network (satloc.fcn) on images rendered by the simulator; write the "
+DESCRIPTION = ("Train the semantic and edge network (satloc.features.fcn) on images rendered by the simulator; write the "
                "weights (fcn.pt) and a report of held-out metrics (fcn_report.json).")
 
 

@@ -13,7 +13,7 @@ The settings (issue 22 found each of them tuned on the scenes its tables report)
   calibration scene;
 * EFM's SIFT contrast threshold (``efm.contrast_threshold``): the lowest mean error of ``efm``;
 * the visual odometry's detector, then (for ``gftt``) its Lucas-Kanade window: the lowest mean translation
-  error over 50 m segments (KITTI's odometry metric, :func:`satloc.vo.odometry_drift`) of the calibration
+  error over 50 m segments (KITTI's odometry metric, :func:`satloc.tracking.vo.odometry_drift`) of the calibration
   query pass, every frame of it, against its true poses (:func:`pick_lowest_vo`).
 
 The default calibration scene is ``fcn_train/town_a`` (``scenes/fcn_train/town_a.yaml``) (FAB-MAP trained on ``town_b``): scenes that
@@ -36,11 +36,11 @@ from satloc.baselines.efm import EfmConfig
 from satloc.baselines.fabmap import FabMapConfig
 from satloc.config import from_dict, to_dict
 from satloc.errors import ConfigError
-from satloc.localizer import LocalizerConfig
+from satloc.localizers.database import LocalizerConfig
 from satloc.persist import write_json
 from satloc.satmap import SatelliteMap
-from satloc.track import TrackConfig
-from satloc.vo import VOConfig
+from satloc.tracking.track import TrackConfig
+from satloc.tracking.vo import VOConfig
 
 from .scene_run import (
     MODES,
@@ -252,7 +252,7 @@ def _tune_vo(tc: TuneConfig, q, out: Path, rows: list, progress: bool) -> dict:
     (the default window in both grids) measured once."""
     import json
 
-    from satloc.vo import odometry_drift
+    from satloc.tracking.vo import odometry_drift
 
     measured: dict = {}   # configuration -> its odometry
 

@@ -5,9 +5,9 @@ RGB uint8 (H, W, 3) array and ``view`` is ``"ground"`` or ``"satellite"`` (an ex
 differently, e.g. with a network trained per view). ``FeatureStack`` concatenates extractors' channels.
 
 The interface itself (:class:`FeatureExtractor`, :data:`View`, :func:`check_image`) lives in
-:mod:`satloc.extractor` and is re-exported here. This module stands above :mod:`satloc.fcn`: the named
+:mod:`satloc.features.extractor` and is re-exported here. This module stands above :mod:`satloc.features.fcn`: the named
 feature sets of :func:`make_extractor` use its network extractors (imported on demand, as they load torch),
-and :mod:`satloc.fcn` does not import this module.
+and :mod:`satloc.features.fcn` does not import this module.
 """
 from __future__ import annotations
 
@@ -16,8 +16,8 @@ from typing import Sequence
 import cv2
 import numpy as np
 
-from .device import check_device
-from .errors import ConfigError
+from ..device import check_device
+from ..errors import ConfigError
 from .extractor import FeatureExtractor, View, check_image
 
 __all__ = ["View", "FeatureExtractor", "check_image", "BilateralRGB", "FeatureStack", "FEATURE_SETS",

@@ -13,16 +13,16 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
-from ._threads import single_threaded_blas
-from .config import from_dict, to_dict
+from .._threads import single_threaded_blas
+from ..config import from_dict, to_dict
+from ..errors import ConfigError, FormatError
+from ..geometry import StereoCamera
+from ..persist import ArraySpec, header_number, header_point, load_npz, nonfinite_path, save_npz
+from ..satmap import SatelliteMap
+from ..sequence import Frame, Sequence
+from ..stereo import StereoConfig, StereoDepth
 from .context import ContextConfig, ground_context, satellite_context
-from .errors import ConfigError, FormatError
-from .features import FeatureExtractor
-from .geometry import StereoCamera
-from .persist import ArraySpec, header_number, header_point, load_npz, nonfinite_path, save_npz
-from .satmap import SatelliteMap
-from .sequence import Frame, Sequence
-from .stereo import StereoConfig, StereoDepth
+from .pixelwise import FeatureExtractor
 
 
 @dataclass(frozen=True)
@@ -99,7 +99,7 @@ class SatelliteFeatures:
         return out, inside
 
     def features_at(self, flat: np.ndarray, context: ContextConfig, span: tuple[int, int]) -> np.ndarray:
-        """(n, D) base features with their metric context (see :mod:`satloc.context`) at flat pixel indices."""
+        """(n, D) base features with their metric context (see :mod:`satloc.features.context`) at flat pixel indices."""
         w = self.features.shape[1]
         base = self.features.reshape(-1, self.dim)[flat].astype(np.float32)
         ctx = satellite_context(self.features, flat // w, flat % w, self.meters_per_pixel, context, span)

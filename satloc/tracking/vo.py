@@ -1,7 +1,7 @@
 """Stereo visual odometry: the vehicle's planar motion between consecutive stereo frames, from the images.
 
-The localizer's tracking (:mod:`satloc.track`) needs odometry ``(dx, dy, dyaw)``: the motion from frame
-``i - 1`` to frame ``i`` in frame ``i - 1``'s vehicle frame (:func:`satloc.track.relative_motion`). This module
+The localizer's tracking (:mod:`satloc.tracking.track`) needs odometry ``(dx, dy, dyaw)``: the motion from frame
+``i - 1`` to frame ``i`` in frame ``i - 1``'s vehicle frame (:func:`satloc.tracking.track.relative_motion`). This module
 measures it from the same stereo pairs the localizer sees, frame to frame:
 
 1. **depth** of frame ``i - 1`` from its stereo pair (:class:`satloc.stereo.StereoDepth`, 3-way SGBM). The
@@ -20,7 +20,7 @@ measures it from the same stereo pairs the localizer sees, frame to frame:
 4. the camera's 6-DoF motion is carried into the vehicle frame (:meth:`StereoCamera.vehicle_from_camera`) and
    reduced to the plane: ``dx``, ``dy`` of the vehicle origin and the heading change ``dyaw``.
 
-A step fails, giving NaN (unknown motion, as :func:`satloc.track.noisy_odometry` marks it) and never an
+A step fails, giving NaN (unknown motion, as :func:`satloc.tracking.track.noisy_odometry` marks it) and never an
 exception, when fewer than ``min_inliers`` matches agree (a blank or untextured image, a frame with no valid
 depth), when PnP finds no pose, or when the motion exceeds ``max_step_m`` / ``max_step_yaw_deg``. The first
 frame has no predecessor: NaN. A failed step still computes the current frame's depth and features, so the
@@ -51,10 +51,10 @@ from typing import Literal
 import cv2
 import numpy as np
 
-from .errors import ConfigError
-from .geometry import Pose2, StereoCamera, arc_length, wrap_angle
-from .sequence import Sequence
-from .stereo import StereoConfig, StereoDepth
+from ..errors import ConfigError
+from ..geometry import Pose2, StereoCamera, arc_length, wrap_angle
+from ..sequence import Sequence
+from ..stereo import StereoConfig, StereoDepth
 
 
 @dataclass(frozen=True)
@@ -268,7 +268,7 @@ class StereoVO:
 def visual_odometry(sequence: Sequence, config: VOConfig = VOConfig(), progress: bool = False) -> np.ndarray:
     """(N, 3) odometry of ``sequence`` from its stereo pairs: row ``i`` is the motion (dx, dy, dyaw) from frame
     ``i - 1`` to frame ``i`` in frame ``i - 1``'s vehicle frame (the convention of
-    :func:`satloc.track.relative_motion`); row 0 and failed steps are NaN. Poses are not used."""
+    :func:`satloc.tracking.track.relative_motion`); row 0 and failed steps are NaN. Poses are not used."""
     from tqdm import tqdm
 
     vo = StereoVO(sequence.camera, config)

@@ -5,11 +5,11 @@ from pathlib import Path
 
 import numpy as np
 
-from .geometry import Pose2, arc_length
-from .localizer import Localization
-from .persist import atomic_path, load_npz
-from .satmap import SatelliteMap
-from .sequence import Sequence
+from ..geometry import Pose2, arc_length
+from ..localizers.database import Localization
+from ..persist import atomic_path, load_npz
+from ..satmap import SatelliteMap
+from ..sequence import Sequence
 
 
 def _pyplot():
@@ -131,8 +131,8 @@ def plot_margins_along_route(queries: Sequence, frames: np.ndarray, margins: dic
 
 def plot_cross_posterior(satmap: SatelliteMap, candidates: np.ndarray, posterior: np.ndarray, prior, truth,
                          estimate, path: str | Path, title: str = "") -> None:
-    """A no-database posterior (:mod:`satloc.crossview`) over its prior disc: the satellite map around the
-    prior (``prior``: a :class:`satloc.crossview.Prior`), the disc, the posterior's strongest positions
+    """A no-database posterior (:mod:`satloc.localizers.crossview`) over its prior disc: the satellite map around the
+    prior (``prior``: a :class:`satloc.localizers.crossview.Prior`), the disc, the posterior's strongest positions
     (``candidates`` (K, 3), ``posterior`` (K,); every position and heading drawn as a dot, the more probable on
     top, so a position shows its strongest heading), the estimate and the truth (Pose2 or None)."""
     plt = _pyplot()

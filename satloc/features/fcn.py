@@ -6,7 +6,7 @@ encoder-decoder with skip connections and two heads: per-pixel scores of the :da
 and one boundary logit. There is one network per view (``ground``, ``satellite``), both stored in one
 weights file, ``satloc/weights/fcn.pt`` (retrain with ``python -m satloc_env.experiments.train_features``).
 
-Extractors (the :mod:`satloc.extractor` interface, ``extractor(image, view) -> (H, W, dim) float32``):
+Extractors (the :mod:`satloc.features.extractor` interface, ``extractor(image, view) -> (H, W, dim) float32``):
 
 - :class:`SemanticFeatures`: per-pixel class probabilities (softmax of the scores), ``dim = NUM_CLASSES``; or
   of any torch module you plug in that returns per-pixel class scores.
@@ -45,15 +45,15 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from .device import resolve_device
-from .errors import ConfigError, FormatError
+from ..device import resolve_device
+from ..errors import ConfigError, FormatError
+from ..labels import CLASSES, NUM_CLASSES
+from ..persist import atomic_path, check_header, check_zip, header
 from .extractor import View, check_image
-from .labels import CLASSES, NUM_CLASSES
-from .persist import atomic_path, check_header, check_zip, header
 
 FORMAT = "satloc_fcn"
 VIEWS: tuple[str, ...] = ("ground", "satellite")
-WEIGHTS_DIR = Path(__file__).resolve().parent / "weights"
+WEIGHTS_DIR = Path(__file__).resolve().parent.parent / "weights"
 DEFAULT_WEIGHTS = WEIGHTS_DIR / "fcn.pt"
 DEFAULT_WIDTHS: tuple[int, ...] = (16, 32, 48, 64, 96)
 

@@ -52,7 +52,7 @@ from typing import Literal
 
 import numpy as np
 
-from .errors import ConfigError
+from ..errors import ConfigError
 
 
 def _vector(x, name: str, dtype=np.float64) -> np.ndarray:

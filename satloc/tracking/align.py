@@ -1,6 +1,6 @@
 """Bird's-eye alignment: a refinement stage after the co-occurrence localizer.
 
-The co-occurrence posterior (:mod:`satloc.localizer`) lands most queries within a metre or two, on a grid of
+The co-occurrence posterior (:mod:`satloc.localizers.database`) lands most queries within a metre or two, on a grid of
 candidates 0.5 m apart with the heading of the path. This stage re-checks its few strongest peaks densely:
 
 1. the query's ground pixels are warped to a bird's-eye view (BEV) of the ground plane in front of the
@@ -31,8 +31,8 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from .errors import ConfigError
-from .geometry import Pose2, StereoCamera
+from ..errors import ConfigError
+from ..geometry import Pose2, StereoCamera
 
 
 @dataclass(frozen=True)
@@ -45,7 +45,7 @@ class AlignConfig:
     half_width_m: float = 10.0                      # and to each side
     ground_tolerance: float = 0.08        # |stereo depth - ground-plane depth| / ground-plane depth
     channels: str = "gray"                # gray | edge | gray+edge | learned (every channel of features already
-                                          # projected: satloc.crossview_learn)
+                                          # projected: satloc.features.crossview_learn)
     normalize_m: float = 1.0              # local contrast normalisation window (Gaussian sigma); 0: off
     min_correlation: float = 0.2          # below: keep the co-occurrence estimate
     min_cells: int = 400                  # fewer visible ground cells: keep the co-occurrence estimate
@@ -70,7 +70,7 @@ class Alignment:
 
 def _channel_maps(features: np.ndarray, channels: str) -> list[np.ndarray]:
     f = features
-    if channels == "learned":   # already the learned channels (satloc.crossview_learn.CrossViewProjections)
+    if channels == "learned":   # already the learned channels (satloc.features.crossview_learn.CrossViewProjections)
         return [np.ascontiguousarray(f[..., c], np.float32) for c in range(f.shape[2])]
     out = []
     if "gray" in channels:

@@ -3,8 +3,8 @@
 Every extractor has one interface: ``extractor(image, view) -> (H, W, dim) float32`` where ``image`` is an
 RGB uint8 (H, W, 3) array and ``view`` is ``"ground"`` or ``"satellite"``. This module holds only that
 interface (:class:`FeatureExtractor`, :data:`View`, :func:`check_image`) so that the extractors
-(:mod:`satloc.features`, :mod:`satloc.fcn`) depend on it and :mod:`satloc.features`, which names the feature
-sets, can depend on :mod:`satloc.fcn` without the two importing each other.
+(:mod:`satloc.features`, :mod:`satloc.features.fcn`) depend on it and :mod:`satloc.features`, which names the feature
+sets, can depend on :mod:`satloc.features.fcn` without the two importing each other.
 """
 from __future__ import annotations
 
@@ -12,7 +12,7 @@ from typing import Literal, Protocol, runtime_checkable
 
 import numpy as np
 
-from .errors import ConfigError
+from ..errors import ConfigError
 
 __all__ = ["View", "FeatureExtractor", "check_image"]
 

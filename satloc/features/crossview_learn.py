@@ -1,6 +1,6 @@
 """Cross-view projections learned across places: the paper's W_g, W_s for localization with no database.
 
-:mod:`satloc.crossview` compares the query's bird's-eye view (BEV) with the satellite map by masked normalised
+:mod:`satloc.localizers.crossview` compares the query's bird's-eye view (BEV) with the satellite map by masked normalised
 cross-correlation of one channel each, by default the grey level of the bilateral-filtered colours. Here the
 channels are learned: ``k`` channels of the ground BEV are ``W_g`` (k x 3) times its bilateral RGB (no network
 runs on the ground image, so a frame costs what the grey level costs), and ``k`` channels of the map are ``W_s``
@@ -30,11 +30,11 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from .align import AlignConfig
-from .device import device_field, resolve_device
-from .errors import ConfigError, FormatError
-from .geometry import Pose2
-from .persist import FORMAT_VERSION, atomic_path
+from ..device import device_field, resolve_device
+from ..errors import ConfigError, FormatError
+from ..geometry import Pose2
+from ..persist import FORMAT_VERSION, atomic_path
+from ..tracking.align import AlignConfig
 
 FORMAT = "crossview_projections"
 
@@ -142,7 +142,7 @@ class CrossViewProjections:
 def samples_from_sequence(seq, satfeat, frames=None, search_m: float = 2.0, align: AlignConfig = AlignConfig(),
                           progress: bool = False, config: CrossTrainConfig | None = None) -> dict:
     """Training samples of the frames ``frames`` (default all) of ``seq`` (a pass with true poses) on the map
-    whose features are ``satfeat`` (:class:`satloc.dictionary.SatelliteFeatures`, the default extractor's):
+    whose features are ``satfeat`` (:class:`satloc.features.dictionary.SatelliteFeatures`, the default extractor's):
     ``ground`` (N, 3, nx, ny) float16 BEV of the bilateral RGB, ``mask`` (N, nx, ny) uint8 (ground seen),
     ``sat`` (N, D, nx + 2(m + p), ny + 2(m + p)) float16 map features on the BEV grid of the true pose grown by
     m = search_m / resolution cells and p = :func:`pad_cells` more (normalised, then trimmed, in training), and
@@ -151,9 +151,9 @@ def samples_from_sequence(seq, satfeat, frames=None, search_m: float = 2.0, alig
     ``align.min_cells`` ground cells are left out (``index``: the frames kept)."""
     from tqdm.auto import tqdm
 
-    from .align import BevAligner
+    from ..tracking.align import BevAligner
     from .dictionary import FrameDepth
-    from .features import BilateralRGB
+    from .pixelwise import BilateralRGB
 
     al = BevAligner(seq.camera, satfeat.features[..., :3], satfeat.meters_per_pixel, satfeat.origin, align)
     al = al.with_search(search_m)
@@ -237,7 +237,7 @@ def _blur(x: torch.Tensor, k: torch.Tensor) -> torch.Tensor:
 
 
 def _normalize(x: torch.Tensor, mask: torch.Tensor | None, k: torch.Tensor) -> torch.Tensor:
-    """satloc.align's local contrast normalisation (masked cells excluded and zeroed)."""
+    """satloc.tracking.align's local contrast normalisation (masked cells excluded and zeroed)."""
     m = torch.ones_like(x[:, :1]) if mask is None else mask
     wsum = _blur(m, k).clamp_min(1e-3)
     mu = _blur(x * m, k) / wsum

@@ -17,7 +17,7 @@ Configurations of the same code (``mode``):
   at candidate c when L(i) lies within ``go_radius_m`` of where c places j, weighted 1 / (d_g * max(dist, 0.25)).
 
 With ``refine`` (any mode), the estimate is then refined by bird's-eye alignment around the posterior's
-strongest peaks (:mod:`satloc.align`); the posterior itself is the co-occurrence one.
+strongest peaks (:mod:`satloc.tracking.align`); the posterior itself is the co-occurrence one.
 
 Satellite neighbour sets depend only on the satellite pixel, so they are computed once for every map pixel in
 a corridor around the candidate path (the "satellite table"); a query then costs one ground NN search plus
@@ -36,18 +36,18 @@ import numpy as np
 from scipy.spatial import cKDTree
 from tqdm import tqdm
 
-from ._threads import _END, overlapped, single_threaded_blas
-from .align import AlignConfig, BevAligner, posterior_peaks
-from .device import check_device, device_field
-from .dictionary import Dictionary, FrameDepth, SatelliteFeatures, ground_features, ground_samples
-from .errors import ConfigError, FormatError
-from .features import FeatureExtractor
-from .geometry import Pose2, StereoCamera, arc_length
-from .nn import NNIndex
-from .persist import ArraySpec, check_arrays, header_number, load_npz, save_npz
-from .projection import Projections
-from .sequence import Frame
-from .track import TrackConfig, Tracker
+from .._threads import _END, overlapped, single_threaded_blas
+from ..device import check_device, device_field
+from ..errors import ConfigError, FormatError
+from ..features.dictionary import Dictionary, FrameDepth, SatelliteFeatures, ground_features, ground_samples
+from ..features.nn import NNIndex
+from ..features.pixelwise import FeatureExtractor
+from ..features.projection import Projections
+from ..geometry import Pose2, StereoCamera, arc_length
+from ..persist import ArraySpec, check_arrays, header_number, load_npz, save_npz
+from ..sequence import Frame
+from ..tracking.align import AlignConfig, BevAligner, posterior_peaks
+from ..tracking.track import TrackConfig, Tracker
 
 
 @dataclass(frozen=True)
@@ -71,9 +71,9 @@ class LocalizerConfig:
                                           # 42.56 / 42.56 / 42.55 m, 96: 41.32 m; full+align, 57 queries)
     prune_regions: int = 3                # >0: score only candidates near the best-voted path positions
     prune_window_m: float = 12.0          # path length kept around each voted position (and peak separation)
-    refine: bool = False                  # refine the estimate by bird's-eye alignment (satloc.align)
+    refine: bool = False                  # refine the estimate by bird's-eye alignment (satloc.tracking.align)
     align: AlignConfig = field(default_factory=AlignConfig)
-    track: bool = False                   # sequences: fuse each frame into a belief moved by odometry (satloc.track);
+    track: bool = False                   # sequences: fuse each frame into a belief moved by odometry (satloc.tracking.track);
                                           # acted on by satloc.pipeline.localize and the environment; a direct
                                           # localize()/localize_stream() call tracks when given a tracker
     tracking: TrackConfig = field(default_factory=TrackConfig)
@@ -295,16 +295,16 @@ class Localizer:
     def localize(self, frame: Frame, candidates: np.ndarray | None = None, refine: bool | None = None,
                  tracker: Tracker | None = None) -> Localization:
         """Posterior over candidate poses and the estimate for one stereo frame (``refine``: whether to refine
-        the estimate by bird's-eye alignment; None: as configured). With a ``tracker`` (:mod:`satloc.track`,
+        the estimate by bird's-eye alignment; None: as configured). With a ``tracker`` (:mod:`satloc.tracking.track`,
         already moved by the odometry since its last frame) the frame's posterior is fused into its belief and
         the answer (posterior, estimate, refinement peaks) is the fused one, and the inlier score is the tracker's
-        probability of being on the mapped path (:attr:`satloc.track.Tracker.p_on`)."""
+        probability of being on the mapped path (:attr:`satloc.tracking.track.Tracker.p_on`)."""
         with single_threaded_blas():  # see satloc._threads: spinning BLAS workers slow the network and stereo
             return self._score(self._observe(frame), candidates, refine, tracker)
 
     def prefetch(self, frames: Sequence[Frame]) -> None:
         """Compute the network part of the features of several query frames' left images in one batch (one
-        network call, see :meth:`satloc.fcn.FCNPredictor.prefetch`), so that the :meth:`localize` calls that
+        network call, see :meth:`satloc.features.fcn.FCNPredictor.prefetch`), so that the :meth:`localize` calls that
         follow for these frames reuse it. Extractors without a network (``rgb``) ignore it. The features equal
         those of :meth:`localize` alone up to float rounding of the batched convolutions (about 1e-6)."""
         pre = getattr(self.extractor, "prefetch", None)
@@ -313,7 +313,7 @@ class Localizer:
             pre(lefts, "ground")
 
     def tracker(self, config: TrackConfig | None = None) -> Tracker:
-        """A :class:`satloc.track.Tracker` over this localizer's candidate poses (``config``: default
+        """A :class:`satloc.tracking.track.Tracker` over this localizer's candidate poses (``config``: default
         ``self.config.tracking``)."""
         return Tracker(self.candidates, self.config.tracking if config is None else config)
 
@@ -390,7 +390,7 @@ class Localizer:
         scores = np.zeros(len(cands))
         # a tracker that has not locked (a new belief: a uniform prior) needs every candidate's score: vote
         # pruning drops the truth of most aliased single images, and a dropped candidate is all but ruled out
-        # by the fusion (satloc.track, "global search")
+        # by the fusion (satloc.tracking.track, "global search")
         prune = candidates is None and cfg.prune_regions > 0 and (tracker is None or tracker.locked())
         sel = self._pruned(gid, wg, pv) if prune else slice(None)
         if tracker is not None and tracker.belief is not None and not isinstance(sel, slice):
@@ -452,7 +452,7 @@ class Localizer:
     def _scores(self, cands: np.ndarray, pv: np.ndarray, gid: np.ndarray, wg: np.ndarray) -> np.ndarray:
         """Scores of the candidate poses ``cands`` (C, 3) for samples at ``pv`` (n, 2) with ground neighbours
         ``gid`` and weights ``wg`` (n, M); the loops are compiled (:mod:`satloc._kernels`)."""
-        from . import _kernels
+        from .. import _kernels
 
         cands = np.ascontiguousarray(cands, dtype=np.float64)
         pv = np.ascontiguousarray(pv, dtype=np.float64)

@@ -21,7 +21,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from .errors import ConfigError
+from ..errors import ConfigError
 
 
 @dataclass(frozen=True)
@@ -43,7 +43,7 @@ class ContextConfig:
             if self.channels[1] > base_dim:
                 raise ConfigError(f"context.channels {self.channels}: the features have only {base_dim} channels")
             return self.channels
-        from .labels import NUM_CLASSES
+        from ..labels import NUM_CLASSES
 
         if feature_name in ("default", "semantic") and base_dim >= NUM_CLASSES:
             return base_dim - NUM_CLASSES, base_dim

@@ -3,7 +3,7 @@
 A single ground image cannot tell look-alike places apart: in a grid city two street corners with a park on
 the left and offices on the right give co-occurrence posteriors with two equal peaks, and the top-3 average
 then lands on the wrong one (or between them). A vehicle that moves knows how far it went since its last
-image. :class:`Tracker` keeps a belief over the candidate poses of a :class:`satloc.localizer.Localizer`:
+image. :class:`Tracker` keeps a belief over the candidate poses of a :class:`satloc.localizers.database.Localizer`:
 
 * **predict** (odometry ``(dx, dy, dyaw)``, the motion since the previous frame in the previous vehicle
   frame, as the environment's ``odometry`` observation): every candidate is moved by the odometry and its
@@ -55,8 +55,8 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial import cKDTree
 
-from .errors import ConfigError
-from .geometry import Pose2, wrap_angle
+from ..errors import ConfigError
+from ..geometry import Pose2, wrap_angle
 
 
 @dataclass(frozen=True)

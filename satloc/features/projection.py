@@ -37,11 +37,11 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
-from .device import check_device, device_field, resolve_device
+from ..device import check_device, device_field, resolve_device
+from ..errors import ConfigError, FormatError
+from ..persist import FORMAT_VERSION, atomic_path, check_header, check_zip
 from .dictionary import Dictionary
-from .errors import ConfigError, FormatError
 from .nn import NNIndex
-from .persist import FORMAT_VERSION, atomic_path, check_header, check_zip
 
 FORMAT = "projections"
 MAX_NORM = 1e12  # of a loaded W (trained ones have sqrt(D)): projected float32 distances stay finite

@@ -2,7 +2,7 @@
 
 The method of the paper needs a database drive through every place before it can localize there. This
 module localizes from the satellite map alone, inside a prior such as a GPS fix gives (a position within
-``radius_m``, a heading within ``yaw_deg``), with the bird's-eye comparison of :mod:`satloc.align`:
+``radius_m``, a heading within ``yaw_deg``), with the bird's-eye comparison of :mod:`satloc.tracking.align`:
 
 1. the query's ground pixels are warped to a bird's-eye view (BEV) of the ground ahead of the vehicle at the
    map's resolution, keeping only cells whose stereo depth agrees with the ground plane;
@@ -39,20 +39,20 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from .align import AlignConfig, BevAligner, _parabola_peak
-from .dictionary import FrameDepth, SatelliteFeatures
-from .errors import ConfigError
-from .geometry import Pose2, StereoCamera, wrap_angle
-from .labels import DRIVABLE, NUM_CLASSES
+from ..errors import ConfigError
+from ..features.dictionary import FrameDepth, SatelliteFeatures
+from ..geometry import Pose2, StereoCamera, wrap_angle
+from ..labels import DRIVABLE, NUM_CLASSES
+from ..tracking.align import AlignConfig, BevAligner, _parabola_peak
 
 __all__ = ["Prior", "CrossViewConfig", "CrossViewResult", "CrossViewLocalizer", "CrossViewTracker", "draw_prior",
-           "drivable_from_features", "drivable_from_labels", "drivable_from_roads", "localize_frames", "localize_sequence", "parse_prior"]
+           "drivable_from_features", "drivable_from_labels", "drivable_from_roads", "localize_frames", "parse_prior"]
 
 #: the widest prior searched (metres): the correlation's cost grows with the square of the radius
 MAX_RADIUS_M = 100.0
 #: the shipped learned channels (``CrossViewConfig(projections="shipped")``; ``crossview_report.json`` beside it
 #: says what they were trained on and how)
-SHIPPED_PROJECTIONS = str(Path(__file__).resolve().parent / "weights" / "crossview.pt")
+SHIPPED_PROJECTIONS = str(Path(__file__).resolve().parent.parent / "weights" / "crossview.pt")
 
 
 @dataclass(frozen=True)
@@ -92,7 +92,7 @@ class CrossViewConfig:
     # at 0.05; examples/crossview.py --temperatures)
     temperature: float = 0.02
     top_k: int = 256                      # posterior entries kept
-    # learned channels (satloc.crossview_learn, `satloc train-crossview`): a crossview.pt file, or "shipped" (the
+    # learned channels (satloc.features.crossview_learn, `satloc train-crossview`): a crossview.pt file, or "shipped" (the
     # package's, trained on fcn_train/suburb_a, suburb_b, town_b: the default); None: the grey level. On calibration
     # data (fcn_train/town_a, 60 frames) the shipped ones gave single frames 1.46 m mean, 92 % within 1 m against
     # the grey level's 1.82 m, 88 %, tracked 0.43 against 0.51 m, at 0.16 against 0.08 s per frame (docs/method.md)
@@ -240,14 +240,14 @@ class CrossViewLocalizer:
         if config.projections is not None:
             from dataclasses import replace
 
-            from .crossview_learn import CrossViewProjections
+            from ..features.crossview_learn import CrossViewProjections
 
             self.projections = CrossViewProjections.load(SHIPPED_PROJECTIONS if config.projections == "shipped"
                                                          else config.projections)
             sat, align = self.projections.satellite(satfeat.features), replace(config.align, channels="learned")
         self._aligner = BevAligner(camera, sat, satfeat.meters_per_pixel, satfeat.origin, align)
         self._searchers: dict[float, BevAligner] = {}
-        from .features import BilateralRGB
+        from ..features.pixelwise import BilateralRGB
 
         if (config.align.channels == "gray" or config.projections is not None) and \
                 getattr(extractor, "name", "") not in ("default", "rgb"):
@@ -268,7 +268,7 @@ class CrossViewLocalizer:
         ``prior``. ``predicted`` (pose, sigma metres, sigma degrees): a Gaussian belief, e.g. the previous answer
         moved by the odometry, multiplied into the posterior (its log added to correlation / temperature)."""
         if not isinstance(prior, Prior):
-            raise ConfigError(f"crossview: prior must be a satloc.crossview.Prior, got {type(prior).__name__}")
+            raise ConfigError(f"crossview: prior must be a satloc.localizers.crossview.Prior, got {type(prior).__name__}")
         sf = self.satfeat
         h, w = sf.features.shape[:2]
         x0, y1 = sf.origin
@@ -438,70 +438,13 @@ def parse_prior(text: str, radius_m: float = 20.0, yaw_deg: float = 10.0) -> Pri
     return Prior(x, y, math.radians(yaw), radius_m, yaw_deg)
 
 
-def localize_sequence(seq, satmap, out, prior: str | Prior = "truth", radius_m: float = 20.0, yaw_deg: float = 10.0,
-                      seed: int = 0, odometry: np.ndarray | None = None, roads=None,
-                      config: CrossViewConfig = CrossViewConfig(), progress: bool = False) -> dict:
-    """The no-database stage (``satloc localize --no-database``): every frame of ``seq`` (a
-    :class:`satloc.sequence.Sequence`) against ``satmap`` (a :class:`satloc.satmap.SatelliteMap`), with the
-    default features, into ``out/localization_cross.npz`` (frames, estimates (NaN: no answer), truth, errors,
-    correlation, cells, priors (x, y, yaw, radius, yaw range)). Returns the summary (also printed by the CLI).
+# localize_sequence (the ``satloc localize --no-database`` stage) moved to satloc.pipeline.localize_no_database
+def __getattr__(name: str):
+    if name == "localize_sequence":
+        import warnings
+        from importlib import import_module
 
-    ``prior``: ``"truth"``, a prior drawn around each frame's pose (``radius_m``, ``yaw_deg``, seeded by
-    ``seed``: a simulated GPS fix), or one :class:`Prior` (or ``"X,Y,YAW_DEG"``) for the first frame; the later
-    frames' then centre on the previous answer moved by ``odometry`` (needed then), ``radius_m`` wide. With
-    ``odometry`` ((N, 3), row i the motion from frame i - 1) the frames are tracked (:class:`CrossViewTracker`).
-    ``roads``: a :class:`satloc.geodata.vectors.RoadLines` whose lines bound the drivable area (in the map's
-    geo frame, or the sequence's)."""
-    from .config import to_dict
-    from .features import make_extractor
-    from .metrics import pose_errors, recall_within
-    from .persist import save_npz
-
-    n = len(seq)
-    if n == 0:
-        raise ConfigError(f"sequence {seq.name!r}: no frames to localize")
-    poses = np.asarray(seq.poses, np.float64).reshape(n, 3)
-    if isinstance(prior, str) and prior.strip().lower() == "truth":
-        bad = np.flatnonzero(~np.all(np.isfinite(poses), axis=1))
-        if len(bad):
-            raise ConfigError(f"prior 'truth': frame {int(bad[0])} of sequence {seq.name!r} has no pose to draw a prior "
-                              "around; give the first frame's prior as 'X,Y,YAW_DEG' and track with odometry")
-        rng = np.random.default_rng(seed)
-        priors = [draw_prior(p, radius_m, yaw_deg, rng) for p in poses]
-    else:
-        first = prior if isinstance(prior, Prior) else parse_prior(prior, radius_m, yaw_deg)
-        if n > 1 and odometry is None:
-            raise ConfigError("prior: one prior is the first frame's; the later frames' follow the answers moved by "
-                              "the odometry: track (odometry) or give 'truth'")
-        priors = [first] + [None] * (n - 1)
-    if odometry is not None:
-        odometry = np.asarray(odometry, np.float64)
-        if odometry.shape != (n, 3):
-            raise ConfigError(f"odometry: expected ({n}, 3), one motion per frame, got {odometry.shape}")
-    ext = make_extractor("default")
-    sf = SatelliteFeatures.compute(satmap, ext)
-    drivable = None
-    if roads is not None:
-        frame = getattr(satmap, "frame", None) or seq.geo_frame
-        if frame is None:
-            raise ConfigError("roads: neither the satellite map nor the sequence has a geo frame to put the road "
-                              "lines in")
-        r = roads.to_frame(frame)
-        drivable = drivable_from_roads(r.lines, r.widths, sf, config.drivable_margin_m)
-    cv = CrossViewLocalizer(seq.camera, sf, ext, config, drivable=drivable, labels=getattr(satmap, "labels", None))
-    r = localize_frames(cv, (seq[i] for i in range(n)), priors, odometry, progress, follow=(radius_m, yaw_deg))
-    est = r["estimates"]
-    pe = pose_errors(est, poses)
-    out = Path(out)
-    out.mkdir(parents=True, exist_ok=True)
-    save_npz(out / "localization_cross.npz", "localization",
-             {"frames": np.arange(n, dtype=np.int64), "estimates": est, "truth": poses, "errors": pe["error"],
-              "correlation": r["correlation"], "cells": r["cells"], "priors": r["priors"]},
-             {"method": "cross", "sequence": seq.name, "config": to_dict(config), "prior": str(prior),
-              "radius_m": radius_m, "yaw_deg": yaw_deg, "seed": seed, "tracked": odometry is not None})
-    e = pe["error"][np.isfinite(pe["error"])]
-    return {"frames": n, "answered": int(np.isfinite(est[:, 0]).sum()), "tracked": odometry is not None,
-            "mean_m": float(e.mean()) if e.size else None, "median_m": float(np.median(e)) if e.size else None,
-            "within_1m": recall_within(pe["error"], 1.0) if e.size else None,
-            "lateral_within_1m": recall_within(pe["lateral"], 1.0) if e.size else None,
-            "s_per_frame": float(r["seconds"].mean()), "output": str(out / "localization_cross.npz")}
+        warnings.warn("satloc.localizers.crossview.localize_sequence moved to satloc.pipeline.localize_no_database; "
+                      "import it from there (the old name goes in a later version)", FutureWarning, stacklevel=2)
+        return import_module("satloc.pipeline").localize_no_database
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
