@@ -3,9 +3,12 @@
 For every aliasing level (the share of city blocks that are exact copies of others) a database pass is
 recorded and built; for every occlusion level a query pass (other lane, other appearance, that share of
 parked vehicles and pedestrians) is localized against it. Prints a table, writes ``stress.csv`` and
-``stress.png`` (mean error against aliasing, one line per occlusion level and mode).
+``stress.png`` (mean error against aliasing, one line per occlusion level and mode). Beside the modes: the
+reference floors (the prior alone, dead reckoning) and, with ``--localizer``, localizers of your own, each
+graded as the modes are (``module:Name`` or ``path/to/file.py:Name``, see examples/own_localizer.py).
 
     python examples/stress.py --scene city --aliasing 0 0.5 1 --occlusion 0 0.3 0.6 --db-frames 150 --out stress_out
+    python examples/stress.py --localizer examples/own_localizer.py:GpsOdometryFilter --out stress_out
 """
 import argparse
 import csv
@@ -30,6 +33,11 @@ def main(argv=None):
                     help="e.g. go np full full+align go+track full+track+align (+track: the query pass as one "
                     "sequence with simulated odometry)")
     ap.add_argument("--features", default="default")
+    ap.add_argument("--localizer", action="append", default=[], metavar="MODULE:NAME",
+                    help="a localizer of your own beside the modes (module:Name or path/to/file.py:Name); repeat "
+                    "for several")
+    ap.add_argument("--no-references", action="store_true", help="leave out the reference floors (prior alone, "
+                    "dead reckoning)")
     ap.add_argument("--out", default="stress_out")
     args = ap.parse_args(argv)
 
@@ -38,10 +46,13 @@ def main(argv=None):
     for a in args.aliasing:
         for o in args.occlusion:
             cfg = ExperimentConfig(scene=args.scene, aliasing=a, occlusion=o, database_frames=args.db_frames,
-                                   query_frames=args.query_frames, features=args.features, modes=tuple(args.modes))
+                                   query_frames=args.query_frames, features=args.features, modes=tuple(args.modes),
+                                   localizers=tuple(args.localizer),
+                                   references=() if args.no_references else ExperimentConfig().references)
             # one folder per setting; settings that share a database reuse nothing here, kept simple
             summary = run_scene(cfg, out / f"a{a:g}_o{o:g}", progress=False, log=lambda m: None)
-            for mode, m in summary["modes"].items():
+            others = [(m.get("name", k), m) for k, m in summary.get("localizers", {}).items()]
+            for mode, m in list(summary["modes"].items()) + others:
                 rows.append(dict(aliasing=a, occlusion=o, mode=mode, mean_m=round(m["mean_m"], 3),
                                  median_m=round(m["median_m"], 3), within_1m=round(m["within_1m"], 3),
                                  queries=m["queries"]))

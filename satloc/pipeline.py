@@ -22,7 +22,6 @@ from pathlib import Path
 from typing import Callable
 
 import numpy as np
-from tqdm import tqdm
 
 from .config import from_dict, to_dict
 from .device import check_device, device_field, resolve_device
@@ -41,7 +40,7 @@ from .localizers.crossview import (
     localize_frames,
     parse_prior,
 )
-from .localizers.database import Localization, Localizer, LocalizerConfig
+from .localizers.database import DatabaseLocalizer, Localization, Localizer, LocalizerConfig
 from .persist import header, nonfinite_path, read_json, save_npz, write_json
 from .satmap import SatelliteMap
 from .sequence import Sequence, camera_from_dict
@@ -184,12 +183,14 @@ def localize(build_dir: str | Path, queries: str | Path, config: LocalizerConfig
     motion not known, e.g. visual odometry lost: the belief starts anew there); e.g.
     :func:`satloc.tracking.vo.visual_odometry` of the frames or :func:`satloc.tracking.track.noisy_odometry` of their poses. ``on_result(i, localization)`` is
     called for each frame localized (``i``: its position in ``select``), e.g. to keep posteriors to draw."""
+    from .evaluation.run import run_localizer
+    from .localizers.interface import Context
+
     loc = localizer or load_localizer(build_dir, config, progress=progress)
     seq = Sequence.load(queries) if not isinstance(queries, Sequence) else queries
     idx = np.arange(len(seq)) if select is None else np.asarray(select, dtype=np.int64)
     if len(idx) and (idx.min() < 0 or idx.max() >= len(seq)):
         raise ConfigError(f"select: frame indices must lie in [0, {len(seq)}), got {idx.min()}..{idx.max()}")
-    tracker = None
     if loc.config.track:
         if odometry is None:
             raise ConfigError("tracking (config.track) needs odometry: an (N, 3) array of the motion between the "
@@ -198,29 +199,13 @@ def localize(build_dir: str | Path, queries: str | Path, config: LocalizerConfig
         if odometry.shape != (len(idx), 3):
             raise ConfigError(f"odometry: expected a ({len(idx)}, 3) array, one row per localized frame; got shape "
                               f"{odometry.shape}")
-        tracker = loc.tracker()
-    n, k = len(idx), loc.config.posterior_k
-    est, inl_score, inl = np.zeros((n, 3)), np.zeros(n), np.zeros(n, bool)
-    truth = np.array(seq.poses[idx], dtype=np.float64).reshape(n, 3)   # nan where a frame has no pose
-    top_poses, top_probs = np.zeros((n, k, 3)), np.zeros((n, k))
-    failed: list[tuple[int, str]] = []
-    t0 = time.perf_counter()
-    # frames stream through the localizer: the next one's depth and features overlap this one's scoring
-    results = loc.localize_stream((seq[int(j)] for j in idx), errors="yield", tracker=tracker,
-                                  odometry=odometry if tracker is not None else None)
-    for i, r in enumerate(tqdm(results, total=n, desc=f"localize ({loc.config.name})", unit="query",
-                               disable=not progress, leave=False)):
-        if isinstance(r, ConfigError):  # e.g. no grid sample with valid depth: no answer for this frame
-            est[i] = np.nan
-            failed.append((int(idx[i]), str(r)))
-            continue
-        est[i] = r.estimate.as_array()
-        inl_score[i], inl[i] = r.inlier_score, r.inlier
-        if on_result is not None:
-            on_result(i, r)
-        top_poses[i], top_probs[i] = r.top(k)
-    secs = time.perf_counter() - t0
-    err = np.hypot(est[:, 0] - truth[:, 0], est[:, 1] - truth[:, 1])
+    # the paper's method through the common interface, graded as any localizer is (satloc.evaluation.run)
+    run = run_localizer(DatabaseLocalizer(loc), Context(seq.camera, _build_map(build_dir, loc), database=None,
+                                                        place=seq.name),
+                        seq, idx, odometry if loc.config.track else None, top=loc.config.posterior_k,
+                        progress=progress,
+                        on_result=None if on_result is None else (lambda i, e, raw: on_result(i, raw)))
+    n, err, truth = len(idx), run.errors, run.truth
     # a frame not answered is a gross failure: its error is the worst answer on the map (satloc.evaluation.metrics)
     gross = np.where(np.all(np.isfinite(truth[:, :2]), axis=1),
                      worst_case_errors(np.nan_to_num(truth[:, :2]), loc.candidates[:, :2]), np.nan)
@@ -229,15 +214,25 @@ def localize(build_dir: str | Path, queries: str | Path, config: LocalizerConfig
     summary = {"mode": loc.config.name, "queries": n,
                **{f"{k}_m": (st[k] if st else None) for k in ("mean", "std", "median")},
                **({k: st[k] for k in ("within_1m", "within_10m", "failure_rate")} if st else {}),
-               "queries_per_s": round(n / secs, 2) if secs > 0 else None, "failed": len(failed)}
+               "queries_per_s": run.queries_per_s, "failed": len(run.failures)}
     if out is not None:
         out = Path(out)
-        save_npz(out / f"localization_{loc.config.name}.npz", "localization",
-                 {"frames": idx, "estimates": est, "truth": truth, "errors": err, "inlier_score": inl_score, "inlier": inl,
-                  "top_poses": top_poses, "top_probs": top_probs}, {"config": to_dict(loc.config)})
+        run.save(out / f"localization_{loc.config.name}.npz", {"config": to_dict(loc.config)})
         write_json(out / f"localization_{loc.config.name}.json", dict(header("localization_summary"), **summary))
     summary["errors"] = err
     return summary
+
+
+def _build_map(build_dir: str | Path | None, loc: Localizer) -> SatelliteMap | None:
+    """The satellite map a build was made on (its map directory, from ``build.json``), where it can be read;
+    else None (the paper's method reads its own satellite features)."""
+    if build_dir is None:
+        return None
+    try:
+        m = read_json(Path(build_dir) / "build.json", "build").get("map")
+        return SatelliteMap.load(m) if m and Path(m).is_dir() else None
+    except (FormatError, OSError, ConfigError):
+        return None
 
 
 def localize_no_database(seq, satmap, out, prior: str | Prior = "truth", radius_m: float = 20.0,

@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import shutil
 import sys
@@ -78,6 +79,8 @@ def cmd_demo(args) -> int:
     from satloc_env.experiments.scene_run import ExperimentConfig, run_scene
 
     overrides = {"scene": args.scene, "database_frames": args.db_frames or None, "features": args.features}
+    if args.localizer:
+        overrides["localizers"] = list(args.localizer)
     if args.query_frames:
         overrides["query_frames"] = args.query_frames
     cfg = from_dict(ExperimentConfig, overrides, "demo options")
@@ -86,9 +89,7 @@ def cmd_demo(args) -> int:
     out = Path(args.out)
     print(f"satloc demo: {s['scene']}, database {s['database_m']:.0f} m, {s['queries']} queries (revisit: "
           f"other lane, appearance and occluders)")
-    for mode, r in s["modes"].items():
-        print(f"  {mode:16s}  mean {r['mean_m']:.2f} m (std {r['std_m']:.2f})  median {r['median_m']:.2f} m  "
-              f"{100 * r['within_1m']:.0f} % within 1 m  {r['queries_per_s']:.1f} queries/s")
+    _print_rows(s)
     pics = sorted(p.name for p in out.glob("*.png"))
     print(f"  pictures in {out}: {', '.join(pics)}")
     stages = _demo_artefacts(out)
@@ -105,6 +106,31 @@ def cmd_demo(args) -> int:
         print(f"  deleted the artefacts ({sizes}, the localizations and stage files); kept the pictures and "
               f"summary.json")
     return 0
+
+
+def _print_rows(s: dict) -> None:
+    """The modes' rows of a summary (:func:`satloc_env.experiments.scene_run.localize_and_report`), then the
+    reference floors' and the user's localizers'."""
+    rows = list(s["modes"].items()) + [(r.get("name", k), r) for k, r in s.get("localizers", {}).items()]
+    for name, r in rows:
+        qps = f"  {r['queries_per_s']:.1f} queries/s" if r.get("queries_per_s") else ""
+        print(f"  {name:16s}  mean {r['mean_m']:.2f} m (std {r['std_m']:.2f})  median {r['median_m']:.2f} m  "
+              f"{100 * r['within_1m']:.0f} % within 1 m{qps}")
+
+
+def _with_localizers(config: dict, specs: list[str] | None, nested: bool = False) -> dict:
+    """``config`` with ``--localizer`` specs added to its ``localizers`` (``nested``: its ``experiment``'s, for
+    the sweep and the gap curve)."""
+    if not specs:
+        return config
+    config = dict(config)
+    if nested:
+        e = dict(config.get("experiment") or {})
+        e["localizers"] = list(e.get("localizers") or []) + list(specs)
+        config["experiment"] = e
+    else:
+        config["localizers"] = list(config.get("localizers") or []) + list(specs)
+    return config
 
 
 def _demo_artefacts(out: Path) -> list[Path]:
@@ -143,8 +169,12 @@ def cmd_experiment(args) -> int:
             print((Path(args.out) / "table2.md").read_text(), end="")
             print(f"written: {Path(args.out) / 'table2.csv'}, {Path(args.out) / 'pr_curves.png'}")
             return 0
+        if args.localizer and args.which not in ("table1", "sweep", "gap"):
+            raise SatlocError(f"--localizer: table1, sweep and gap grade a user's localizer, not {args.which}")
         if args.which in ("sweep", "gap"):
             from satloc_env.experiments.tables import gap_curve, sweep
+
+            config = _with_localizers(config, args.localizer, nested=True)
 
             (sweep if args.which == "sweep" else gap_curve)(args.out, config, progress=not args.quiet, log=log,
                                                             runner=runner)
@@ -153,6 +183,7 @@ def cmd_experiment(args) -> int:
             print(f"written: {Path(args.out) / 'sweep.csv'}, {Path(args.out) / 'sweep.png'}{extra}")
             return 0
         if args.which == "table1":
+            config = _with_localizers(config, args.localizer)
             rows = table1(args.out, tuple(args.scenes), config, progress=not args.quiet, log=log, runner=runner)
             print(markdown_table(rows), end="")
             print(f"written: {Path(args.out) / 'table1.csv'}")
@@ -181,7 +212,12 @@ def cmd_evaluate(args) -> int:
                  "modes": list(args.modes) if args.modes else None}
     if args.queries is not None and args.split is not None:
         raise SatlocError("give either --queries (another drive) or --split (random:F or passes), not both")
+    if args.localizer:
+        overrides["localizers"] = list(args.localizer)
     cfg = _stage_config(EvaluateConfig, args.config, overrides)
+    if args.localizer:   # added to those of the configuration file
+        base = _stage_config(EvaluateConfig, args.config, {})
+        cfg = dataclasses.replace(cfg, localizers=tuple(base.localizers) + tuple(args.localizer))
     log = (lambda *a, **k: None) if args.quiet else (lambda m: print(m, file=sys.stderr, flush=True))
     reader = "malaga" if args.malaga else "kitti"
     s = evaluate(args.malaga or args.database, args.satellite, args.out, cfg, queries=args.queries, reader=reader,
@@ -192,9 +228,7 @@ def cmd_evaluate(args) -> int:
         print(f"  map: {s['map_kind']}: {s['satellite']}, made from this drive's own images and LiDAR "
               f"({100 * s['lidar_mosaic']['covered_fraction']:.1f} % of it covered); these errors do not measure "
               f"localization against satellite imagery")
-    for mode, r in s["modes"].items():
-        print(f"  {mode:16s}  mean {r['mean_m']:.2f} m (std {r['std_m']:.2f})  median {r['median_m']:.2f} m  "
-              f"{100 * r['within_1m']:.0f} % within 1 m  {r['queries_per_s']:.1f} queries/s")
+    _print_rows(s)
     print(f"written: {Path(args.out) / 'results.csv'}, {Path(args.out) / 'results.md'}, pictures in {args.out}")
     return 0
 
@@ -470,6 +504,8 @@ def build_parser() -> argparse.ArgumentParser:
                    help="keep the recording (rec/), the build (build/), the localizations and stage files beside "
                         "the pictures (default; a rerun reuses them, about 0.6 GB at the default size); "
                         "--no-keep-artefacts deletes them at the end")
+    d.add_argument("--localizer", action="append", metavar="MODULE:NAME", help="a localizer of your own, graded beside the built-in ones: module:Name or path/to/file.py:Name (a class, a "
+                    "function that makes one, or an instance with reset(context) and localize(query)); repeat for several")
     d.add_argument("--quiet", action="store_true")
     d.set_defaults(func=cmd_demo)
 
@@ -486,6 +522,8 @@ def build_parser() -> argparse.ArgumentParser:
                                      "Table2Config, sweep and gap: SweepConfig fields (satloc_env/experiments/tables.py; gap: "
                                      "over GAP_CURVE there), tune: "
                                      "TuneConfig fields (satloc_env/experiments/tune.py); --scenes is not used by these)")
+    ex.add_argument("--localizer", action="append", metavar="MODULE:NAME", help="table1, sweep, gap: " + "a localizer of your own, graded beside the built-in ones: module:Name or path/to/file.py:Name (a class, a "
+                    "function that makes one, or an instance with reset(context) and localize(query)); repeat for several")
     ex.add_argument("--quiet", action="store_true")
     ex.add_argument("--ray", nargs="?", const="", default=None, metavar="ADDRESS",
                     help="table1, table2, sweep: run the independent units (scenes, protocols, passes, knob "
@@ -524,6 +562,8 @@ def build_parser() -> argparse.ArgumentParser:
                          "full+track+align (default: all of these, as table1)")
     ev.add_argument("--config", help="YAML with EvaluateConfig fields (satloc_env/experiments/evaluate.py), e.g. 'margin_m: "
                                      "20' (the map's margin around the route)")
+    ev.add_argument("--localizer", action="append", metavar="MODULE:NAME", help="a localizer of your own, graded beside the built-in ones: module:Name or path/to/file.py:Name (a class, a "
+                    "function that makes one, or an instance with reset(context) and localize(query)); repeat for several")
     ev.add_argument("--quiet", action="store_true")
     ev.set_defaults(func=cmd_evaluate)
 

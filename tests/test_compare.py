@@ -1,5 +1,6 @@
 """The comparison harness (satloc_env/experiments/tables.py): every method on one split, Table II's counting."""
 import json
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -10,6 +11,7 @@ from satloc.sequence import Sequence
 from satloc_env.experiments.scene_run import ExperimentConfig
 from satloc_env.experiments.tables import CompareConfig, Table2Config, _write_table2, operating_point, trained_fabmap
 
+ROOT = Path(__file__).resolve().parent.parent
 TINY_BASELINES = {"fabmap": {"vocabulary_size": 40, "max_features": 150, "new_place_samples": 5},
                   "efm": {"features": 200}, "fabmap_train_frames": 6}
 
@@ -94,15 +96,28 @@ def test_table1_protocols_on_a_tiny_section(tmp_path):
     # every method on the same splits: two modes, FAB-MAP (a small vocabulary trained on a few frames of
     # residential) and EFM (few features)
     small = {"database_frames": 24, "query_frames": 3, "query_spacing_m": 6.0, "features": "rgb",
-             "modes": ["go", "np"], "compare": TINY_BASELINES, "pictures": False}
+             "modes": ["go", "np"], "compare": TINY_BASELINES, "pictures": False,
+             "localizers": [str(ROOT / "examples" / "own_localizer.py") + ":GpsOdometryFilter"]}   # a user's localizer, beside the built-in ones
     rows = table1(tmp_path, ("city",), small, progress=False, log=lambda m: None)
     lines = (tmp_path / "table1.csv").read_text().splitlines()
     assert lines[0] == "method,scene,mean_m,std_m,protocol,ci95_low,ci95_high,median_m,within_1m,within_10m,failure_rate,queries,odometry,ci_method"
+    methods = ("Ours-GO", "Ours-NP", "FAB-MAP", "FAB-MAP + seq", "EFM", "Prior alone", "Dead reckoning",
+               "GPS + odometry filter")
     assert [(r["protocol"], r["method"]) for r in rows] == [(p, m) for p in ("revisit", "city", "residential")
-                                                           for m in ("Ours-GO", "Ours-NP", "FAB-MAP", "FAB-MAP + seq", "EFM")]
+                                                           for m in methods]
     assert all(np.isfinite(r["mean_m"]) and r["s_per_query"] > 0 for r in rows)
+    # the floors: the prior alone 2r/3 = 13.3 m from the truth on average (3 queries: loosely); the odometry
+    # they were given is the tracked modes' (none tracked here: the true motion plus noise)
+    by_method = {(r["protocol"], r["method"]): r for r in rows}
+    assert all(0 < by_method[(p, "Prior alone")]["mean_m"] < 20 for p in ("revisit", "city", "residential"))
+    assert by_method[("revisit", "Dead reckoning")]["odometry"] == "noisy_truth"
+    assert by_method[("revisit", "Prior alone")]["odometry"] == ""
     res = json.loads((tmp_path / "city" / "compare.json").read_text())["methods"]
-    assert list(res) == ["go", "np", "fabmap", "fabmap+seq", "efm"]
+    assert list(res) == ["go", "np", "fabmap", "fabmap+seq", "efm", "prior", "dead-reckoning",
+                         "user-gps-odometry-filter"]
+    assert res["user-gps-odometry-filter"]["name"] == "GPS + odometry filter"
+    a, meta = load_npz(tmp_path / "city" / "localization_user-gps-odometry-filter.npz", "localization")
+    assert meta["name"] == "GPS + odometry filter" and np.all(np.isfinite(a["errors"]))
     assert all(m["failed"] == 0 for m in res.values() if "failed" in m)
     for m in ("fabmap", "fabmap+seq", "efm"):
         a, _ = load_npz(tmp_path / "city" / f"baseline_{m}.npz", "localization")
@@ -127,7 +142,8 @@ def test_table1_protocols_on_a_tiny_section(tmp_path):
     # rerun: every stage reused, and every mode's localization (stamped when it finished): the same rows
     stamps = {p: p.stat().st_mtime_ns for p in (tmp_path / "city").rglob("*_stage.json")}
     stamps.update({p: p.stat().st_mtime_ns for p in (tmp_path / "city").rglob("record.json")})
-    located = {p: p.stat().st_mtime_ns for p in (tmp_path / "city").rglob("localization_*.npz")}
+    located = {p: p.stat().st_mtime_ns for p in (tmp_path / "city").rglob("localization_*.npz")
+               if p.stem.split("_", 1)[1] in ("go", "np")}   # the modes' (the others run every time: no stamp)
     again = table1(tmp_path, ("city",), small, progress=False, log=lambda m: None)
     assert len(stamps) >= 5 and all(p.stat().st_mtime_ns == t for p, t in stamps.items())
     assert len(located) >= 6 and all(p.stat().st_mtime_ns == t for p, t in located.items())
@@ -195,14 +211,14 @@ def test_sweep_end_to_end_reports_intervals_failures_and_odometry(tmp_path):
     rows = sweep(tmp_path, {"aliasing": [0.0], "occlusion": [0.3], "appearance": [0.5], "experiment": exp},
                  progress=False, log=lambda m: None)
     lines = (tmp_path / "sweep.csv").read_text().splitlines()
-    assert lines[0] == ",".join(SWEEP_COLUMNS) and len(lines) == 4
+    assert lines[0] == ",".join(SWEEP_COLUMNS) and len(lines) == 6
     comp = json.loads((tmp_path / "a0_o0.3_p0.5_g0.5" / "compare.json").read_text())["methods"]
-    assert [r["method"] for r in rows] == ["Ours-GO", "Ours-GO + track", "EFM"]
-    for r, key in zip(rows, ("go", "go+track", "efm")):
+    assert [r["method"] for r in rows] == ["Ours-GO", "Ours-GO + track", "EFM", "Prior alone", "Dead reckoning"]
+    for r, key in zip(rows, ("go", "go+track", "efm", "prior", "dead-reckoning")):
         m = comp[key]
         assert r["mean_m"] == round(m["mean_m"], 4) and r["failure_rate"] == round(m["failure_rate"], 4)
         assert r["ci95_low"] <= r["mean_m"] <= r["ci95_high"] and r["queries"] == 4
-        assert r["odometry"] == ("visual" if key == "go+track" else "")
+        assert r["odometry"] == ("visual" if key in ("go+track", "dead-reckoning") else "")
     assert "failed" in (tmp_path / "sweep.md").read_text()
 
 
@@ -325,15 +341,22 @@ def test_cross_area_protocol_beside_the_database_rows(tmp_path):
     priors, single and tracked, in table1.csv and beside the with-database rows on the same queries in
     cross_area.csv; a later run of that protocol alone keeps the other protocols' rows; its localizations are
     reused when nothing changed."""
-    from satloc_env.experiments.cross_area import CROSS_COLUMNS, query_priors
+    from satloc_env.experiments.cross_area import CROSS_COLUMNS
+    from satloc_env.experiments.grading import query_priors
     from satloc_env.experiments.tables import table1
 
     small = {"database_frames": 24, "query_frames": 3, "query_spacing_m": 6.0, "modes": ["go"],
-             "compare": {"baselines": []}, "pictures": False, "protocols": ["revisit", "cross-area"]}
+             "compare": {"baselines": []}, "pictures": False, "protocols": ["revisit", "cross-area"],
+             "localizers": [str(ROOT / "examples" / "own_localizer.py") + ":GpsOdometryFilter"]}
     rows = table1(tmp_path, ("city",), small, progress=False, log=lambda m: None)
-    assert [(r["protocol"], r["method"]) for r in rows] == [("revisit", "Ours-GO"), ("cross-area", "No database"),
-                                                           ("cross-area", "No database + track")]
-    cross = {r["method"]: r for r in rows if r["protocol"] == "cross-area"}
+    floors = ["Prior alone", "Dead reckoning", "GPS + odometry filter"]
+    assert [(r["protocol"], r["method"]) for r in rows] == (
+        [("revisit", m) for m in ["Ours-GO"] + floors]
+        + [("cross-area", m) for m in ["No database", "No database + track"] + floors])
+    # the same priors in both protocols: the prior alone gives the same row
+    same = [{k: r[k] for k in ("mean_m", "median_m", "queries")} for r in rows if r["method"] == "Prior alone"]
+    assert same[0] == same[1]
+    cross = {r["method"]: r for r in rows if r["protocol"] == "cross-area" and r["method"].startswith("No")}
     revisit = rows[0]
     assert all(r["queries"] == revisit["queries"] == 3 for r in cross.values())
     # a 3-query section at the start of city's look-alike frontage: single frames answer each query (measured:
@@ -342,8 +365,8 @@ def test_cross_area_protocol_beside_the_database_rows(tmp_path):
     assert cross["No database + track"]["median_m"] < 1.0, cross
     lines = (tmp_path / "cross_area.csv").read_text().splitlines()
     assert lines[0] == ",".join(CROSS_COLUMNS)
-    assert [ln.split(",")[0] for ln in lines[1:]] == ["No database", "No database + track", "Ours-GO"]
-    assert [ln.split(",")[2] for ln in lines[1:]] == ["none", "none", "database pass"]
+    assert [ln.split(",")[0] for ln in lines[1:]] == ["No database", "No database + track"] + floors + ["Ours-GO"]
+    assert [ln.split(",")[2] for ln in lines[1:]] == ["none"] * 5 + ["database pass"]
     assert "lateral 1 / 3 / 5 m" in (tmp_path / "cross_area.md").read_text()
     a, _ = load_npz(tmp_path / "city" / "cross_area" / "localization_cross.npz", "localization")
     # the priors: seeded per query, within the protocol's radius and heading range of the truth
@@ -353,9 +376,9 @@ def test_cross_area_protocol_beside_the_database_rows(tmp_path):
     assert np.allclose(a["prior"][:, :2], [[p.x, p.y] for p in pri])
     assert np.all(np.hypot(*(a["prior"][:, :2] - a["truth"][:, :2]).T) <= 20.0)
     # the cross-area protocol alone: the revisit row is kept from table1.json, the localizations reused
-    t = {p: p.stat().st_mtime_ns for p in (tmp_path / "city" / "cross_area").glob("*.npz")}
+    t = {p: p.stat().st_mtime_ns for p in (tmp_path / "city" / "cross_area").glob("localization_cross*.npz")}
     again = table1(tmp_path, ("city",), dict(small, protocols=["cross-area"]), progress=False, log=lambda m: None)
-    assert [r["protocol"] for r in again] == ["cross-area", "cross-area"]
+    assert [r["protocol"] for r in again] == ["cross-area"] * 5
     table = json.loads((tmp_path / "table1.json").read_text())["rows"]
     assert [(r["protocol"], r["method"]) for r in table] == [(r["protocol"], r["method"]) for r in rows]
     assert len(t) == 2 and all(p.stat().st_mtime_ns == m for p, m in t.items())

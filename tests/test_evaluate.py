@@ -120,7 +120,8 @@ def test_kitti_random_split_end_to_end_and_stages_reused(data, tmp_path, capsys)
     with open(out / "results.csv") as f:
         rows = list(csv.reader(f))
     assert rows[0] == ["method", "sequence", "mean_m", "std_m", "median_m", "within_1m", "queries"]
-    assert [r[0] for r in rows[1:]] == ["Ours-GO", "Ours-full", "Ours-full + track + BEV align"]
+    assert [r[0] for r in rows[1:]] == ["Ours-GO", "Ours-full", "Ours-full + track + BEV align", "Prior alone",
+                                        "Dead reckoning"]
     assert all(r[1] == "2011_09_26_drive_0003_sync" for r in rows[1:])
     assert "| Ours-GO |" in (out / "results.md").read_text()
     b = json.loads((out / "build" / "build.json").read_text())   # built from the reader's lazy sequence
@@ -183,13 +184,19 @@ def test_kitti_queries_with_no_database_beside(data, tmp_path, capsys):
     cfg = tmp_path / "nodb.yaml"
     cfg.write_text(yaml.safe_dump(dict(SMALL, no_database=True)))
     out = tmp_path / "nodb"
+    own = Path(__file__).resolve().parent.parent / "examples" / "own_localizer.py"
     rc, text, err = _run(capsys, "--database", data["drives"][1], "--queries", data["drives"][2], "--satellite",
-                         data["tif"], "--out", out, "--config", cfg, "--modes", "go")
+                         data["tif"], "--out", out, "--config", cfg, "--modes", "go",
+                         "--localizer", f"{own}:GpsOdometryFilter")   # a user's localizer beside them
     assert rc == 0, err
     s = json.loads((out / "summary.json").read_text())
     assert set(s["no_database"]) == {"cross", "cross+track"} and s["no_database"]["cross"]["queries"] == 15
     rows = [r.split(",") for r in (out / "results.csv").read_text().splitlines()[1:]]
-    assert [r[0] for r in rows] == ["Ours-GO", "No database", "No database + track"]
+    assert [r[0] for r in rows] == ["Ours-GO", "No database", "No database + track", "Prior alone", "Dead reckoning",
+                                    "GPS + odometry filter"]
+    assert "GPS + odometry filter" in text and float(rows[-1][2]) < float(rows[-3][2])   # it beats the prior alone
+    a, _ = load_npz(out / "localization_user-gps-odometry-filter.npz", "localization")
+    assert np.all(np.hypot(*(a["prior"][:, :2] - a["truth"][:, :2]).T) <= 20.0)   # priors around the OXTS poses
     a, meta = load_npz(out / "cross_area" / "localization_cross.npz", "localization")
     assert np.all(np.hypot(*(a["prior"][:, :2] - a["truth"][:, :2]).T) <= 20.0) and meta["stamp"]["frames"]
     # measured: single frames 0.1-0.4 m but four 6-12 m misses along the road; tracked all within 0.75 m

@@ -15,11 +15,15 @@ ROOT = Path(__file__).resolve().parent.parent
 def test_example_stress_runs_and_writes_its_table_and_curve(tmp_path):
     r = subprocess.run([sys.executable, str(ROOT / "examples" / "stress.py"), "--aliasing", "0", "1",
                         "--occlusion", "0.5", "--db-frames", "20", "--query-frames", "3", "--modes", "np",
-                        "--features", "rgb", "--out", str(tmp_path)], capture_output=True, text=True, timeout=600)
+                        "--features", "rgb", "--out", str(tmp_path),
+                        "--localizer", str(ROOT / "examples" / "own_localizer.py") + ":GpsOdometryFilter"],
+                       capture_output=True, text=True, timeout=600)
     assert r.returncode == 0, r.stderr
     rows = list(csv.DictReader(open(tmp_path / "stress.csv")))
-    assert [(float(x["aliasing"]), float(x["occlusion"]), x["mode"]) for x in rows] == [(0.0, 0.5, "np"),
-                                                                                         (1.0, 0.5, "np")]
+    # the mode, the reference floors and the user's localizer (named by its name), at each setting
+    names = ["np", "Prior alone", "Dead reckoning", "GPS + odometry filter"]
+    assert [(float(x["aliasing"]), float(x["occlusion"]), x["mode"]) for x in rows] == [
+        (a, 0.5, m) for a in (0.0, 1.0) for m in names]
     assert all(np.isfinite(float(x["mean_m"])) and int(x["queries"]) >= 2 for x in rows)
     assert (tmp_path / "stress.png").stat().st_size > 5000
     # the knobs reached the recorded passes

@@ -136,9 +136,10 @@ def test_demo_and_table1_on_a_tiny_section(tmp_path, capsys):
              "compare": {"baselines": []}}
     rows = table1(tmp_path / "t1", ("city",), small, progress=False, log=lambda m: None)
     lines = (tmp_path / "t1" / "table1.csv").read_text().splitlines()
-    assert lines[0] == "method,scene,mean_m,std_m,protocol,ci95_low,ci95_high,median_m,within_1m,within_10m,failure_rate,queries,odometry,ci_method" and len(lines) == 3 and len(rows) == 2
-    assert [ln.split(",")[0] for ln in lines[1:]] == ["Ours-GO", "Ours-full + track + BEV align"]
-    assert [ln.split(",")[-2] for ln in lines[1:]] == ["", "visual"]       # the tracked row's odometry
+    assert lines[0] == "method,scene,mean_m,std_m,protocol,ci95_low,ci95_high,median_m,within_1m,within_10m,failure_rate,queries,odometry,ci_method" and len(lines) == 5 and len(rows) == 4
+    assert [ln.split(",")[0] for ln in lines[1:]] == ["Ours-GO", "Ours-full + track + BEV align", "Prior alone",
+                                                      "Dead reckoning"]
+    assert [ln.split(",")[-2] for ln in lines[1:]] == ["", "visual", "", "visual"]   # what moved them
     assert all(ln.split(",")[-1].startswith("stationary block bootstrap 95%; mean block ") for ln in lines[1:])
     assert all(r["ci95_low"] <= r["mean_m"] <= r["ci95_high"] and r["failure_rate"] == 0 for r in rows)
     # running again reuses the recorded and built stages (no new recording)

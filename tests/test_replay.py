@@ -184,12 +184,13 @@ def test_localize_every_and_tracking_use_the_observed_odometry(seq, loc, monkeyp
     steps = replay(env)
     assert [int(s[1]["localized_step"]) for s in steps] == [0, 0, 2, 2, 4, 4, 6, 6]
     odo = [s[0]["odometry"].astype(np.float64) for s in steps]
-    # localized at steps 0, 2, 4, 6: moved by the two noisy odometry observations since, composed
-    assert len(seen) == 4 and not seen[0].any()
-    for j, s in enumerate((1, 3, 5), start=1):
+    # localized at steps 0, 2, 4, 6: the first with no odometry (a new belief), the others moved by the two noisy
+    # odometry observations since, composed
+    assert len(seen) == 3
+    for j, s in enumerate((1, 3, 5)):
         assert seen[j] == pytest.approx(compose_motion(odo[s], odo[s + 1]), abs=1e-9)
         assert not np.allclose(odo[s], steps[s][1]["odometry_true"])   # noisy, not the true motion
-    tracker = env.unwrapped._loc.tracker
+    tracker = env.unwrapped.localizer.tracker
     assert np.allclose(steps[-1][1]["posterior_probs"], np.sort(tracker.belief)[::-1][:K])
     for _, info, *_ in steps:
         check_loc_info(info)
@@ -197,7 +198,7 @@ def test_localize_every_and_tracking_use_the_observed_odometry(seq, loc, monkeyp
     errors = [float(i["error_m"]) for _, i, *_ in steps if i["localized_step"] == i["step"]]
     assert len(errors) == 4 and max(errors) < 1.5
     env.reset(seed=1)  # a new episode: a new belief
-    assert env.unwrapped._loc.tracker is not tracker
+    assert env.unwrapped.localizer.tracker is not tracker
     env.close()
 
 
@@ -267,7 +268,7 @@ def test_check_env_and_spec_shares_the_objects(seq, loc):
     env = gym.make(ID, sequence=seq, localizer=loc, depth=True, max_skip=2)
     check_env(env.unwrapped, skip_render_check=True)   # also re-creates the env from env.spec
     again = env.spec.make()
-    assert again.unwrapped.localizer is loc and again.unwrapped.sequence is seq   # shared, never copied
+    assert again.unwrapped.localizer.engine is loc and again.unwrapped.sequence is seq   # shared, never copied
     again.close(), env.close()
     plain = gym.make(ID, sequence=seq)
     check_env(plain.unwrapped, skip_render_check=True)
@@ -346,7 +347,7 @@ def test_config_errors(rec, seq, loc, build_dir, tmp_path):
         (dict(sequence=seq, map=np.zeros((4, 4, 3), np.uint8)), "config.map: expected None, a map directory"),
         (dict(sequence=seq, localizer="auto"), "'auto' builds a localizer from a simulated scene"),
         (dict(sequence=seq, localizer=str(tmp_path)), "is not a build directory"),
-        (dict(sequence=seq, localizer=3.5), "SatLocReplayEnv config.localizer: expected None, 'none', a build"),
+        (dict(sequence=seq, localizer=3.5), "SatLocReplayEnv config.localizer: expected None, 'none', 'cross', a build"),
         (dict(sequence=other_cam, localizer=loc), r"built for another camera than that of sequence 'pitched'.*pitch 0 vs 0.05"),
         (dict(sequence=seq, reward="neg_error"), "needs a localizer"),
         (dict(sequence=seq, localizer_track=True), "tracking needs a localizer"),

@@ -5,10 +5,15 @@
 * :mod:`satloc.baselines.efm`: EFM, local features matched exhaustively against every database image and
   verified with a RANSAC homography.
 
-They may import satloc's data model and the localizer's configuration and persistence, never
-:mod:`satloc_env` (an import-linter contract in ``pyproject.toml`` checks it).
+* :mod:`satloc.baselines.localizers`: both as localizers of the common interface
+  (:mod:`satloc.localizers.interface`), which is how the tables run them.
+
+They may import satloc's data model and the localizers, never the evaluation nor :mod:`satloc_env` (the
+import-linter contracts in ``pyproject.toml`` check it).
 """
 from .efm import Efm, EfmConfig, estimate_homography
 from .fabmap import ChowLiuTree, FabMap, FabMapConfig, chow_liu_tree
+from .localizers import EfmLocalizer, FabMapLocalizer
 
-__all__ = ["Efm", "EfmConfig", "estimate_homography", "ChowLiuTree", "FabMap", "FabMapConfig", "chow_liu_tree"]
+__all__ = ["Efm", "EfmConfig", "estimate_homography", "ChowLiuTree", "FabMap", "FabMapConfig", "chow_liu_tree",
+           "EfmLocalizer", "FabMapLocalizer"]

@@ -497,13 +497,17 @@ class FabMap:
         """Forget the sequential belief (the next stream starts from the uniform prior)."""
         self._belief = None
 
+    def localize_next(self, image: Image, where: str = "query frame") -> Localization:
+        """Localize the next image of a stream: with ``config.sequential`` its prior is the previous posterior
+        moved by the motion model (uniform after :meth:`reset`); otherwise as :meth:`localize`."""
+        z, nfeat = self.observe(image, where)
+        return self._answer(z, nfeat, sequential=self.config.sequential)
+
     def localize_stream(self, frames: Iterable[Image]) -> Iterator[Localization]:
-        """Localize frames in order. With ``config.sequential`` each frame's prior is the previous posterior
-        moved by the motion model (the first frame's is uniform); otherwise as :meth:`localize`."""
+        """Localize frames in order (:meth:`reset`, then :meth:`localize_next` for each)."""
         self.reset()
         for i, f in enumerate(frames):
-            z, nfeat = self.observe(f, f"query frame {i}")
-            yield self._answer(z, nfeat, sequential=self.config.sequential)
+            yield self.localize_next(f, f"query frame {i}")
 
     def with_config(self, **changes) -> "FabMap":
         """A FabMap sharing this one's vocabulary, tree and places, with inference settings changed (the build

@@ -44,37 +44,15 @@ from ..features.dictionary import FrameDepth, SatelliteFeatures
 from ..geometry import Pose2, StereoCamera, wrap_angle
 from ..labels import DRIVABLE, NUM_CLASSES
 from ..tracking.align import AlignConfig, BevAligner, _parabola_peak
+from .interface import MAX_RADIUS_M, Prior
 
 __all__ = ["Prior", "CrossViewConfig", "CrossViewResult", "CrossViewLocalizer", "CrossViewTracker", "draw_prior",
-           "drivable_from_features", "drivable_from_labels", "drivable_from_roads", "localize_frames", "parse_prior"]
+           "drivable_from_features", "drivable_from_labels", "drivable_from_roads", "localize_frames", "parse_prior",
+           "NoDatabaseLocalizer"]
 
-#: the widest prior searched (metres): the correlation's cost grows with the square of the radius
-MAX_RADIUS_M = 100.0
 #: the shipped learned channels (``CrossViewConfig(projections="shipped")``; ``crossview_report.json`` beside it
 #: says what they were trained on and how)
 SHIPPED_PROJECTIONS = str(Path(__file__).resolve().parent.parent / "weights" / "crossview.pt")
-
-
-@dataclass(frozen=True)
-class Prior:
-    """Where the vehicle is believed to be: within ``radius_m`` of (``x``, ``y``) (map metres), heading within
-    ``yaw_deg`` degrees of ``yaw`` (radians, counter-clockwise from east)."""
-
-    x: float
-    y: float
-    yaw: float
-    radius_m: float = 20.0
-    yaw_deg: float = 10.0
-
-    def __post_init__(self):
-        for k in ("x", "y", "yaw", "radius_m", "yaw_deg"):
-            v = getattr(self, k)
-            if not isinstance(v, (int, float, np.floating, np.integer)) or not math.isfinite(float(v)):
-                raise ConfigError(f"prior.{k}: expected a finite number, got {v!r}")
-        if not 0 < self.radius_m <= MAX_RADIUS_M:
-            raise ConfigError(f"prior.radius_m: expected metres in (0, {MAX_RADIUS_M:g}], got {self.radius_m!r}")
-        if not 0 <= self.yaw_deg <= 180:
-            raise ConfigError(f"prior.yaw_deg: expected degrees in [0, 180], got {self.yaw_deg!r}")
 
 
 @dataclass(frozen=True)
@@ -254,6 +232,10 @@ class CrossViewLocalizer:
             raise ConfigError(f"crossview: channels 'gray' compare the bilateral RGB that the 'default' and 'rgb' "
                               f"features start with; the extractor is {getattr(extractor, 'name', '?')!r}")
         self._rgb = BilateralRGB()
+
+    def as_localizer(self, track: bool = False) -> "NoDatabaseLocalizer":
+        """This localizer as one of the common interface (:class:`NoDatabaseLocalizer`)."""
+        return NoDatabaseLocalizer(self, bool(track))
 
     def _searcher(self, radius_m: float) -> BevAligner:
         """The aligner whose satellite crop is grown by ``radius_m`` (the normalised map shared)."""
@@ -436,6 +418,54 @@ def parse_prior(text: str, radius_m: float = 20.0, yaw_deg: float = 10.0) -> Pri
     except ValueError:
         raise ConfigError(f"prior: expected 'X,Y,YAW_DEG' (metres, metres, degrees) or 'truth', got {text!r}") from None
     return Prior(x, y, math.radians(yaw), radius_m, yaw_deg)
+
+
+
+class NoDatabaseLocalizer:
+    """A :class:`CrossViewLocalizer` as a localizer of the common interface (:mod:`satloc.localizers.interface`):
+    each query within its prior, with ``track`` carried over the run by a :class:`CrossViewTracker` moved by the
+    queries' odometry (an unknown motion loses the track: the next query searches its prior alone).
+
+    A query needs a prior; with ``follow`` (radius metres, heading degrees) a query without one searches around
+    the tracked answer that wide instead (:func:`localize_frames`' ``follow``). A frame with too little ground in
+    view or no drivable position within its prior has no answer (:class:`ConfigError`). Answers carry the
+    posterior's strongest entries and the best correlation as ``inlier_score``."""
+
+    posterior_k = 32
+
+    def __init__(self, engine: CrossViewLocalizer, track: bool = False, name: str | None = None,
+                 follow: tuple[float, float] | None = None):
+        self.engine, self.track, self.follow = engine, bool(track), follow
+        self.name = name or ("cross+track" if self.track else "cross")
+        self.camera = engine.camera
+        self.tracker: CrossViewTracker | None = None
+
+    def reset(self, context=None) -> None:
+        self.tracker = CrossViewTracker(self.engine) if self.track else None
+
+    def localize(self, query):
+        t = self.tracker
+        if t is not None and query.index > 0:   # the first query of a run has no motion before it
+            t.predict(query.odometry.as_array() if query.odometry is not None else np.full(3, np.nan))
+        prior = query.prior
+        if prior is None:
+            if self.follow is None or t is None:
+                raise ConfigError(f"localizer {self.name!r}: a localization needs a prior (a position and heading "
+                                  "within a radius)")
+            if t.pose is None:
+                raise ConfigError(f"localizer {self.name!r}: the track is lost and the query has no prior")
+            prior = Prior(t.pose.x, t.pose.y, t.pose.yaw, *self.follow)
+        r = t.localize(query.frame, prior) if t is not None else self.engine.localize(query.frame, prior)
+        if r.pose is None:
+            raise ConfigError(f"localizer {self.name!r}: too little ground seen ({r.cells} bird's-eye cells) or no "
+                              "drivable position within the prior")
+        from .interface import Estimate
+
+        return Estimate(r.pose, np.asarray(r.candidates, np.float64), np.asarray(r.posterior, np.float64),
+                        float(r.correlation), True)
+
+    def prefetch(self, frames) -> None:
+        """Nothing to batch: no network runs on the ground image."""
 
 
 # localize_sequence (the ``satloc localize --no-database`` stage) moved to satloc.pipeline.localize_no_database

@@ -144,6 +144,11 @@ class Localization:
     coarse_estimate: Pose2 | None = None    # with ``refine``: the co-occurrence estimate before alignment
     alignment: float = float("nan")         # with ``refine``: correlation of the aligned pose (nan: not aligned)
 
+    @property
+    def pose(self) -> Pose2:
+        """The estimate (the name of the common interface's answers, :mod:`satloc.localizers.interface`)."""
+        return self.estimate
+
     def top(self, k: int) -> tuple[np.ndarray, np.ndarray]:
         """The ``k`` most probable candidates (k, 3) and their probabilities (k,), padded with zeros."""
         order = np.argsort(-self.posterior)[:k]
@@ -311,6 +316,11 @@ class Localizer:
         lefts = [f.left for f in frames if f.left is not None]
         if pre is not None and len(lefts) > 1:
             pre(lefts, "ground")
+
+    def as_localizer(self, track: bool | None = None) -> "DatabaseLocalizer":
+        """This localizer as one of the common interface (:class:`DatabaseLocalizer`; ``track``: default
+        ``config.track``)."""
+        return DatabaseLocalizer(self, track)
 
     def tracker(self, config: TrackConfig | None = None) -> Tracker:
         """A :class:`satloc.tracking.track.Tracker` over this localizer's candidate poses (``config``: default
@@ -481,3 +491,65 @@ class Localizer:
             inlier_score = tracker.p_on
             inlier = inlier_score >= tracker.config.inlier_threshold
         return Localization(top_k_estimate(cands, post, self.config.top_k), cands, post, inlier_score, inlier, n)
+
+
+class DatabaseLocalizer:
+    """The paper's method (a :class:`Localizer` built from a database drive) as a localizer of the common
+    interface (:mod:`satloc.localizers.interface`). With ``track`` (default: the engine's ``config.track``) the
+    queries of a run are fused into a belief over the candidate poses (:class:`satloc.tracking.track.Tracker`)
+    that each query's odometry moves first; an unknown motion starts a new belief. ``reset`` starts a new belief.
+
+    The engine is shared: several of these (the cars of a vector environment, say) may wrap one
+    :class:`Localizer`, each with its own belief. A frame with no grid sample of valid stereo depth has no
+    answer (:class:`ConfigError`). ``name`` defaults to the engine's configuration name (``full+track+align``)."""
+
+    def __init__(self, engine: Localizer, track: bool | None = None, name: str | None = None):
+        self.engine = engine
+        self.track = bool(engine.config.track if track is None else track)
+        cfg = engine.config
+        self.name = name or (cfg.mode + ("+track" if self.track else "") + ("+align" if cfg.refine else ""))
+        self.posterior_k = cfg.posterior_k
+        self.wants_depth = cfg.depth_source == "frame"
+        self.camera = engine.camera
+        self.tracker: Tracker | None = None
+
+    def reset(self, context=None) -> None:
+        self.tracker = self.engine.tracker() if self.track else None
+
+    def localize(self, query) -> Localization:
+        t = self.tracker
+        if t is not None:
+            if query.odometry is not None:
+                t.predict(query.odometry.as_array())
+            elif query.index > 0:
+                t.reset()   # moved by an unknown amount: a new belief (the first query's is new already)
+        return self.engine.localize(query.frame, tracker=t)
+
+    def localize_many(self, queries):
+        """The answers to ``queries`` (an iterable), in order, as :meth:`localize` gives them one by one (a
+        :class:`ConfigError` instance where a frame has no answer), with the next query's stereo depth and
+        features computed on a worker thread while the current one is scored (:meth:`Localizer.localize_stream`:
+        12-30 % more queries per second on 2 cores). The optional fast path of the interface: the graders use it
+        where a localizer has it."""
+        import collections
+
+        pending: collections.deque = collections.deque()   # queries whose odometry the tracker has not read
+        t = self.tracker
+
+        def frames():
+            for q in queries:
+                if t is not None:
+                    pending.append(q)
+                yield q.frame
+
+        def odometry():
+            while pending:
+                o = pending.popleft().odometry
+                yield o.as_array() if o is not None else np.full(3, np.nan)
+
+        yield from self.engine.localize_stream(frames(), errors="yield", tracker=t,
+                                               odometry=odometry() if t is not None else None)
+
+    def prefetch(self, frames) -> None:
+        """Run the network part of several frames' features in one batch (:meth:`Localizer.prefetch`)."""
+        self.engine.prefetch(frames)

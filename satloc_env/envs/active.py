@@ -75,6 +75,11 @@ class ActiveConfig:
     odometry_noise: tuple[float, float] = (0.02, 0.003)   # std: fraction of the distance, radians per step
     tracking: TrackConfig = field(default_factory=lambda: TrackConfig(sigma_m=1.0))   # >= candidate spacing
     max_redraws: int = 100
+    # with a localizer of one's own (ActiveLocEnv(localizer=...)): its answer's pose (or each entry of its
+    # posterior) is spread over the map's candidate poses within 3 such standard deviations (metres), the
+    # candidates' headings within evidence_yaw_deg of it
+    evidence_sigma_m: float = 3.0
+    evidence_yaw_deg: float = 45.0
 
     def __post_init__(self):
         if self.fuse_every < 1 or self.top_k < 1 or self.max_redraws < 1:
@@ -85,6 +90,9 @@ class ActiveConfig:
             raise ConfigError(f"ActiveLoc: evidence must be a finite number >= 0, got {self.evidence}")
         if len(self.odometry_noise) != 2 or min(self.odometry_noise) < 0:
             raise ConfigError(f"ActiveLoc: odometry_noise: expected 2 non-negative numbers, got {self.odometry_noise}")
+        if not (math.isfinite(self.evidence_sigma_m) and self.evidence_sigma_m > 0
+                and 0 < self.evidence_yaw_deg <= 180):
+            raise ConfigError("ActiveLoc: evidence_sigma_m must be > 0 and evidence_yaw_deg in (0, 180]")
 
 
 def _slot(action) -> int:
@@ -126,11 +134,19 @@ class ActiveLocEnv(gym.Env):
 
     metadata = {"render_modes": []}
 
-    def __init__(self, config: ActiveConfig | dict | None = None, **kw: Any):
+    def __init__(self, config: ActiveConfig | dict | None = None, localizer: Any = None, **kw: Any):
         if config is not None and kw:
             raise ConfigError("ActiveLoc: give either config or keyword settings, not both")
         self.config = self._make_config(config if config is not None else kw, ActiveConfig())
         self._load_map()
+        self._user = None          # a localizer of one's own: each fused frame rendered and localized by it
+        self._renderer = None
+        if localizer is not None and not (isinstance(localizer, str) and localizer.strip().lower() == "none"):
+            from satloc.localizers.interface import resolve_localizer
+
+            from .drive import unshare
+
+            self._user = resolve_localizer(unshare(localizer), "ActiveLoc localizer")
         n = len(obs_fields(self.config.top_k))
         self.observation_space = spaces.Box(-5.0, 5.0, (n,), np.float32)
         self.action_space = spaces.Discrete(K)
@@ -221,6 +237,9 @@ class ActiveLocEnv(gym.Env):
             self._template = Tracker(self.map.candidates, self.config.tracking)
         self.tracker = copy.copy(self._template)
         self.tracker.reset()
+        if self._user is not None:   # a new start: the localizer's reset(context), its queries numbered from 0
+            self._user.reset(self._user_context())
+            self._queries = 0
         self.leg, self.pos = leg, start
         q = int(self.map.leg_frames[leg][start])
         self.pose = self.map.frame_pose[q].copy()
@@ -239,7 +258,7 @@ class ActiveLocEnv(gym.Env):
         self.leg, self.pos = leg, -1
 
     def _fuse(self, q: int) -> None:
-        post = self.map.posterior(q)
+        post = self.map.posterior(q) if self._user is None else self._user_posterior(q)
         if self.config.evidence != 1.0:
             post = post ** self.config.evidence
         if self.tracker.belief is not None:
@@ -250,6 +269,77 @@ class ActiveLocEnv(gym.Env):
             self.tracker.fuse(np.full(len(post), 1.0 / len(post)))
         self._odo = np.zeros(3)
         self._since = 0
+
+    # --- a localizer of one's own ------------------------------------------------------------------------------
+    def _scene(self):
+        from satloc_env.world.scene import load_scene
+
+        if getattr(self, "_scene_obj", None) is None or self._scene_obj[0] != self.map.scene:
+            self._scene_obj = (self.map.scene, load_scene(self.map.scene, None, self.map.satellite_gap))
+        return self._scene_obj[1]
+
+    def _user_context(self):
+        """The localizer's context: the map's scene's camera and satellite map, the episode's seed, no database and
+        no prior (ActiveLoc's car does not know where it is)."""
+        from satloc.geometry import StereoCamera
+        from satloc.localizers.interface import Context
+
+        scene = self._scene()
+        camera = StereoCamera.preset(str((self.map.meta.get("config") or {}).get("resolution", "half")))
+        if self._renderer is None or self._renderer.camera != camera:
+            from satloc_env.render.stereo import StereoRenderer
+
+            if self._renderer is not None:
+                self._renderer.close()
+            self._renderer = StereoRenderer(scene.world, camera)
+        seed = int(self.np_random.bit_generator.seed_seq.spawn(1)[0].generate_state(1)[0]) \
+            if hasattr(self.np_random.bit_generator, "seed_seq") else 0
+        return Context(camera, scene.satmap, seed=seed, database=None, place=scene.name)
+
+    def _user_posterior(self, q: int) -> np.ndarray:
+        """Frame ``q`` rendered at its recorded pose, localized by the localizer with the odometry since the last
+        fused frame and no prior, its answer spread over the map's candidates (see :class:`ActiveConfig`);
+        zeros where it gives none."""
+        from satloc.errors import ConfigError as _CE
+        from satloc.localizers.interface import Query, as_estimate, localizer_name
+        from satloc.sequence import Frame
+
+        out = self._renderer.render(Pose2(*self.map.frame_pose[q]), False, False)
+        frame = Frame(out["left"], out["right"], None, float(self._queries))
+        odometry = Pose2(*self._odo) if self._queries > 0 else None
+        query = Query(frame, odometry, None, self._queries, float(self._queries))
+        self._queries += 1
+        try:
+            ans = as_estimate(self._user.localize(query), f"ActiveLoc localizer {localizer_name(self._user)!r}")
+        except _CE:
+            ans = None
+        post = np.zeros(len(self.map.candidates))
+        if ans is None:
+            return post
+        if ans.candidates is not None and len(ans.candidates):
+            cand, prob = ans.candidates, ans.posterior
+        else:
+            cand, prob = ans.pose.as_array()[None], np.ones(1)
+        keep = prob > 1e-6 * max(float(prob.max()), 1e-300)
+        cfg, c = self.config, self.map.candidates
+        sig = cfg.evidence_sigma_m
+        for (x, y, yaw), w in zip(cand[keep], prob[keep]):
+            near = np.asarray(self._tree.query_ball_point((x, y), 3.0 * sig), np.int64)
+            if len(near) == 0:
+                continue
+            ok = np.abs(wrap_angle(c[near, 2] - yaw)) <= math.radians(cfg.evidence_yaw_deg)
+            near = near[ok]
+            d2 = (c[near, 0] - x) ** 2 + (c[near, 1] - y) ** 2
+            post[near] += w * np.exp(-d2 / (2 * sig * sig))
+        return post
+
+    def close(self):
+        if self._renderer is not None:
+            self._renderer.close()
+            self._renderer = None
+        closer = getattr(self._user, "close", None)
+        if callable(closer):
+            closer()
 
     def _drive(self) -> str | None:
         """Drive on along the current leg (and through junctions with one branch), fusing frames, until a

@@ -10,11 +10,8 @@ episode's seed). The drivable area is the map's label raster (the scene's roads,
 give them; :class:`satloc.localizers.crossview.CrossViewConfig` ``drivable: auto``). With ``localizer_track`` a :class:`satloc.localizers.crossview.CrossViewTracker` carries the answer from
 one localization to the next with the odometry observations.
 
-:class:`CrossEnvLocalizer` gives the interface the environments' localization loop
-(:class:`satloc_env.envs.drive.LocalizationState`) uses: ``localize(frame, tracker=None, prior=...)``
-returning a :class:`satloc.localizers.database.Localization` (candidates: the posterior's strongest positions and
-headings; inlier score: the best correlation), ``tracker()``, ``camera``, ``satfeat``, ``extractor`` and
-``config``.
+The environment uses it through the common interface, as every localizer
+(:class:`satloc.localizers.crossview.NoDatabaseLocalizer`, :meth:`CrossViewLocalizer.as_localizer`).
 """
 from __future__ import annotations
 
@@ -22,57 +19,17 @@ import hashlib
 import json
 import logging
 import threading
-from dataclasses import dataclass, field
 
 import numpy as np
 
 from satloc import __version__ as SATLOC_VERSION
-from satloc.errors import ConfigError, FormatError
+from satloc.errors import FormatError
 from satloc.features import make_extractor
 from satloc.features.dictionary import SatelliteFeatures
 from satloc.geometry import StereoCamera
-from satloc.localizers.crossview import CrossViewConfig, CrossViewLocalizer, CrossViewTracker, Prior
-from satloc.localizers.database import Localization
+from satloc.localizers.crossview import CrossViewConfig, CrossViewLocalizer
 
-__all__ = ["CrossEnvConfig", "CrossEnvLocalizer", "cross_localizer", "map_features"]
-
-
-@dataclass(frozen=True)
-class CrossEnvConfig:
-    posterior_k: int = 32                 # posterior entries in info (as LocalizerConfig.posterior_k)
-    depth_source: str = "stereo"          # the query's depth: stereo matching of the pair
-    mode: str = "cross"
-    refine: bool = False
-    track: bool = False
-    crossview: CrossViewConfig = field(default_factory=CrossViewConfig)
-
-
-class CrossEnvLocalizer:
-    """A :class:`satloc.localizers.crossview.CrossViewLocalizer` in an environment's localization loop (see the module
-    docstring)."""
-
-    needs_prior = True
-
-    def __init__(self, cross: CrossViewLocalizer, config: CrossEnvConfig = CrossEnvConfig()):
-        self.cross, self.config = cross, config
-        self.camera, self.satfeat, self.extractor = cross.camera, cross.satfeat, cross.extractor
-
-    def prefetch(self, frames) -> None:
-        """Nothing to batch: no network runs on the ground image (the grey level or the learned channels of
-        the bilateral RGB)."""
-
-    def tracker(self) -> CrossViewTracker:
-        return CrossViewTracker(self.cross)
-
-    def localize(self, frame, tracker: CrossViewTracker | None = None, prior: Prior | None = None) -> Localization:
-        if prior is None:
-            raise ConfigError("localizer 'cross': a localization needs a prior (position and heading within a radius)")
-        r = tracker.localize(frame, prior) if tracker is not None else self.cross.localize(frame, prior)
-        if r.pose is None:
-            raise ConfigError(f"localizer 'cross': too little ground seen ({r.cells} bird's-eye cells) or no drivable "
-                              "position within the prior")
-        return Localization(r.pose, np.asarray(r.candidates, np.float64), np.asarray(r.posterior, np.float64),
-                            float(r.correlation), True, int(r.cells))
+__all__ = ["cross_localizer", "map_features"]
 
 
 _CACHE: dict = {}
@@ -106,14 +63,15 @@ def map_features(satmap, progress: bool = False) -> SatelliteFeatures:
     return sf
 
 
-def cross_localizer(satmap, camera: StereoCamera, key: tuple, config: CrossEnvConfig = CrossEnvConfig()
-                    ) -> CrossEnvLocalizer:
+def cross_localizer(satmap, camera: StereoCamera, key: tuple, config: CrossViewConfig = CrossViewConfig()
+                    ) -> CrossViewLocalizer:
     """The cross-view localizer of ``satmap`` for ``camera`` (:func:`map_features`), made once per process for
-    ``key`` (what identifies the map: scene, aliasing, satellite gap)."""
-    k = (key, camera, config.crossview)
+    ``key`` (what identifies the map: scene, aliasing, satellite gap); each environment wraps it in a
+    :class:`satloc.localizers.crossview.NoDatabaseLocalizer` of its own (its own track)."""
+    k = (key, camera, config)
     with _LOCK:
         cv = _CACHE.get(k)
         if cv is None:
-            cv = _CACHE[k] = CrossViewLocalizer(camera, map_features(satmap), make_extractor("default"),
-                                                config.crossview, labels=satmap.labels)
-    return CrossEnvLocalizer(cv, config)
+            cv = _CACHE[k] = CrossViewLocalizer(camera, map_features(satmap), make_extractor("default"), config,
+                                                labels=satmap.labels)
+    return cv

@@ -152,7 +152,10 @@ class ActionError(ValueError):
 #: the spawn key of the seed sequence the GPS-like priors of ``localizer="cross"`` are drawn from
 PRIOR_SPAWN_KEY = 104729
 
-#: the value of ``EnvConfig.localizer`` when a :class:`satloc.localizers.database.Localizer` instance was passed.
+#: the spawn key of the seed sequence the localizer's ``context.seed`` is drawn from
+LOCALIZER_SPAWN_KEY = 130363
+
+#: the value of ``EnvConfig.localizer`` when a localizer object (or a class that makes one) was passed.
 LOCALIZER_INSTANCE = "<instance>"
 
 
@@ -212,7 +215,9 @@ class SharedSpecMixin:
 
 
 def _split_localizer(config: dict, owner: str = "SatLocEnv", allow_auto: bool = True) -> tuple[dict, Any]:
-    """Config with a Localizer instance (the ``localizer`` keyword) replaced by its marker, and the instance."""
+    """Config with an object given as the ``localizer`` keyword (a localizer of the common interface, a class or
+    function that makes one, or the paper's method's :class:`satloc.localizers.database.Localizer`) replaced by its
+    marker, and the object."""
     config = dict(config)
     if "localizer" not in config:
         return config, None
@@ -222,14 +227,38 @@ def _split_localizer(config: dict, owner: str = "SatLocEnv", allow_auto: bool = 
     if isinstance(value, os.PathLike):
         config["localizer"] = os.fspath(value)
         return config, None
-    from satloc.localizers.database import Localizer
-
-    if not isinstance(value, Localizer):
+    if not (callable(getattr(value, "localize", None)) or callable(value)):
         auto = " 'auto'," if allow_auto else ""
-        raise ConfigError(f"{owner} config.localizer: expected None, 'none',{auto} a build directory or a "
-                          f"satloc.localizers.database.Localizer, got {type(value).__name__} {value!r}")
+        raise ConfigError(f"{owner} config.localizer: expected None, 'none', 'cross',{auto} a build directory, "
+                          "'module:Name', or a localizer object (one with reset(context) and localize(query), see "
+                          f"satloc.localizers.interface) or a class that makes one, got {type(value).__name__} "
+                          f"{value!r}")
     config["localizer"] = LOCALIZER_INSTANCE
     return config, value
+
+
+def make_localizer(value: Any, track: bool, owner: str = "SatLocEnv") -> tuple[Any, dict]:
+    """The localizer of the common interface an environment uses for ``value`` (an object given as the
+    ``localizer`` keyword, or a ``module:Name`` string), and what is known of it (``source`` for messages): a
+    localizer object as it is; a class or function called to make one; the paper's method's engine wrapped
+    (:meth:`satloc.localizers.database.Localizer.as_localizer`, tracked with ``track`` or its own
+    ``config.track``). ``localizer_track`` (``track``) is an option of the built-in localizers only."""
+    from satloc.localizers.interface import localizer_name, resolve_localizer
+
+    if isinstance(value, str):
+        loc = resolve_localizer(value, f"{owner} config.localizer {value!r}")
+        ident = {"source": f"the localizer {value!r}"}
+    elif (not isinstance(value, type) and not callable(getattr(value, "reset", None))
+          and callable(getattr(value, "as_localizer", None))):
+        loc = value.as_localizer(track=track or None)
+        return loc, {"source": "the Localizer instance"}
+    else:   # an instance as it is; a class or a function made into one
+        loc = resolve_localizer(value, f"{owner} config.localizer")
+        ident = {"source": f"the localizer {localizer_name(loc)!r}"}
+    if track:
+        raise ConfigError(f"localizer_track: tracks the built-in localizers ('cross', 'auto', a build directory); "
+                          f"{ident['source']} is your own: it gets every query's odometry and tracks as it likes")
+    return loc, ident
 
 
 def check_reset_options(options: Any, episode_keys: frozenset, cls: type) -> dict:
@@ -267,24 +296,26 @@ def check_localizer_config(cfg, have_instance: bool, allow_auto: bool = True, al
         cfg = dataclasses.replace(cfg, localizer=None)
         loc = None
     if loc == LOCALIZER_INSTANCE and not have_instance:
-        raise ConfigError(f"localizer: {LOCALIZER_INSTANCE!r} stands for a Localizer instance passed as the "
-                          "localizer keyword; pass the instance itself")
+        raise ConfigError(f"localizer: {LOCALIZER_INSTANCE!r} stands for a localizer object passed as the "
+                          "localizer keyword; pass the object itself")
     if loc == "auto" and not allow_auto:
         raise ConfigError("localizer: 'auto' builds a localizer from a simulated scene's database pass, which a "
-                          "replay has not; expected None, 'none', a build directory or a satloc.localizers.database.Localizer")
+                          "replay has not; expected None, 'none', 'cross', a build directory, 'module:Name' or a "
+                          "localizer object")
     if loc == "cross" and not allow_cross:
         raise ConfigError("localizer: 'cross' localizes from a prior drawn around the true pose, which this "
-                          "environment has not; expected None, 'none', a build directory or a satloc.localizers.database.Localizer")
+                          "environment has not; expected None, 'none', a build directory, 'module:Name' or a "
+                          "localizer object")
     if loc == "cross" and getattr(cfg, "localizer_refine", False):
         raise ConfigError("localizer_refine: the 'cross' localizer aligns the bird's-eye view already; refinement "
                           "is an option of 'auto' and build directories")
-    if loc not in (None, "auto", "cross", LOCALIZER_INSTANCE):
+    if loc not in (None, "auto", "cross", LOCALIZER_INSTANCE) and not is_localizer_spec(loc):
         p = Path(loc).expanduser()
         if not (p / "build.json").is_file():
             auto = " 'auto'," if allow_auto else ""
             raise ConfigError(f"localizer: {loc!r} is not a build directory (no build.json); expected None, "
-                              f"'none',{auto}{' cross,' if allow_cross else ''} a directory written by `satloc build` "
-                              "or a satloc.localizers.database.Localizer")
+                              f"'none',{auto}{' cross,' if allow_cross else ''} a directory written by `satloc build`, "
+                              "'module:Name' (a localizer of your own) or a localizer object")
         cfg = dataclasses.replace(cfg, localizer=str(p))
     if cfg.localizer_track and loc is None:
         raise ConfigError("localizer_track: tracking needs a localizer (localizer is None)")
@@ -293,6 +324,13 @@ def check_localizer_config(cfg, have_instance: bool, allow_auto: bool = True, al
     if cfg.reward == "neg_error" and loc is None:
         raise ConfigError("reward: 'neg_error' needs a localizer (localizer is None)")
     return cfg
+
+
+def is_localizer_spec(value: str) -> bool:
+    """Whether ``value`` names a localizer of one's own (``module:Name`` or ``path/to/file.py:Name``) rather
+    than a build directory."""
+    head, sep, tail = value.rpartition(":")
+    return bool(sep and head and tail) and not Path(value).expanduser().is_dir()
 
 
 def build_identity(build_dir: str | os.PathLike) -> dict:
@@ -401,29 +439,35 @@ def check_localizer_map(localizer, satmap, what: str, source: str = "the localiz
 
 
 class LocalizationState:
-    """The localizer in an environment loop (shared by SatLoc-v0 and SatLocReplay-v0).
+    """The localizer in an environment loop (shared by SatLoc-v0 and SatLocReplay-v0), through the common
+    interface (:mod:`satloc.localizers.interface`).
 
-    :meth:`localize` localizes a frame (with ``track``: fused into a belief that the odometry given to
-    :meth:`add_odometry` since the previous localization moves first) and keeps the result as the fixed-shape
-    ``info`` arrays that :meth:`info` returns with ``error_m`` against the current true pose, and as the
-    :class:`PosteriorView` the render panels draw. A frame that cannot be localized (the localizer raises
-    :class:`ConfigError`, e.g. no grid sample with valid stereo depth) gives NaN ``estimate``, zero
-    posterior, ``inlier`` False, and its message in :attr:`error`. An unknown motion (a non-finite odometry)
-    makes the next localization start a new belief."""
+    :meth:`begin` starts an episode (the localizer's ``reset(context)``); :meth:`localize` asks it for a frame,
+    with the odometry given to :meth:`add_odometry` since the previous localization (None at the first one and
+    where some of that motion is unknown) and the prior, and keeps the answer as the fixed-shape ``info`` arrays
+    that :meth:`info` returns with ``error_m`` against the current true pose, and as the :class:`PosteriorView`
+    the render panels draw. A frame with no answer (the localizer returns None or raises :class:`ConfigError`,
+    e.g. no grid sample with valid stereo depth) gives NaN ``estimate``, zero posterior, ``inlier`` False, and
+    its message in :attr:`error`."""
 
-    def __init__(self, localizer=None, track: bool = False):
+    def __init__(self, localizer=None):
         self.localizer = localizer
-        self.track = track
         self.reset()
 
     def reset(self) -> None:
-        """A new episode: no result, no belief, no odometry."""
+        """No result, no odometry (the localizer keeps its state until :meth:`begin`)."""
         self.arrays: dict | None = None     # latest result as info arrays (error_m is added by info())
         self.view: PosteriorView | None = None
         self.error: str | None = None       # message of the last frame that could not be localized
-        self.tracker = None                 # satloc.tracking.track.Tracker (track): made at the first localization
         self.odo_since = np.zeros(3)        # odometry since the last localization
         self.motion_known = True            # False: some motion since the last localization is unknown
+        self.count = 0                      # localizations this episode
+
+    def begin(self, context) -> None:
+        """A new episode: :meth:`reset`, then the localizer's ``reset(context)``."""
+        self.reset()
+        if self.localizer is not None:
+            self.localizer.reset(context)
 
     @property
     def localized(self) -> bool:
@@ -431,14 +475,18 @@ class LocalizationState:
         return self.arrays is not None
 
     @property
-    def needs_prior(self) -> bool:
-        """A localizer with no database (``localizer="cross"``) starts each localization from a prior."""
-        return getattr(self.localizer, "needs_prior", False)
+    def posterior_k(self) -> int:
+        """The posterior entries ``info`` reports: the localizer's ``posterior_k``, else 32."""
+        from satloc.localizers.interface import DEFAULT_POSTERIOR_K
+
+        k = getattr(self.localizer, "posterior_k", DEFAULT_POSTERIOR_K)
+        return int(k) if isinstance(k, (int, np.integer)) and not isinstance(k, bool) and k > 0 else DEFAULT_POSTERIOR_K
 
     @property
     def needs_frame_depth(self) -> bool:
-        """A localizer configured with ``depth_source="frame"`` reads the depth stored in the frame."""
-        return self.localizer is not None and getattr(self.localizer.config, "depth_source", "stereo") == "frame"
+        """A localizer with ``wants_depth`` (the paper's method with ``depth_source="frame"``) reads the
+        simulator's true depth in the frame."""
+        return self.localizer is not None and bool(getattr(self.localizer, "wants_depth", False))
 
     def add_odometry(self, odometry) -> None:
         """The odometry (dx, dy, dyaw) of one step; a non-finite one marks the motion unknown."""
@@ -449,27 +497,26 @@ class LocalizationState:
             self.odo_since = compose_motion(self.odo_since, o)
 
     def localize(self, frame: Frame, step: int, prior=None) -> None:
-        """``prior``: where the vehicle is believed to be (a :class:`satloc.localizers.crossview.Prior`), for a localizer
-        that needs one (``needs_prior``: ``localizer="cross"``)."""
+        """Localize ``frame`` (no pose) at ``step`` with ``prior`` (a :class:`satloc.localizers.interface.Prior`
+        or None)."""
+        from satloc.localizers.interface import Query, as_estimate, localizer_name
+
         loc = self.localizer
         if loc is None:
             return
-        k = loc.config.posterior_k
-        tracker = None
-        if self.track:
-            if self.tracker is None:
-                self.tracker = loc.tracker()
-            tracker = self.tracker
-            if self.motion_known:
-                tracker.predict(self.odo_since)   # the noisy odometry the agent observed, not the true motion
-            else:
-                tracker.reset()                   # moved by an unknown amount: start a new belief
-            self.odo_since, self.motion_known = np.zeros(3), True
+        k = self.posterior_k
+        odometry = Pose2(*self.odo_since) if self.count > 0 and self.motion_known else None
+        query = Query(frame, odometry, prior, self.count, float(frame.timestamp))
+        self.count += 1
+        self.odo_since, self.motion_known = np.zeros(3), True
         try:
-            r = (loc.localize(frame, tracker=tracker, prior=prior) if self.needs_prior else
-                 loc.localize(frame, tracker=tracker))
+            r = as_estimate(loc.localize(query), f"localizer {localizer_name(loc)!r}")
         except ConfigError as e:  # no grid sample with valid depth (e.g. a wall fills the view): no result
-            self.error = str(e)
+            r, message = None, str(e)
+        else:
+            message = "no answer (the localizer returned None)"
+        if r is None:
+            self.error = message
             self.arrays = {"estimate": np.full(3, np.nan), "posterior_poses": np.zeros((k, 3)),
                            "posterior_probs": np.zeros(k), "inlier": np.bool_(False),
                            "inlier_score": np.float64(0.0), "localized_step": np.int64(step)}
@@ -477,12 +524,14 @@ class LocalizationState:
             return
         self.error = None
         poses, probs = r.top(k)
-        self.arrays = {"estimate": np.asarray(r.estimate.as_array(), np.float64),
+        self.arrays = {"estimate": np.asarray(r.pose.as_array(), np.float64),
                        "posterior_poses": np.asarray(poses, np.float64),
                        "posterior_probs": np.asarray(probs, np.float64),
                        "inlier": np.bool_(r.inlier), "inlier_score": np.float64(r.inlier_score),
                        "localized_step": np.int64(step)}
-        self.view = PosteriorView(np.asarray(r.candidates, np.float64), np.asarray(r.posterior, np.float64),
+        cand = r.candidates if r.candidates is not None else r.pose.as_array()[None]
+        post = r.posterior if r.posterior is not None else np.ones(1)
+        self.view = PosteriorView(np.asarray(cand, np.float64), np.asarray(post, np.float64),
                                   self.arrays["estimate"].copy(), bool(r.inlier))
 
     def info(self, pose: np.ndarray) -> dict:
@@ -660,18 +709,21 @@ class SatLocEnv(SharedSpecMixin, gym.Env):
         self.change_seed: int | None = None   # the episode's revisit change seed (with change > 0)
         self._preloaded: tuple | None = None   # (scene key, Scene) loaded by __init__ for the localizer check
         self._loc_identity: dict = {"source": "the localizer"}   # what is known of the localizer's data
-        if instance is not None:
-            self.localizer = instance
-            self._loc_identity = {"source": "the Localizer instance"}
-            self.config = dataclasses.replace(self.config, localizer_mode=instance.config.mode,
-                                              localizer_refine=instance.config.refine,
-                                              localizer_track=self.config.localizer_track or instance.config.track)
-        elif self.config.localizer not in (None, "auto", "cross"):
+        cfg = self.config
+        if instance is not None or (cfg.localizer is not None and is_localizer_spec(cfg.localizer)):
+            self.localizer, self._loc_identity = make_localizer(instance if instance is not None else cfg.localizer,
+                                                                cfg.localizer_track)
+            engine = getattr(self.localizer, "engine", None)   # the paper's method given as its engine
+            if engine is not None and instance is not None and not callable(getattr(instance, "reset", None)):
+                self.config = dataclasses.replace(cfg, localizer_mode=engine.config.mode,
+                                                  localizer_refine=engine.config.refine,
+                                                  localizer_track=bool(self.localizer.track))
+        elif cfg.localizer not in (None, "auto", "cross"):
             from .auto_localizer import load_cached_localizer
 
-            self.localizer = load_cached_localizer(self.config.localizer, self.config.localizer_mode,
-                                                   self.config.localizer_refine)
-            self._loc_identity = build_identity(self.config.localizer)
+            self.localizer = load_cached_localizer(cfg.localizer, cfg.localizer_mode,
+                                                   cfg.localizer_refine).as_localizer(cfg.localizer_track)
+            self._loc_identity = build_identity(cfg.localizer)
         key = (self.config.scene, self.config.aliasing, self.config.satellite_gap)
         scene = load_scene(*key)
         if self.localizer is not None:
@@ -681,7 +733,6 @@ class SatLocEnv(SharedSpecMixin, gym.Env):
         # a route the autopilot cannot drive fails here too, as `satloc scene` says it
         self._check_route(scene, self.config)
         self._preloaded = (key, scene)
-        self._loc.track = self.config.localizer_track
 
     def _check_route(self, scene: Scene, cfg: EnvConfig) -> None:
         route = cfg.route or scene.spec.database_route
@@ -706,7 +757,8 @@ class SatLocEnv(SharedSpecMixin, gym.Env):
 
     @property
     def _tracker(self):
-        return self._loc.tracker
+        """The built-in localizer's tracker of this episode (None: not tracked, or a localizer of one's own)."""
+        return getattr(self._loc.localizer, "tracker", None)
 
     # --- configuration ----------------------------------------------------------------------------
     @staticmethod
@@ -717,9 +769,12 @@ class SatLocEnv(SharedSpecMixin, gym.Env):
         self.config = check_localizer_config(self.config, have_instance, allow_auto=True)
 
     def _check_localizer_camera(self) -> None:
-        """Refuse a localizer built for another camera: other image size, intrinsics, baseline, mounting."""
-        check_localizer_camera(self.localizer, self.camera, f"the environment (resolution {self.config.resolution!r})",
-                               self._loc_identity["source"])
+        """Refuse a built-in localizer built for another camera: other image size, intrinsics, baseline, mounting
+        (a localizer of one's own checks what it needs in reset(context))."""
+        engine = getattr(self.localizer, "engine", None)
+        if engine is not None:
+            check_localizer_camera(engine, self.camera, f"the environment (resolution {self.config.resolution!r})",
+                                   self._loc_identity["source"])
 
     def _check_localizer_map(self, scene: Scene) -> None:
         """A build directory or instance is tied to one satellite map: refuse a scene with another one (size,
@@ -736,7 +791,10 @@ class SatLocEnv(SharedSpecMixin, gym.Env):
             raise ConfigError(f"localizer: {ident['source']} was built on scene {scene.name!r}'s satellite map "
                               f"captured at satellite_gap {built:g}, not on the map at {gap:g}; a localizer localizes "
                               "only on the map it was built on")
-        compared = check_localizer_map(self.localizer, scene.satmap, what, ident["source"]) is not None
+        engine = getattr(self.localizer, "engine", None)
+        if engine is None:   # a localizer of one's own: it is given the scene's map in reset(context)
+            return
+        compared = check_localizer_map(engine, scene.satmap, what, ident["source"]) is not None
         if not compared and isinstance(ident.get("scene"), str):
             other = (ident["scene"] != scene.name
                      or (aliasing is not None and isinstance(ident.get("aliasing"), (int, float))
@@ -764,14 +822,14 @@ class SatLocEnv(SharedSpecMixin, gym.Env):
             from .auto_localizer import auto_localizer
 
             self.localizer = auto_localizer(cfg.scene, cfg.aliasing, cfg.resolution, cfg.localizer_mode,
-                                            refine=cfg.localizer_refine, satellite_gap=cfg.satellite_gap)
+                                            refine=cfg.localizer_refine, satellite_gap=cfg.satellite_gap
+                                            ).as_localizer(self.config.localizer_track)
             self._loc_identity = {"source": f"the auto localizer of scene {scene.name!r}"}
             self._check_localizer_camera()
         elif self.config.localizer == "cross":
-            from .cross_localizer import CrossEnvConfig, cross_localizer
+            from .cross_localizer import cross_localizer
 
-            self.localizer = cross_localizer(scene.satmap, self.camera, key,
-                                             CrossEnvConfig(track=self.config.localizer_track))
+            self.localizer = cross_localizer(scene.satmap, self.camera, key).as_localizer(self.config.localizer_track)
             self._loc_identity = {"source": f"the cross-view localizer of scene {scene.name!r}"}
         elif self.localizer is not None:
             self._check_localizer_map(scene)
@@ -834,15 +892,15 @@ class SatLocEnv(SharedSpecMixin, gym.Env):
         self._renderer.set_occluders(*sample_occluders(self.route, scene.ground_label, occ, cfg.lane_offset_m, rng))
         self.appearance = Appearance(app, rng)
         self.steps = 0
-        self._loc.reset()                      # tracking (localizer_track): a new belief each episode
-        # "cross": the GPS-like priors, from a child of the episode's seed sequence with a spawn key of its own and
-        # the episode's number since the last seeded reset (spawning would move the other children's counter)
+        # the GPS-like priors and the localizer's seed, from children of the episode's seed sequence with spawn
+        # keys of their own and the episode's number since the last seeded reset (spawning would move the other
+        # children's counter): none of the episode's other draws change
         self._episodes_since_seed = 0 if seed is not None else getattr(self, "_episodes_since_seed", -1) + 1
         self._prior_rng = None
-        if self._loc.needs_prior:
-            ss = self.np_random.bit_generator.seed_seq
-            self._prior_rng = np.random.default_rng(np.random.SeedSequence(
-                ss.entropy, spawn_key=tuple(ss.spawn_key) + (PRIOR_SPAWN_KEY, self._episodes_since_seed)))
+        if self.localizer is not None:
+            self._prior_rng = np.random.default_rng(self._child_seed(PRIOR_SPAWN_KEY))
+            # a new episode: the localizer's reset(context) (tracking: a new belief)
+            self._loc.begin(self._context(scene, int(self._child_seed(LOCALIZER_SPAWN_KEY).generate_state(1)[0])))
         obs = self._observe(np.zeros(3, np.float32))
         self._vo = None
         if cfg.odometry == "visual":           # its first pair: the reference of the first step's motion
@@ -953,16 +1011,27 @@ class SatLocEnv(SharedSpecMixin, gym.Env):
         self._last_depth = out.get("depth_left") if want_depth else None
         return obs
 
+    def _child_seed(self, key: int) -> np.random.SeedSequence:
+        """A child of the episode's seed sequence with its own spawn ``key`` (see :meth:`reset`)."""
+        ss = self.np_random.bit_generator.seed_seq
+        return np.random.SeedSequence(ss.entropy, spawn_key=tuple(ss.spawn_key) + (key, self._episodes_since_seed))
+
+    def _context(self, scene: Scene, seed: int):
+        """What the localizer is told at the start of an episode (:class:`satloc.localizers.interface.Context`):
+        the camera, the scene's satellite map (the capture, with its road labels) and the episode's seed."""
+        from satloc.localizers.interface import Context
+
+        return Context(self.camera, scene.satmap, seed=seed, database=None, place=scene.name)
+
     def _localize(self) -> None:
-        """Localize the last observed stereo pair; keeps the result for ``info`` and ``render``."""
+        """Localize the last observed stereo pair from a GPS-like prior drawn around the true pose (uniform within
+        ``prior_radius_m``, heading within ``prior_yaw_deg``); keeps the result for ``info`` and ``render``."""
         if self.localizer is None:
             return
-        prior = None
-        if self._loc.needs_prior:
-            from satloc.localizers.crossview import draw_prior
+        from satloc.localizers.crossview import draw_prior
 
-            cfg = self._episode
-            prior = draw_prior(self.pose, cfg.prior_radius_m, cfg.prior_yaw_deg, self._prior_rng)
+        cfg = self._episode
+        prior = draw_prior(self.pose, cfg.prior_radius_m, cfg.prior_yaw_deg, self._prior_rng)
         self._loc.localize(self._frame(), self.steps, prior)
 
     def _frame(self) -> Frame:

@@ -41,7 +41,9 @@ from satloc.tracking.track import compose_motion
 
 from .drive import (
     LOCALIZER_INSTANCE,
+    LOCALIZER_SPAWN_KEY,
     PANEL_M,
+    PRIOR_SPAWN_KEY,
     ActionError,
     LocalizationState,
     SharedSpecMixin,
@@ -52,6 +54,8 @@ from .drive import (
     check_localizer_config,
     check_reset_options,
     compose_view,
+    is_localizer_spec,
+    make_localizer,
     unshare,
 )
 
@@ -79,18 +83,25 @@ class ReplayConfig:
                                             # motion plus noise, the stereo visual odometry of the frames
                                             # (satloc.tracking.vo), or a KITTI drive's OXTS speed and yaw rate, integrated
     odometry_noise: tuple[float, float] = (0.02, 0.003)  # std: fraction of the distance, radians per step
-    localizer: str | None = None            # None/"none": off; a build directory; a Localizer instance given
-                                            # as the keyword is stored here as "<instance>"
+    localizer: str | None = None            # None/"none": off; "cross": no database, the map alone; a build
+                                            # directory; "module:Name" (a localizer of one's own); a localizer
+                                            # object (or a class that makes one) given as the keyword is stored
+                                            # here as "<instance>"
     localizer_mode: Literal["full", "np", "go"] = "full"   # for a build directory
     localizer_refine: bool = False          # for a build directory: bird's-eye alignment (satloc.tracking.align)
     localizer_track: bool = False           # fuse each localization into a belief moved by the odometry
                                             # observations (satloc.tracking.track); a new episode starts a new belief
     localize_every: int = 1                 # localize at reset and at the steps that are multiples of this
+    prior_radius_m: float = 20.0            # each localization's prior, drawn around the frame's GPS / OXTS pose
+    prior_yaw_deg: float = 10.0             # as a fix gives it: within this radius and heading range
     reward: Literal["none", "neg_error"] = "none"  # neg_error: minus the localization error (metres)
 
     def __post_init__(self):
         # types are checked by satloc.config.from_dict; here the values that do not depend on the data (the
         # frame indices are checked against the sequence by SatLocReplayEnv)
+        from satloc.localizers.interface import Prior
+
+        Prior(0.0, 0.0, 0.0, self.prior_radius_m, self.prior_yaw_deg)   # a prior's checks, naming the field
         for k in ("stride", "max_skip", "localize_every"):
             if getattr(self, k) < 1:
                 raise ConfigError(f"{k}: expected an integer >= 1, got {getattr(self, k)}")
@@ -197,7 +208,7 @@ class SatLocReplayEnv(SharedSpecMixin, gym.Env):
         self._vo = None                       # satloc.tracking.vo.StereoVO of the episode (odometry="visual")
         self._oxts = None                     # odometry="oxts": the drive's per-frame OXTS odometry
         cfg = from_dict(ReplayConfig, config, "SatLocReplayEnv config")
-        cfg = check_localizer_config(cfg, loc_instance is not None, allow_auto=False)
+        cfg = check_localizer_config(cfg, loc_instance is not None, allow_auto=False, allow_cross=True)
         for key, inst in (("sequence", seq_instance), ("map", map_instance)):
             if getattr(cfg, key) == INSTANCE and inst is None:
                 raise ConfigError(f"{key}: {INSTANCE!r} stands for an object passed as the {key} keyword; pass the "
@@ -210,37 +221,50 @@ class SatLocReplayEnv(SharedSpecMixin, gym.Env):
                               "at least 2")
         # the localizer
         self._loc_identity: dict = {"source": "the localizer"}   # what is known of the localizer's data
-        if loc_instance is not None:
-            self._loc.localizer = loc_instance
-            self._loc_identity = {"source": "the Localizer instance"}
-            c = loc_instance.config
-            cfg = dataclasses.replace(cfg, localizer_mode=c.mode, localizer_refine=c.refine,
-                                      localizer_track=cfg.localizer_track or c.track)
-        elif cfg.localizer is not None:
+        if loc_instance is not None or (cfg.localizer is not None and is_localizer_spec(cfg.localizer)):
+            self._loc.localizer, self._loc_identity = make_localizer(
+                loc_instance if loc_instance is not None else cfg.localizer, cfg.localizer_track, "SatLocReplayEnv")
+            engine = getattr(self.localizer, "engine", None)   # the paper's method given as its engine
+            if engine is not None and loc_instance is not None and not callable(getattr(loc_instance, "reset", None)):
+                cfg = dataclasses.replace(cfg, localizer_mode=engine.config.mode, localizer_refine=engine.config.refine,
+                                          localizer_track=bool(self.localizer.track))
+        elif cfg.localizer not in (None, "cross"):
             from .auto_localizer import load_cached_localizer
 
-            self._loc.localizer = load_cached_localizer(cfg.localizer, cfg.localizer_mode, cfg.localizer_refine)
+            self._loc.localizer = load_cached_localizer(cfg.localizer, cfg.localizer_mode,
+                                                        cfg.localizer_refine).as_localizer(cfg.localizer_track)
             self._loc_identity = build_identity(cfg.localizer)
-        self._loc.track = cfg.localizer_track
         self._seq_dir = getattr(self.sequence, "_dir", None)   # a recording's folder (its map/ is beside it)
-        if self.localizer is not None:
-            self.sequence = _in_camera(self.sequence, self.localizer.camera)
+        engine = getattr(self.localizer, "engine", None)        # a built-in localizer's (its camera, its map)
+        if engine is not None:
+            self.sequence = _in_camera(self.sequence, engine.camera)
         self.camera = self.sequence.camera
         self._poses = self.sequence.poses
         self._stamps = self.sequence.timestamps
         self.config = cfg
         self._episode = self._check_episode(cfg, "SatLocReplayEnv config")
-        if self.localizer is not None:
-            check_localizer_camera(self.localizer, self.camera, f"sequence {self.sequence.name!r}",
+        if engine is not None:
+            check_localizer_camera(engine, self.camera, f"sequence {self.sequence.name!r}",
                                    self._loc_identity["source"])
             self._check_localizer_data()
-            if self._loc.needs_frame_depth and self.sequence[self._episode.start_frame].depth is None:
-                raise ConfigError(f"localizer: its depth_source is 'frame', but sequence {self.sequence.name!r} has "
-                                  "no depth channel")
+        if self._loc.needs_frame_depth and self.sequence[self._episode.start_frame].depth is None:
+            raise ConfigError(f"localizer: it reads the frames' depth (depth_source 'frame'), but sequence "
+                              f"{self.sequence.name!r} has no depth channel")
         self._map_instance = map_instance
+        self._blank_map_used = False                # no map of the place: a grey canvas
         self.satmap: SatelliteMap | None = None     # resolved on first use (render) by the ``map`` property
         if map_instance is not None or cfg.map is not None:
             self.satmap = self._resolve_map()
+        if cfg.localizer == "cross":   # no database: the satellite map alone, which the replay must have
+            from .cross_localizer import cross_localizer
+
+            sm = self.map
+            if self._blank_map_used:
+                raise ConfigError("localizer: 'cross' localizes against the satellite map; give map= (a map "
+                                  "directory or georeferenced imagery of the drive)")
+            key = ("replay", str(cfg.map) if cfg.map not in (None, INSTANCE) else id(sm))
+            self._loc.localizer = cross_localizer(sm, self.camera, key).as_localizer(cfg.localizer_track)
+            self._loc_identity = {"source": "the cross-view localizer of the replay's map"}
         # spaces
         h, w = self.camera.height, self.camera.width
         obs = {
@@ -297,7 +321,7 @@ class SatLocReplayEnv(SharedSpecMixin, gym.Env):
     def _check_localizer_data(self) -> None:
         """Refuse a localizer built for other data than the sequence: another geographic frame or simulated scene
         (where both record theirs), or a satellite map that none of the sequence's poses lies on."""
-        seq, ident, loc = self.sequence, self._loc_identity, self.localizer
+        seq, ident, loc = self.sequence, self._loc_identity, getattr(self.localizer, "engine", None)
         src = ident["source"]
         frame, theirs = seq.geo_frame, ident.get("geo_frame")
         if frame is not None and isinstance(theirs, dict):
@@ -366,7 +390,8 @@ class SatLocReplayEnv(SharedSpecMixin, gym.Env):
     def _default_map(self) -> SatelliteMap:
         """The build's map, else the recording's ``map/`` beside the sequence, else a grey canvas."""
         candidates = []
-        if self.config.localizer not in (None, LOCALIZER_INSTANCE):
+        if self.config.localizer not in (None, LOCALIZER_INSTANCE, "cross") and not is_localizer_spec(
+                self.config.localizer):
             try:
                 m = read_json(Path(self.config.localizer) / "build.json").get("map")
             except Exception:  # noqa: BLE001 - an unreadable build.json only loses this default
@@ -378,6 +403,7 @@ class SatLocReplayEnv(SharedSpecMixin, gym.Env):
         for d in candidates:
             if (d / "map.json").is_file():
                 return SatelliteMap.load(d)
+        self._blank_map_used = True
         return _blank_map(self._poses)
 
     # --- gym API ----------------------------------------------------------------------------------
@@ -390,7 +416,22 @@ class SatLocReplayEnv(SharedSpecMixin, gym.Env):
         if cfg.random_start:
             start = int(self.np_random.integers(cfg.start_frame, self._end(cfg) - cfg.stride))
         self.frame_index, self.steps, self._done = start, 0, False
-        self._loc.reset()
+        # the priors and the localizer's seed: children of the episode's seed sequence with spawn keys of their
+        # own (none of the episode's other draws change), numbered by the episodes since the last seeded reset
+        self._episodes_since_seed = 0 if seed is not None else getattr(self, "_episodes_since_seed", -1) + 1
+        if self.localizer is not None:
+            ss = self.np_random.bit_generator.seed_seq
+
+            def child(key):
+                return np.random.SeedSequence(ss.entropy, spawn_key=tuple(ss.spawn_key) + (key, self._episodes_since_seed))
+
+            from satloc.localizers.interface import Context
+
+            self._prior_rng = np.random.default_rng(child(PRIOR_SPAWN_KEY))
+            self._loc.begin(Context(self.camera, self.map, seed=int(child(LOCALIZER_SPAWN_KEY).generate_state(1)[0]),
+                                    database=None, place=self.sequence.name))
+        else:
+            self._loc.reset()
         obs, from_stereo = self._observe(np.zeros(3, np.float32))
         self._vo = None
         if cfg.odometry == "visual":          # its first pair: the reference of the first step's motion
@@ -474,12 +515,20 @@ class SatLocReplayEnv(SharedSpecMixin, gym.Env):
         return obs, from_stereo
 
     def _localize(self) -> None:
+        """Localize the current frame from a prior drawn around its pose in the data (the GPS / OXTS fix; none for
+        a frame without a pose): uniform within ``prior_radius_m``, heading within ``prior_yaw_deg``."""
         if self.localizer is None:
             return
+        from satloc.localizers.crossview import draw_prior
+
         f = self._frame
         frame = dataclasses.replace(f, pose=None, labels=None,
                                     depth=f.depth if self._loc.needs_frame_depth else None)
-        self._loc.localize(frame, self.steps)
+        p = self._poses[self.frame_index]
+        cfg = self.config
+        prior = draw_prior(p, cfg.prior_radius_m, cfg.prior_yaw_deg, self._prior_rng) if np.all(np.isfinite(p)) \
+            else None
+        self._loc.localize(frame, self.steps, prior)
 
     def _info(self, true_odo: np.ndarray, valid: bool, from_stereo: bool) -> dict:
         i = self.frame_index

@@ -38,7 +38,7 @@ from gymnasium.vector.utils import batch_space, concatenate, create_empty_array
 
 from satloc.errors import ConfigError
 
-from .drive import ActionError, SatLocEnv
+from .drive import ActionError, SatLocEnv, unshare
 
 __all__ = ["SatLocVectorEnv"]
 
@@ -62,6 +62,13 @@ class SatLocVectorEnv(VectorEnv):
             raise ConfigError(f"max_episode_steps: expected an integer >= 1 or None, got {limit!r}")
         self.max_episode_steps = None if limit is None else int(limit)
         self.num_envs = int(num_envs)
+        loc = config.get("localizer")
+        loc = unshare(loc)
+        if (self.num_envs > 1 and callable(getattr(loc, "localize", None)) and callable(getattr(loc, "reset", None))
+                and not isinstance(loc, type)):
+            raise ConfigError(f"localizer: one {type(loc).__name__} object cannot serve {self.num_envs} cars (each "
+                              "keeps its own state); give its class, a function that makes one, or 'module:Name', "
+                              "and each car gets its own")
         self.envs = [SatLocEnv(render_mode=render_mode, **config) for _ in range(self.num_envs)]
         first = self.envs[0]
         self._batch = BatchStereoRenderer(first.camera, anisotropy=first.config.anisotropy, zfar=first.config.zfar_m)
@@ -166,13 +173,16 @@ class SatLocVectorEnv(VectorEnv):
 
     # --- helpers ------------------------------------------------------------------------------------------
     def _prefetch(self, idx: list[int]) -> None:
-        """One network call for the frames the cars ``idx`` localize this step, per localizer they share."""
+        """One network call for the frames the cars ``idx`` localize this step, per built-in localizer they share
+        (each car's localizer wraps the shared ``engine``; a localizer without ``prefetch`` batches nothing)."""
         by_loc: dict[int, tuple] = {}
         for i in idx:
             loc = self.envs[i].localizer
-            by_loc.setdefault(id(loc), (loc, []))[1].append(self.envs[i]._frame())
-        for loc, frames in by_loc.values():
-            loc.prefetch(frames)
+            target = getattr(loc, "engine", loc)
+            if callable(getattr(target, "prefetch", None)):
+                by_loc.setdefault(id(target), (target, []))[1].append(self.envs[i]._frame())
+        for target, frames in by_loc.values():
+            target.prefetch(frames)
 
     def _batched_obs(self) -> dict:
         out = create_empty_array(self.single_observation_space, n=self.num_envs, fn=np.empty)

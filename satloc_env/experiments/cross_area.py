@@ -22,7 +22,6 @@ from __future__ import annotations
 
 import hashlib
 import json
-import time
 from pathlib import Path
 
 import numpy as np
@@ -33,8 +32,8 @@ from satloc.errors import ConfigError, FormatError
 from satloc.evaluation.metrics import pose_errors, recall_within
 from satloc.features import make_extractor
 from satloc.features.dictionary import SatelliteFeatures
-from satloc.localizers.crossview import SHIPPED_PROJECTIONS, CrossViewLocalizer, draw_prior, localize_frames
-from satloc.persist import atomic_path, header, load_npz, save_npz, write_json
+from satloc.localizers.crossview import SHIPPED_PROJECTIONS, CrossViewLocalizer
+from satloc.persist import atomic_path, header, load_npz, write_json
 from satloc.satmap import SatelliteMap
 from satloc.sequence import Sequence
 
@@ -66,14 +65,6 @@ def _digest(*arrays) -> str:
     return h.hexdigest()[:32]
 
 
-def query_priors(ca: CrossAreaConfig, truth: np.ndarray, frames: np.ndarray) -> list:
-    """The protocol's prior of each query: drawn around its true pose (``truth`` (N, 3)) with the generator
-    seeded by ``ca.seed`` (a :class:`CrossAreaConfig`) and the query's frame index (``frames``), so a query's
-    prior does not depend on which other queries are evaluated."""
-    return [draw_prior(t, ca.prior_radius_m, ca.prior_yaw_deg, np.random.default_rng([ca.seed, int(i)]))
-            for t, i in zip(np.asarray(truth, np.float64), frames)]
-
-
 def satellite_features(sdir: Path, satmap: SatelliteMap, extractor) -> SatelliteFeatures:
     """The map's features: the build's (``sdir/build/satellite_features.npz``, the same map and extractor; a
     map's features hold nothing of the database) when there, else computed."""
@@ -91,15 +82,24 @@ def satellite_features(sdir: Path, satmap: SatelliteMap, extractor) -> Satellite
 
 def run_cross(q: Sequence, sel: np.ndarray, ca: CrossAreaConfig, odometry: np.ndarray, odometry_kind: str,
               out: Path, db_poses: np.ndarray, label: str, satmap: SatelliteMap, sdir: Path | None = None,
-              progress: bool = True, log=print, pictures: bool = False) -> dict:
+              progress: bool = True, log=print, pictures: bool = False, extra: list | None = None) -> dict:
     """Both rows of the protocol on the frames ``sel`` of ``q`` (true poses: the prior's centres and the
     truth) against ``satmap``, tracked by ``odometry`` ((len(sel), 3) between consecutive selected frames),
-    into ``out`` (``localization_<row>.npz``, reused when done with the same settings, frames and odometry).
+    into ``out`` (``localization_<row>.npz``, reused when done with the same settings, frames and odometry),
+    then the localizers of ``extra`` ((key, name, instance), e.g. the reference floors and a user's:
+    :func:`satloc_env.experiments.grading.extra_localizers`) on the same queries, priors and odometry, with no
+    database. Every row runs through the common interface (:func:`satloc_env.experiments.grading.run_graded`).
     The gross error of a query with no answer is the farthest of ``db_poses`` (the tables' rule). ``sdir``:
     where a build's satellite features may be reused. Returns ``{row: summary}`` (with ``errors``)."""
+    from satloc.localizers.crossview import NoDatabaseLocalizer
+    from satloc.localizers.interface import Context
+
+    from .grading import query_priors, run_graded
+
     out.mkdir(parents=True, exist_ok=True)
     truth = np.asarray(q.poses, np.float64)[sel]
     priors = query_priors(ca, truth, sel)
+    context = Context(q.camera, satmap, seed=ca.seed, database=None, place=label)
     proj_id = None   # learned channels: the file's content, not its name
     if ca.crossview.projections is not None:
         path = Path(SHIPPED_PROJECTIONS if ca.crossview.projections == "shipped" else ca.crossview.projections)
@@ -127,26 +127,27 @@ def run_cross(q: Sequence, sel: np.ndarray, ca: CrossAreaConfig, odometry: np.nd
                 ext = make_extractor("default")   # the shipped features, whatever the database method uses
                 sf = satellite_features(sdir, satmap, ext) if sdir is not None else SatelliteFeatures.compute(satmap, ext)
                 cv = CrossViewLocalizer(q.camera, sf, ext, ca.crossview, labels=satmap.labels)
-            t = time.perf_counter()
-            r = localize_frames(cv, (q[int(i)] for i in sel), priors, odometry if tracked else None, progress)
-            secs = (time.perf_counter() - t) / len(sel)
-            est = r["estimates"]
-            a = {"frames": np.asarray(sel, np.int64), "estimates": est, "truth": truth,
-                 "errors": pose_errors(est, truth)["error"], "inlier_score": r["correlation"],
-                 "inlier": np.isfinite(est[:, 0]), "top_poses": r["top_poses"], "top_probs": r["top_probs"],
-                 "prior": r["priors"]}
-            save_npz(npz, "localization", a, {"method": row, "sequence": q.name, "stamp": stamp, "s_per_query": secs})
+            m, _ = run_graded(NoDatabaseLocalizer(cv, track=tracked), row, CROSS_NAMES[row], context, q, sel,
+                              odometry if tracked else None, priors, out, db_poses, label, progress,
+                              log=lambda s: None, meta={"stamp": stamp})
+            secs = m["s_per_query"]
             if row == "cross":   # the pictures of earlier results are stale
                 for old in out.glob("posterior_cross_q*.png"):
                     old.unlink()
-        m = table_stats(a["errors"], truth, db_poses)
-        m.update(queries=int(len(sel)), s_per_query=secs, errors=np.asarray(a["errors"], np.float64),
-                 inlier_score=np.asarray(a["inlier_score"], np.float64))
+        else:
+            m = table_stats(a["errors"], truth, db_poses)
+            m.update(queries=int(len(sel)), s_per_query=secs, errors=np.asarray(a["errors"], np.float64),
+                     inlier_score=np.asarray(a["inlier_score"], np.float64))
         log(f"[{label}] {CROSS_NAMES[row]}: mean {m['mean_m']:.2f} m, median {m['median_m']:.2f} m, "
             f"{100 * m['within_1m']:.0f} % within 1 m over {len(sel)} queries, {secs:.3f} s per query")
         res[row] = m
         if row == "cross" and pictures:
             _pictures(ca, label, satmap, sdir, q, sel, priors, m["errors"], out)
+    for key, name, obj in extra or ():   # the same queries, priors and odometry, known only from above
+        m, _ = run_graded(obj, key, name, context, q, sel, odometry, priors, out, db_poses, label, progress, log,
+                          meta={"odometry": odometry_kind})
+        m["odometry"] = "" if key == "prior" else odometry_kind
+        res[key] = m
     return res
 
 
@@ -161,9 +162,11 @@ def cross_area(cfg: ExperimentConfig, label: str, sdir: str | Path, progress: bo
     db, q = Sequence.load(sdir / "rec" / "database"), Sequence.load(sdir / "rec" / "query")
     sel = _covered(cfg, db, q)
     odo = tracked_odometry(cfg, q, sel, sdir / "odometry_visual.npz")
+    from .grading import extra_localizers
+
     return run_cross(q, sel, cfg.cross_area, odo, cfg.odometry, sdir / folder, db.poses, label,
                      SatelliteMap.load(sdir / "rec" / "map"), sdir, progress, log,
-                     pictures=getattr(cfg, "pictures", True))
+                     pictures=getattr(cfg, "pictures", True), extra=extra_localizers(cfg, set(CROSS_NAMES.values())))
 
 
 def _pictures(ca: CrossAreaConfig, label: str, satmap: SatelliteMap, sdir: Path | None, q: Sequence,
@@ -197,8 +200,24 @@ CROSS_COLUMNS = ("method", "scene", "database", "queries", "mean_m", "ci95_low",
 
 
 def _method_files(sdir: Path) -> list[tuple[str, str, Path]]:
-    """(display name, database used, npz) of every method localized on the revisit queries of ``sdir``."""
+    """(display name, database used, npz) of every method localized on the revisit queries of ``sdir``: the
+    protocol's rows, the reference floors and the user's localizers it ran (no database), then the
+    with-database modes and baselines of the revisit protocol."""
     found = [(CROSS_NAMES[r], "none", sdir / "cross_area" / f"localization_{r}.npz") for r in CROSS_NAMES]
+    from .grading import REFERENCE_NAMES
+
+    extra = []
+    for p in (sdir / "cross_area").glob("localization_*.npz"):
+        key = p.stem[len("localization_"):]
+        if key in CROSS_NAMES:
+            continue
+        try:
+            name = load_npz(p, "localization")[1].get("name") or key
+        except FormatError:
+            continue
+        order = list(REFERENCE_NAMES).index(key) if key in REFERENCE_NAMES else len(REFERENCE_NAMES)
+        extra.append((order, name, p))
+    found += [(name, "none", p) for _, name, p in sorted(extra)]
     found += [(METHOD_NAMES[m], "database pass", sdir / f"localization_{m}.npz") for m in METHOD_NAMES]
     found += [(BASELINE_NAMES[b], "database pass", sdir / f"baseline_{b}.npz") for b in BASELINE_NAMES]
     return [f for f in found if f[2].is_file()]

@@ -71,7 +71,7 @@ from typing import Any
 
 import numpy as np
 
-from satloc.config import from_dict, to_dict
+from satloc.config import added_field, from_dict, to_dict
 from satloc.datasets import load_kitti, load_malaga
 from satloc.datasets.kitti import CAMERAS, IMU_HEIGHT_M, MISSING
 from satloc.datasets.malaga import MalagaConfig
@@ -146,7 +146,12 @@ class EvaluateConfig:
     # also localize the same queries with no database (satloc.localizers.crossview), each from a prior drawn around its
     # pose (the OXTS / GPS fix) within cross_area.prior_radius_m, single and tracked by the same odometry
     no_database: bool = False
-    cross_area: CrossAreaConfig = field(default_factory=CrossAreaConfig)
+    cross_area: CrossAreaConfig = field(default_factory=CrossAreaConfig)   # also every query's GPS-like prior
+    # beside the modes (satloc_env.experiments.grading): the reference floors and a user's localizers
+    # ("module:Name" or "path/to/file.py:Name"), each with the database drive, the queries' priors (drawn around
+    # their OXTS / GPS poses as cross_area says) and the tracked modes' odometry
+    references: tuple[str, ...] = added_field(("prior", "dead-reckoning"), before=())
+    localizers: tuple[str, ...] = added_field(())
 
     def __post_init__(self):
         if self.resolution not in RESOLUTIONS:
@@ -172,6 +177,9 @@ class EvaluateConfig:
         bad = [m for m in self.modes if m not in METHOD_NAMES]
         if bad or not self.modes:
             raise ConfigError(f"modes: unknown {bad}; expected a non-empty subset of {list(METHOD_NAMES)}")
+        from .grading import check_extra
+
+        check_extra(self)
         if self.kitti.camera not in CAMERAS or self.kitti.missing not in MISSING:
             raise ConfigError(f"kitti: expected camera in {sorted(CAMERAS)} and missing in {list(MISSING)}, got "
                               f"camera {self.kitti.camera!r}, missing {self.kitti.missing!r}")
@@ -449,6 +457,9 @@ def result_rows(summary: dict, sequence: str) -> list[dict]:
     names = summary.get("no_database_names", {})
     for row, m in summary.get("no_database", {}).items():
         rows.append({"method": names.get(row, row), "sequence": sequence, "mean_m": m["mean_m"], "std_m": m["std_m"],
+                     "median_m": m["median_m"], "within_1m": m["within_1m"], "queries": m["queries"]})
+    for key, m in summary.get("localizers", {}).items():   # the reference floors and a user's localizers
+        rows.append({"method": m.get("name", key), "sequence": sequence, "mean_m": m["mean_m"], "std_m": m["std_m"],
                      "median_m": m["median_m"], "within_1m": m["within_1m"], "queries": m["queries"]})
     return rows
 

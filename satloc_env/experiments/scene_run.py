@@ -41,7 +41,7 @@ from satloc.geometry import Pose2, wrap_angle
 from satloc.localizers.crossview import CrossViewConfig, Prior
 from satloc.localizers.database import Localization, LocalizerConfig
 from satloc.persist import atomic_path, header, read_json, write_json
-from satloc.pipeline import BuildConfig, build, load_localizer, localize, train_projection
+from satloc.pipeline import BuildConfig, build, load_localizer, train_projection
 from satloc.satmap import SatelliteMap
 from satloc.sequence import Sequence
 from satloc.tracking.track import compose_motion, noisy_odometry
@@ -168,7 +168,11 @@ class ExperimentConfig:
     city_database_fraction: float = 0.4
     split_seed: int = 0
     compare: CompareConfig = field(default_factory=CompareConfig)
-    cross_area: CrossAreaConfig = field(default_factory=CrossAreaConfig)
+    cross_area: CrossAreaConfig = field(default_factory=CrossAreaConfig)   # also every query's GPS-like prior
+    # beside the methods (satloc_env.experiments.grading): the reference floors (satloc.localizers.reference:
+    # prior, dead-reckoning) and a user's localizers ("module:Name" or "path/to/file.py:Name")
+    references: tuple[str, ...] = added_field(("prior", "dead-reckoning"), before=())
+    localizers: tuple[str, ...] = added_field(())
     pictures: bool = True                   # draw errors_along_route.png and a few posteriors per mode
 
     def __post_init__(self):
@@ -187,6 +191,9 @@ class ExperimentConfig:
             raise ConfigError(f"change: expected a value in [0, 1], got {self.change}")
         if self.odometry not in ODOMETRY:
             raise ConfigError(f"odometry: expected one of {list(ODOMETRY)}, got {self.odometry!r}")
+        from .grading import check_extra
+
+        check_extra(self)
 
 
 def table_stats(errors, truth, db_poses, seed: int = 0) -> dict:
@@ -432,20 +439,32 @@ def mode_config(cfg, mode: str) -> LocalizerConfig:
 def localize_and_report(cfg, label: str, db: Sequence, q: Sequence, sel: np.ndarray, bdir: Path,
                         satmap: SatelliteMap, out: Path, head: dict, times: dict, progress: bool = True,
                         log=print, odometry: np.ndarray | None = None) -> dict:
-    """Localize the query frames ``sel`` of ``q`` against the build ``bdir`` in every mode of ``cfg.modes``
-    and report: per mode ``localization_<mode>.npz/.json`` (:func:`satloc.pipeline.localize`), ``summary.json``
-    (``head``, then the database size, the query count, the stage ``times`` and each mode's summary),
-    ``errors_along_route.png`` and the posteriors of the best, a median and the worst query of each mode drawn
-    on ``satmap`` (``posterior_<mode>_q<i>.png``). Returns the summary.
+    """Localize the query frames ``sel`` of ``q`` against the build ``bdir`` in every mode of ``cfg.modes``, then
+    with the reference localizers and the user's localizers of ``cfg`` (:mod:`satloc_env.experiments.grading`),
+    every one through the common interface and graded alike (:func:`satloc_env.experiments.grading.run_graded`),
+    and report: per method ``localization_<key>.npz/.json``, ``summary.json`` (``head``, then the database size,
+    the query count, the stage ``times``, each mode's summary under ``modes`` and the others' under
+    ``localizers``), ``errors_along_route.png`` and the posteriors of the best, a median and the worst query of
+    each mode drawn on ``satmap`` (``posterior_<mode>_q<i>.png``). Returns the summary.
 
-    ``cfg`` gives ``modes``, ``localizer`` (LocalizerConfig fields other than the mode) and ``odometry`` (with
-    its noise settings): the tracked modes move their belief by ``odometry`` (N, 3) when given, else by
-    :func:`tracked_odometry` of the query pass between the evaluated queries. Works on any database/query pair: a simulated recording
-    (:func:`run_scene`) or replayed real data (:mod:`satloc_env.experiments.evaluate`)."""
+    ``cfg`` gives ``modes``, ``localizer`` (LocalizerConfig fields other than the mode), ``odometry`` (with its
+    noise settings), ``references``, ``localizers`` and ``cross_area`` (the queries' priors): the tracked modes
+    move their belief by ``odometry`` (N, 3) when given, else by :func:`tracked_odometry` of the query pass
+    between the evaluated queries; the other localizers get the same odometry (where no mode is tracked, the
+    true motion plus noise). Works on any database/query pair: a simulated recording (:func:`run_scene`) or
+    replayed real data (:mod:`satloc_env.experiments.evaluate`)."""
+    from satloc.localizers.database import DatabaseLocalizer
+    from satloc.localizers.interface import Context
+
+    from .grading import extra_localizers, query_priors, run_graded
+
     # tracked modes: the odometry between consecutive evaluated queries (given, or of the query pass itself)
     odo = odometry
     if odo is None and is_tracked(cfg):
         odo = tracked_odometry(cfg, q, sel, Path(out) / "odometry_visual.npz")
+    truth = np.asarray(q.poses, np.float64)[np.asarray(sel, np.int64)]
+    priors = query_priors(cfg.cross_area, truth, sel)
+    context = Context(q.camera, satmap, seed=0, database=db, place=label)
     results: dict[str, dict] = {}
     examples: dict[str, list[tuple[int, Localization]]] = {}
     for mode in cfg.modes:
@@ -462,10 +481,12 @@ def localize_and_report(cfg, label: str, db: Sequence, q: Sequence, sel: np.ndar
         loc = load_localizer(bdir, lc, progress=progress)
         t_init = time.perf_counter() - t
         kept: dict[int, Localization] = {}   # every result, to draw a few posteriors without localizing again
-        s = localize(bdir, q, lc, out, progress, localizer=loc, select=sel, odometry=odo,
-                     on_result=kept.__setitem__)
+        s, run = run_graded(DatabaseLocalizer(loc), lc.name, METHOD_NAMES[mode], context, q, sel,
+                            odo if lc.track else None, priors, out, db.poses, label, progress, log=lambda m: None,
+                            meta={"config": to_dict(lc)}, on_result=lambda i, e, raw, keep=kept: keep.__setitem__(i, raw))
         err = s.pop("errors")
-        s.update(localizer_init_s=round(t_init, 2), **table_stats(err, q.poses[sel], db.poses))
+        s.pop("inlier_score")
+        s.update(mode=lc.name, localizer_init_s=round(t_init, 2))
         results[mode] = s
         write_json(out / f"localization_{lc.name}.stamp.json", dict(header("localization_stamp"), stamp=stamp,
                                                                      summary=_plain_summary(s)))
@@ -476,9 +497,21 @@ def localize_and_report(cfg, label: str, db: Sequence, q: Sequence, sel: np.ndar
         order = np.argsort(np.nan_to_num(err, nan=1e9))
         picks = sorted({int(order[0]), int(order[len(order) // 2]), int(order[-1])})
         examples[mode] = [(int(sel[i]), kept[i]) for i in picks if i in kept]
-        del loc, kept
+        del loc, run
+    # the reference floors and the user's localizers, with the same queries, priors and odometry
+    others: dict[str, dict] = {}
+    extra = extra_localizers(cfg, {METHOD_NAMES[m] for m in cfg.modes})
+    if extra:
+        eodo = odo if odo is not None else noisy_odometry(truth, cfg.odometry_noise, cfg.odometry_seed)
+        for key, name, obj in extra:
+            s, _ = run_graded(obj, key, name, context, q, sel, eodo, priors, out, db.poses, label, progress, log,
+                              meta={"odometry": cfg.odometry if odo is not None else "noisy_truth"})
+            s.pop("errors")
+            s.pop("inlier_score")
+            s["odometry"] = "" if key == "prior" else cfg.odometry if odo is not None else "noisy_truth"
+            others[key] = s
     summary = dict(head, database_frames=len(db), database_m=round(db.path_length(), 1), queries=int(len(sel)),
-                   times_s={k: round(v, 1) for k, v in times.items()}, modes=results)
+                   times_s={k: round(v, 1) for k, v in times.items()}, modes=results, localizers=others)
     write_json(out / "summary.json", summary)
     if not getattr(cfg, "pictures", True):
         return summary

@@ -33,17 +33,16 @@ from __future__ import annotations
 import csv
 import dataclasses
 import math
-import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
-from satloc.baselines import Efm, FabMap
+from satloc.baselines import FabMap
 from satloc.config import from_dict, to_dict
 from satloc.errors import ConfigError
 from satloc.evaluation.metrics import ci_method, pr_curve, precision_recall, precision_recall_ci, select_threshold
-from satloc.persist import atomic_path, header, load_npz, read_json, save_npz, write_json
+from satloc.persist import atomic_path, header, load_npz, read_json, write_json
 from satloc.satmap import SatelliteMap
 from satloc.sequence import Sequence
 from satloc_env.envs.record import (
@@ -59,6 +58,7 @@ from satloc_env.world.capture import DEFAULT_GAP
 from satloc_env.world.scene import load_scene
 
 from .cross_area import CROSS_NAMES, cross_area, cross_area_rows, write_cross_area
+from .grading import REFERENCE_NAMES
 from .scale import Runner, Unit
 from .scene_run import (  # noqa: F401
     BASELINE_NAMES,
@@ -90,10 +90,13 @@ from .scene_run import (  # noqa: F401
 )
 
 
-def method_name(method: str) -> str:
-    """Display name of a mode of :data:`satloc_env.experiments.scene_run.METHOD_NAMES`, a baseline or a row of
-    the cross-area protocol."""
-    return BASELINE_NAMES.get(method) or CROSS_NAMES.get(method) or METHOD_NAMES[method]
+def method_name(method: str, result: dict | None = None) -> str:
+    """Display name of a row: a mode of :data:`satloc_env.experiments.scene_run.METHOD_NAMES`, a baseline, a row
+    of the cross-area protocol, a reference localizer, or (from its ``result``'s ``name``) a user's localizer."""
+    if result is not None and result.get("name"):
+        return result["name"]
+    return (BASELINE_NAMES.get(method) or CROSS_NAMES.get(method) or REFERENCE_NAMES.get(method)
+            or METHOD_NAMES[method])
 
 
 def trained_fabmap(cc: CompareConfig, test_scene: str, out: Path, progress: bool = True, log=print) -> Path:
@@ -161,48 +164,41 @@ def fabmap_motion_window(db_poses: np.ndarray, query_poses: np.ndarray) -> int:
 
 
 def run_baseline(name: str, cc: CompareConfig, test_scene: str, db: Sequence, q: Sequence, sel: np.ndarray,
-                 out: Path, progress: bool = True, log=print, fabmap_dir: Path | None = None) -> dict:
+                 out: Path, progress: bool = True, log=print, fabmap_dir: Path | None = None,
+                 satmap: SatelliteMap | None = None) -> dict:
     """Build baseline ``name`` on ``db`` (every ``cc.database_step``-th frame of it), localize the frames ``sel``
     of ``q``; writes ``baseline_<name>.npz``
     and returns its summary (with ``errors``, ``inlier_score``). FAB-MAP's training stage lives in
     ``fabmap_dir`` (default ``out``)."""
-    t = time.perf_counter()
+    from satloc.baselines import EfmLocalizer, FabMapLocalizer
+    from satloc.localizers.interface import Context
+
+    from .grading import run_graded
+
     if cc.database_step > 1:
         db = db.view(np.arange(0, len(db), cc.database_step))
     meta: dict = {"baseline": name}
     if name.startswith("fabmap"):
-        model = FabMap.load(trained_fabmap(cc, test_scene, Path(fabmap_dir or out), progress, log))
-        model.add_places(db, progress)
+        window = None
         if name == "fabmap+seq":   # the paper's motion model: each frame's prior is the last posterior, moved
             window = cc.fabmap_motion_window
             if window is None:
                 window = fabmap_motion_window(db.poses, q.poses[sel])
-            model = model.with_config(sequential=True, motion_window=window)
             meta["motion_window"] = int(window)
+        loc = FabMapLocalizer(trained_fabmap(cc, test_scene, Path(fabmap_dir or out), progress, log),
+                              sequential=name == "fabmap+seq", motion_window=window, progress=progress,
+                              name=BASELINE_NAMES[name])
     else:
-        model = Efm.build(db, cc.efm, progress)
-    t_index = time.perf_counter() - t
-    n = len(sel)
-    est, truth = np.full((n, 3), np.nan), np.array(q.poses[sel], np.float64).reshape(n, 3)
-    score, inl = np.full(n, np.nan), np.zeros(n, bool)
-    from tqdm import tqdm
-
-    t = time.perf_counter()
-    frames = (q[int(qi)] for qi in tqdm(sel, desc=BASELINE_NAMES[name], unit="query", disable=not progress,
-                                        leave=False))
-    results = model.localize_stream(frames) if name == "fabmap+seq" else map(model.localize, frames)
-    for i, r in enumerate(results):
-        est[i], score[i], inl[i] = r.estimate.as_array(), r.inlier_score, r.inlier
-    secs = time.perf_counter() - t
-    err = np.hypot(est[:, 0] - truth[:, 0], est[:, 1] - truth[:, 1])
-    save_npz(Path(out) / f"baseline_{name}.npz", "localization",
-             {"frames": np.asarray(sel, np.int64), "estimates": est, "truth": truth, "errors": err,
-              "inlier_score": score, "inlier": inl}, meta)
-    s = {"mode": name, "queries": n, **table_stats(err, truth, db.poses), "index_s": round(t_index, 2),
-         "s_per_query": secs / n if n else float("nan"), "queries_per_s": round(n / secs, 2) if secs > 0 else None}
+        loc = EfmLocalizer(cc.efm, progress)
+    # through the common interface, graded as every method is; the database indexing is reset(context)'s time
+    s, run = run_graded(loc, name, BASELINE_NAMES[name], Context(q.camera, satmap, seed=0, database=db,
+                                                                 place=test_scene),
+                        q, sel, None, [None] * len(sel), Path(out), db.poses, test_scene, progress,
+                        log=lambda m: None, meta=meta, stem="baseline")
+    s.update(index_s=round(run.reset_s, 2))
     log(f"[{test_scene}] {BASELINE_NAMES[name]:9s} mean {s['mean_m']:.2f} m (std {s['std_m']:.2f}), median "
         f"{s['median_m']:.2f} m, {100 * s['within_1m']:.0f} % within 1 m, {s['s_per_query']:.3f} s per query")
-    return dict(s, errors=err, inlier_score=score)
+    return s
 
 
 def compare(cfg: ExperimentConfig, cc: CompareConfig, label: str, db: Sequence, q: Sequence, sel: np.ndarray,
@@ -224,7 +220,11 @@ def compare(cfg: ExperimentConfig, cc: CompareConfig, label: str, db: Sequence, 
         m.update(errors=a["errors"], inlier_score=np.where(np.isfinite(a["errors"]), a["inlier_score"], np.nan))
         res[mode] = m
     for b in cc.baselines:
-        res[b] = run_baseline(b, cc, cfg.scene, db, q, sel, out, progress, log, fabmap_dir)
+        res[b] = run_baseline(b, cc, cfg.scene, db, q, sel, out, progress, log, fabmap_dir, satmap)
+    for key, m in s.get("localizers", {}).items():   # the reference floors and the user's localizers
+        a, _ = load_npz(out / f"localization_{key}.npz", "localization")
+        res[key] = dict(m, errors=a["errors"], inlier_score=np.where(np.isfinite(a["errors"]), a["inlier_score"],
+                                                                     np.nan))
     write_json(out / "compare.json", {"format": "compare", "head": head, "frames": [int(i) for i in sel],
                                       "methods": {k: _plain(v) for k, v in res.items()}})
     return res
@@ -510,7 +510,9 @@ def table2(out: str | Path, config: dict | None = None, progress: bool = True, l
                      f"{t2.calibration_seeds[1]}, a query every {t2.calibration_spacing_m:g} m; {len(inside_c)} "
                      f"queries, {int(inside_c.sum())} inside; {apart})")
     rows, curves = [], {}
-    for method in res["inside"][1]:
+    # the methods that declare queries off the map: the modes and the baselines (the reference floors and a user's
+    # localizers, which may give no inlier score, are graded in Table I and the sweep)
+    for method in [m for m in res["inside"][1] if m in e.modes or m in e.compare.baselines]:
         err, sc = joined(test, method, "errors"), joined(test, method, "inlier_score")
         cal = operating_point(joined(calib, method, "errors"), joined(calib, method, "inlier_score"), inside_c,
                               t2.rule, t2.min_precision, t2.radius_m)
@@ -689,12 +691,12 @@ def _sweep_unit(sc: SweepConfig, a: float, o: float, p: float, g: float, out: Pa
                   d / "build", SatelliteMap.load(d / "rec" / "map"), d, {"scene": sc.scene, "config": to_dict(cfg)},
                   times, progress, log, fabmap_dir=out)
     return [{"scene": sc.scene, "aliasing": a, "occlusion": o, "appearance": p, "satellite_gap": g,
-             "method": method_name(m), "mean_m": round(float(r["mean_m"]), 4),   # 4 decimals: sweep.md
+             "method": method_name(m, r), "mean_m": round(float(r["mean_m"]), 4),   # 4 decimals: sweep.md
              "ci95_low": round(float(r["ci95_low"]), 4), "ci95_high": round(float(r["ci95_high"]), 4),  # rounds
              "median_m": round(float(r["median_m"]), 4), "within_1m": round(float(r["within_1m"]), 4),  # them as
              "recall_10m": round(float(r["within_10m"]), 4),   # compare.json's would be
              "failure_rate": round(float(r["failure_rate"]), 4),
-             "queries": int(r["queries"]), "odometry": odometry_label(cfg, m), "ci_method": r.get("ci_method", "")}
+             "queries": int(r["queries"]), "odometry": odometry_label(cfg, m, r), "ci_method": r.get("ci_method", "")}
             for m, r in res.items()]
 
 
@@ -910,8 +912,11 @@ TABLE1_COLUMNS = ("method", "scene", "mean_m", "std_m", "protocol", "ci95_low", 
                   "within_10m", "failure_rate", "queries", "odometry", "ci_method")
 
 
-def odometry_label(cfg: ExperimentConfig, method: str) -> str:
-    """The odometry a table row used: ``cfg.odometry`` for the tracked modes, empty for the rest."""
+def odometry_label(cfg: ExperimentConfig, method: str, result: dict | None = None) -> str:
+    """The odometry a table row used: ``cfg.odometry`` for the tracked modes, what a reference or a user's
+    localizer was given (its ``result``'s ``odometry``), empty for the rest."""
+    if result is not None and "odometry" in result:
+        return result["odometry"] or ""
     return cfg.odometry if "track" in method.split("+") else ""
 
 
@@ -974,11 +979,11 @@ def table1(out: str | Path, scenes: tuple[str, ...] = ("city", "residential"), c
                                                                           times[i])) for i, p in jobs], progress, log)
     for (i, protocol), res in zip(jobs, results):
         for method, m in res.items():
-            rows.append({"method": method_name(method), "scene": labels[i], "protocol": protocol,
+            rows.append({"method": method_name(method, m), "scene": labels[i], "protocol": protocol,
                          **{k: round(m[k], 3) for k in ("mean_m", "std_m", "median_m", "within_1m",
                                                         "within_10m", "failure_rate", "ci95_low", "ci95_high")},
                          "queries": m["queries"], "s_per_query": round(m["s_per_query"], 4),
-                         "odometry": odometry_label(cfgs[i], method), "ci_method": m.get("ci_method", "")})
+                         "odometry": odometry_label(cfgs[i], method, m), "ci_method": m.get("ci_method", "")})
     table = _kept_rows(out, {(labels[i], p) for i, p in jobs}, log) + rows
     write_rows_csv(out / "table1.csv", TABLE1_COLUMNS, table)
     write_json(out / "table1.json", dict(header("table1"), rows=table))

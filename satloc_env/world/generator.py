@@ -12,13 +12,12 @@ import math
 from dataclasses import dataclass
 from typing import Literal
 
-import cv2
 import numpy as np
 
 from satloc.labels import CLASS_ID as C
 
 from .layout import Building, Car, Layout, Tree
-from .paint import fill_poly, noise, rect_poly, tint, to_px
+from .paint import fill_poly, noise, tint, to_px
 
 LANE_W = 3.5            # metres, one driving lane
 MARK_W = 0.15           # lane marking width

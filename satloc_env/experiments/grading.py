@@ -1,0 +1,113 @@
+"""Any localizer in the experiments: the reference floors and a user's localizers beside the built-in methods.
+
+Every experiment that grades localizers (Table I's protocols, the sweep and the gap curve, ``satloc evaluate``,
+``satloc demo`` and the stress example) runs, beside the paper's modes and the baselines:
+
+* the reference localizers of ``references`` (:mod:`satloc.localizers.reference`: ``prior``, the prior's centre;
+  ``dead-reckoning``, the first prior moved by the odometry), floors that look at no image;
+* the localizers of ``localizers`` (``module:Name`` or ``path/to/file.py:Name``, :func:`satloc.localizers.interface.resolve_localizer`),
+  a user's own, made anew for every run.
+
+Each goes through :func:`satloc.evaluation.run.run_localizer` exactly as the built-in ones do, with the same
+queries, the same odometry as the tracked modes and one prior per query drawn around its true pose as a GPS fix
+gives it (:func:`query_priors`: uniform within ``cross_area.prior_radius_m`` and ``cross_area.prior_yaw_deg``,
+seeded by ``cross_area.seed`` and the query's frame index, so every protocol and every method sees the same
+prior for the same frame). Its rows carry the same columns (:func:`satloc_env.experiments.scene_run.table_stats`),
+named by the object's ``name`` attribute or its class name; its answers go into ``localization_<key>.npz``.
+"""
+from __future__ import annotations
+
+import re
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from satloc.errors import ConfigError
+from satloc.evaluation.run import Run, run_localizer
+from satloc.localizers.crossview import draw_prior
+from satloc.localizers.interface import Context, localizer_name, resolve_localizer
+from satloc.localizers.reference import REFERENCES, reference_localizer
+from satloc.persist import header, write_json
+
+__all__ = ["REFERENCE_NAMES", "USER_PREFIX", "query_priors", "extra_localizers", "check_extra", "run_graded",
+           "user_key"]
+
+#: the reference localizers' rows
+REFERENCE_NAMES = {k: v.name for k, v in REFERENCES.items()}
+#: the key (and file name) of a user's localizer's rows: this prefix and its name made safe for a file name
+USER_PREFIX = "user-"
+
+
+def query_priors(ca, truth: np.ndarray, frames: np.ndarray) -> list:
+    """Each query's prior: drawn around its true pose (``truth`` (N, 3)) within ``ca.prior_radius_m`` and
+    ``ca.prior_yaw_deg`` (a :class:`satloc_env.experiments.scene_run.CrossAreaConfig`) by a generator seeded with
+    ``ca.seed`` and the query's frame index (``frames``), so a query's prior does not depend on which other
+    queries are evaluated. A query without a true pose gets none."""
+    out = []
+    for t, i in zip(np.asarray(truth, np.float64), frames):
+        ok = np.all(np.isfinite(t))
+        out.append(draw_prior(t, ca.prior_radius_m, ca.prior_yaw_deg, np.random.default_rng([ca.seed, int(i)]))
+                   if ok else None)
+    return out
+
+
+def user_key(name: str) -> str:
+    """The key of a user's localizer named ``name``: :data:`USER_PREFIX` and the name in lower case, runs of other
+    characters than letters, digits, ``.`` and ``_`` made ``-``."""
+    return USER_PREFIX + (re.sub(r"[^a-z0-9._]+", "-", name.lower()).strip("-") or "localizer")
+
+
+def check_extra(cfg) -> None:
+    """:class:`ConfigError` for an unknown reference or a ``localizers`` entry that is not ``module:Name`` (before
+    any work; the objects themselves are made when they run)."""
+    bad = [r for r in getattr(cfg, "references", ()) if r not in REFERENCES]
+    if bad:
+        raise ConfigError(f"references: unknown {bad}; expected some of {list(REFERENCES)}")
+    for spec in getattr(cfg, "localizers", ()):
+        if not isinstance(spec, str) or ":" not in spec or spec.startswith(":") or spec.endswith(":"):
+            raise ConfigError(f"localizers: expected 'module:Name' or 'path/to/file.py:Name', got {spec!r}")
+
+
+def extra_localizers(cfg, taken: set[str] = frozenset()) -> list[tuple[str, str, Any]]:
+    """(key, display name, a new instance) of the references and the user's localizers of ``cfg``; a user's
+    localizer whose name is another row's (one of ``taken``, or another of its own) is a :class:`ConfigError`."""
+    out = [(r, REFERENCE_NAMES[r], reference_localizer(r)) for r in getattr(cfg, "references", ())]
+    names = set(taken) | {n for _, n, _ in out}
+    keys = {k for k, _, _ in out}
+    for spec in getattr(cfg, "localizers", ()):
+        obj = resolve_localizer(spec, f"localizers: {spec}")
+        name = localizer_name(obj)
+        key = user_key(name)
+        if name in names or key in keys:
+            raise ConfigError(f"localizers: {spec} is named {name!r}, as another row of the table is; give it "
+                              "another name (its `name` attribute)")
+        names.add(name)
+        keys.add(key)
+        out.append((key, name, obj))
+    return out
+
+
+def run_graded(loc: Any, key: str, name: str, context: Context, q, sel: np.ndarray, odometry: np.ndarray | None,
+               priors: list, out: Path, db_poses: np.ndarray, label: str, progress: bool = True, log=print,
+               meta: dict | None = None, on_result=None, stem: str = "localization") -> tuple[dict, Run]:
+    """Run ``loc`` over the frames ``sel`` of ``q`` (:func:`satloc.evaluation.run.run_localizer`) and grade it as
+    every table row is graded (:func:`satloc_env.experiments.scene_run.table_stats`; ``db_poses``: where the worst
+    answer of a query with no answer is measured). Writes ``out/<stem>_<key>.npz`` (the run's arrays) and
+    ``.json`` (the summary); returns the summary (with the arrays ``errors`` and ``inlier_score``) and the run."""
+    from .scene_run import table_stats
+
+    run = run_localizer(loc, context, q, sel, odometry, priors, progress=progress, on_result=on_result)
+    truth = np.asarray(q.poses, np.float64)[np.asarray(sel, np.int64)]
+    s = {"mode": key, "name": name, "queries": run.queries, **table_stats(run.errors, truth, db_poses),
+         "s_per_query": float(run.seconds.mean()) if run.queries else float("nan"),
+         "queries_per_s": run.queries_per_s, "failed": len(run.failures), "reset_s": round(run.reset_s, 3)}
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    run.save(out / f"{stem}_{key}.npz", dict(meta or {}, method=key, sequence=q.name, s_per_query=s["s_per_query"]))
+    write_json(out / f"{stem}_{key}.json", dict(header("localization_summary"),
+                                                      **{k: v for k, v in s.items() if not isinstance(v, np.ndarray)}))
+    log(f"[{label}] {name}: mean {s['mean_m']:.2f} m (std {s['std_m']:.2f}), median {s['median_m']:.2f} m, "
+        f"{100 * s['within_1m']:.0f} % within 1 m over {run.queries} queries"
+        + (f", {len(run.failures)} without an answer" if run.failures else ""))
+    return dict(s, errors=run.errors, inlier_score=np.where(np.isfinite(run.errors), run.inlier_score, np.nan)), run
