@@ -203,6 +203,32 @@ def cmd_experiment(args) -> int:
     return 0
 
 
+def cmd_view(args) -> int:
+    """A Rerun recording (.rrd) of what a localizer did: an experiment folder's methods query by query, or an
+    episode of an environment driven by its autopilot (satloc_env/envs/viewer.py)."""
+    if (args.folder is None) == (args.scene is None):
+        raise SatlocError("satloc view: give an experiment folder or --scene (an episode to drive), not both")
+    if args.folder is not None:
+        from satloc_env.experiments.view import view_folder
+
+        out = args.out or str(Path(args.folder) / "view.rrd")
+        s = view_folder(args.folder, out, images=not args.no_images, progress=not args.quiet)
+        print(f"satloc view: {len(s['methods'])} methods over {s['queries']} queries"
+              f"{' with their stereo pairs' if s['images'] else ''}: {', '.join(s['methods'])}")
+    else:
+        from satloc_env.envs.viewer import episode_to_rrd
+
+        out = args.out or "episode.rrd"
+        kw = {"scene": args.scene, "localizer": args.localizer or "cross", "localize_every": args.localize_every}
+        if args.track:
+            kw["localizer_track"] = True
+        s = episode_to_rrd("satloc/SatLoc-v0", out, steps=args.steps, seed=args.seed, **kw)
+        err = "" if s["mean_error_m"] is None else f", mean error {s['mean_error_m']:.2f} m"
+        print(f"satloc view: {args.scene}, {s['steps']} localizations by {kw['localizer']}{err}")
+    print(f"written: {out} (open it with: rerun {out})")
+    return 0
+
+
 def cmd_evaluate(args) -> int:
     """The method on replayed real data: a KITTI raw drive or a Malaga extract, its queries (another drive or
     a split of the same one) and a georeferenced satellite image (satloc_env/experiments/evaluate.py)."""
@@ -257,6 +283,11 @@ def cmd_bench(args) -> int:
 
         for n in args.num_envs:
             print(json.dumps(bench_env(args.resolution, args.steps, args.scene or "city", num_envs=n)), flush=True)
+    elif args.what == "startup":
+        from satloc_env.experiments.bench import bench_startup
+
+        for row in bench_startup(args.scene or "city", work=args.work or None):
+            print(json.dumps(row), flush=True)
     elif args.what == "crossview":
         from satloc_env.experiments.bench import bench_crossview
 
@@ -567,6 +598,22 @@ def build_parser() -> argparse.ArgumentParser:
     ev.add_argument("--quiet", action="store_true")
     ev.set_defaults(func=cmd_evaluate)
 
+    vw = sub.add_parser("view", help="a Rerun recording (.rrd) of what a localizer did: an experiment folder's "
+                        "methods query by query, or an episode driven on a scene (pip install 'satloc[viewer]')")
+    vw.add_argument("folder", nargs="?", help="an experiment folder (satloc demo, a Table I scene folder, satloc "
+                    "evaluate)")
+    vw.add_argument("--scene", help="instead of a folder: drive an episode of SatLoc-v0 on this scene")
+    vw.add_argument("--localizer", help="with --scene: the localizer (cross, auto, a build directory or "
+                    "module:Name; default cross)")
+    vw.add_argument("--track", action="store_true", help="with --scene: track the built-in localizer")
+    vw.add_argument("--steps", type=int, default=100, help="with --scene: steps to drive")
+    vw.add_argument("--localize-every", type=int, default=1, help="with --scene: localize every n-th step")
+    vw.add_argument("--seed", type=int, default=0)
+    vw.add_argument("--no-images", action="store_true", help="with a folder: leave out the stereo pairs")
+    vw.add_argument("--out", help="the .rrd to write (default: FOLDER/view.rrd, or episode.rrd)")
+    vw.add_argument("--quiet", action="store_true")
+    vw.set_defaults(func=cmd_view)
+
     r = sub.add_parser("record", help="record database and query passes of a scene")
     r.add_argument("--scene", default="city")
     r.add_argument("--out", required=True)
@@ -593,14 +640,14 @@ def build_parser() -> argparse.ArgumentParser:
     r.set_defaults(func=cmd_record)
 
     b = sub.add_parser("bench", help="print benchmark figures as JSON lines")
-    b.add_argument("what", choices=["env", "localize", "vo", "active", "osm", "crossview"])
+    b.add_argument("what", choices=["env", "localize", "vo", "active", "osm", "crossview", "startup"])
     b.add_argument("--resolution", choices=["half", "full"], default="half")
     b.add_argument("--steps", type=int, default=2000, help="env: steps timed (of all cars together)")
     b.add_argument("--num-envs", type=int, nargs="+", default=[1],
                    help="env: cars stepped together, one run each (e.g. 1 8): 1 is the single environment, more the "
                         "batched vector environment (satloc_env.envs.vector)")
     b.add_argument("--scene", default=None, help="env: city; localize: loop (the longest route); vo: residential; "
-                                                 "active: the active map (active_grid); crossview: city")
+                                                 "active: the active map (active_grid); crossview, startup: city")
     b.add_argument("--episodes", type=int, default=20, help="active: episodes per agent")
     b.add_argument("--ways", type=int, nargs="+", default=[1000, 10000],
                    help="osm: sizes of the synthetic OpenStreetMap extracts loaded (ways)")

@@ -1,9 +1,7 @@
 """The one localizer interface (satloc.localizers.interface): answers, naming a localizer, the grading path, the
 reference floors, and a user's localizer in every environment. The tables, the sweep and ``satloc evaluate``
 with a user's localizer are in test_compare.py and test_evaluate.py."""
-import dataclasses
 import math
-import sys
 import textwrap
 from pathlib import Path
 
@@ -21,7 +19,6 @@ from satloc.localizers.interface import (
     Estimate,
     LocalizerProtocol,
     Prior,
-    Query,
     as_estimate,
     check_localizer,
     import_object,

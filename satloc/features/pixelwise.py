@@ -21,7 +21,7 @@ from ..errors import ConfigError
 from .extractor import FeatureExtractor, View, check_image
 
 __all__ = ["View", "FeatureExtractor", "check_image", "BilateralRGB", "FeatureStack", "FEATURE_SETS",
-           "make_extractor"]
+           "make_extractor", "LazyExtractor"]
 
 
 class BilateralRGB:
@@ -73,6 +73,37 @@ class FeatureStack:
 
 
 FEATURE_SETS = ("rgb", "semantic", "default")
+
+
+class LazyExtractor:
+    """A named feature set (:func:`make_extractor`) made on first use: its ``name`` is known at once, its network
+    (and torch) loaded only when an image is first given or ``dim`` first asked. For callers that may never run
+    it, such as the no-database localizer over cached map features with its learned channels."""
+
+    def __init__(self, name: str = "default", device: str = "auto"):
+        if name not in FEATURE_SETS:
+            raise ConfigError(f"features: expected one of {list(FEATURE_SETS)}, got {name!r}")
+        check_device(device)
+        self.name, self.device = name, device
+        self._made: FeatureExtractor | None = None
+
+    @property
+    def extractor(self) -> FeatureExtractor:
+        if self._made is None:
+            self._made = make_extractor(self.name, self.device)
+        return self._made
+
+    @property
+    def dim(self) -> int:
+        return self.extractor.dim
+
+    def prefetch(self, images: Sequence[np.ndarray], view: View) -> None:
+        pre = getattr(self.extractor, "prefetch", None)
+        if pre is not None:
+            pre(images, view)
+
+    def __call__(self, image: np.ndarray, view: View) -> np.ndarray:
+        return self.extractor(image, view)
 
 
 def make_extractor(name: str = "default", device: str = "auto") -> FeatureExtractor:

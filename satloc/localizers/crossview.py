@@ -188,10 +188,11 @@ class CrossViewLocalizer:
     """Localize stereo frames against ``satfeat`` within a :class:`Prior`, with no database (see the module
     docstring). ``extractor`` computes the ground image's features (the one that made ``satfeat``);
     ``drivable``: a (H, W) bool mask of the map's pixels where the vehicle may be; ``labels``: the map's label
-    raster (``SatelliteMap.labels``), for ``config.drivable`` ``"labels"`` or ``"auto"``."""
+    raster (``SatelliteMap.labels``), for ``config.drivable`` ``"labels"`` or ``"auto"``; ``projections``: the
+    learned channels ``config.projections`` names, when the caller has read them already."""
 
     def __init__(self, camera: StereoCamera, satfeat: SatelliteFeatures, extractor, config: CrossViewConfig = CrossViewConfig(),
-                 drivable: np.ndarray | None = None, labels: np.ndarray | None = None):
+                 drivable: np.ndarray | None = None, labels: np.ndarray | None = None, projections=None):
         self.camera, self.satfeat, self.extractor, self.config = camera, satfeat, extractor, config
         h, w = satfeat.features.shape[:2]
         mode = config.drivable
@@ -218,10 +219,11 @@ class CrossViewLocalizer:
         if config.projections is not None:
             from dataclasses import replace
 
-            from ..features.crossview_learn import CrossViewProjections
+            from ..features.crossview_channels import CrossViewProjections
 
-            self.projections = CrossViewProjections.load(SHIPPED_PROJECTIONS if config.projections == "shipped"
-                                                         else config.projections)
+            # ``projections``: the ones config.projections names, read already (e.g. from a plain copy)
+            self.projections = projections if projections is not None else CrossViewProjections.load(
+                SHIPPED_PROJECTIONS if config.projections == "shipped" else config.projections)
             sat, align = self.projections.satellite(satfeat.features), replace(config.align, channels="learned")
         self._aligner = BevAligner(camera, sat, satfeat.meters_per_pixel, satfeat.origin, align)
         self._searchers: dict[float, BevAligner] = {}

@@ -47,6 +47,7 @@ from satloc import __version__ as SATLOC_VERSION
 from satloc.config import to_dict
 from satloc.errors import ConfigError
 from satloc.persist import FORMAT_VERSION, atomic_dir, header, read_json, write_json
+from satloc_env.world.cache import CACHE_ENV, cache_root  # noqa: F401  (their home before)
 from satloc_env.world.scene import (
     SCENES_DIR,  # noqa: F401  (auto_localizer.SCENES_DIR: where the shipped scenes are)
     own_satellite_gap,
@@ -57,19 +58,11 @@ from .record import scene_identity as _scene_identity
 
 log = logging.getLogger(__name__)
 
-CACHE_ENV = "SATLOC_CACHE"
 #: files a complete cache entry has
 ENTRY_FILES = ("build.json", "dictionary.npz", "satellite_features.npz", "projections.pt", "autoloc.json")
 _KEY_VERSION = 3  # bump when the way an entry is made changes in a way the key does not show (2: ground beyond the tile;
 #                    3: real places mirrored beyond it, an OSM extract's declared bounds)
 
-
-def cache_root(cache_dir: str | os.PathLike | None = None) -> Path:
-    """``cache_dir`` if given, else ``$SATLOC_CACHE``, else ``~/.cache/satloc``."""
-    if cache_dir is not None:
-        return Path(cache_dir).expanduser()
-    env = os.environ.get(CACHE_ENV)
-    return Path(env).expanduser() if env else Path.home() / ".cache" / "satloc"
 
 
 def _configs(max_frames, build_config, projection_config):

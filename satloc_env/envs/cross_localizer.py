@@ -24,8 +24,8 @@ import numpy as np
 
 from satloc import __version__ as SATLOC_VERSION
 from satloc.errors import FormatError
-from satloc.features import make_extractor
 from satloc.features.dictionary import SatelliteFeatures
+from satloc.features.pixelwise import LazyExtractor
 from satloc.geometry import StereoCamera
 from satloc.localizers.crossview import CrossViewConfig, CrossViewLocalizer
 
@@ -44,7 +44,7 @@ def map_features(satmap, progress: bool = False) -> SatelliteFeatures:
     map's pixels, resolution and origin, and the satloc version), else computed and stored there."""
     from .auto_localizer import cache_root
 
-    ext = make_extractor("default")
+    ext = LazyExtractor("default")   # its network (and torch) loaded only when the map's features are computed
     h = hashlib.sha256(np.ascontiguousarray(satmap.image).tobytes())
     h.update(json.dumps([float(satmap.meters_per_pixel), [float(v) for v in satmap.origin], ext.name,
                          SATLOC_VERSION]).encode())
@@ -72,6 +72,38 @@ def cross_localizer(satmap, camera: StereoCamera, key: tuple, config: CrossViewC
     with _LOCK:
         cv = _CACHE.get(k)
         if cv is None:
-            cv = _CACHE[k] = CrossViewLocalizer(camera, map_features(satmap), make_extractor("default"), config,
-                                                labels=satmap.labels)
+            cv = _CACHE[k] = CrossViewLocalizer(camera, map_features(satmap), LazyExtractor("default"), config,
+                                                labels=satmap.labels, projections=_projections(config))
     return cv
+
+
+def _projections(config: CrossViewConfig):
+    """The learned channels ``config.projections`` names, from a plain copy in ``$SATLOC_CACHE/cross`` (keyed by
+    the ``.pt`` file's content) when made before: no torch to import at an environment's first reset."""
+    if config.projections is None:
+        return None
+    from pathlib import Path
+
+    from satloc.features.crossview_channels import CrossViewProjections
+    from satloc.localizers.crossview import SHIPPED_PROJECTIONS
+
+    from .auto_localizer import cache_root
+
+    src = Path(SHIPPED_PROJECTIONS if config.projections == "shipped" else config.projections)
+    try:
+        digest = hashlib.sha256(src.read_bytes()).hexdigest()[:24]
+    except OSError:
+        return None   # the localizer reads it and says what is wrong
+    path = cache_root() / "cross" / f"projections-{digest}.npz"
+    if path.is_file():
+        try:
+            return CrossViewProjections.load_npz(path)
+        except FormatError as e:
+            log.warning("cross-view projections cache %s unreadable (%s): read again", path, e)
+    p = CrossViewProjections.load(src)
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        p.save_npz(path)
+    except OSError as e:
+        log.warning("cross-view projections cache %s not written: %s", path, e)
+    return p

@@ -708,6 +708,7 @@ class SatLocEnv(SharedSpecMixin, gym.Env):
         self._ready = False                    # True after a successful reset
         self.change_seed: int | None = None   # the episode's revisit change seed (with change > 0)
         self._preloaded: tuple | None = None   # (scene key, Scene) loaded by __init__ for the localizer check
+        self.last_prior = None                 # the prior of the last localization (satloc.localizers.interface.Prior)
         self._loc_identity: dict = {"source": "the localizer"}   # what is known of the localizer's data
         cfg = self.config
         if instance is not None or (cfg.localizer is not None and is_localizer_spec(cfg.localizer)):
@@ -1031,7 +1032,7 @@ class SatLocEnv(SharedSpecMixin, gym.Env):
         from satloc.localizers.crossview import draw_prior
 
         cfg = self._episode
-        prior = draw_prior(self.pose, cfg.prior_radius_m, cfg.prior_yaw_deg, self._prior_rng)
+        prior = self.last_prior = draw_prior(self.pose, cfg.prior_radius_m, cfg.prior_yaw_deg, self._prior_rng)
         self._loc.localize(self._frame(), self.steps, prior)
 
     def _frame(self) -> Frame:

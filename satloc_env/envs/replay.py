@@ -252,6 +252,7 @@ class SatLocReplayEnv(SharedSpecMixin, gym.Env):
                               f"{self.sequence.name!r} has no depth channel")
         self._map_instance = map_instance
         self._blank_map_used = False                # no map of the place: a grey canvas
+        self.last_prior = None                      # the prior of the last localization
         self.satmap: SatelliteMap | None = None     # resolved on first use (render) by the ``map`` property
         if map_instance is not None or cfg.map is not None:
             self.satmap = self._resolve_map()
@@ -528,6 +529,7 @@ class SatLocReplayEnv(SharedSpecMixin, gym.Env):
         cfg = self.config
         prior = draw_prior(p, cfg.prior_radius_m, cfg.prior_yaw_deg, self._prior_rng) if np.all(np.isfinite(p)) \
             else None
+        self.last_prior = prior
         self._loc.localize(frame, self.steps, prior)
 
     def _info(self, true_odo: np.ndarray, valid: bool, from_stereo: bool) -> dict:

@@ -448,3 +448,41 @@ def bench_crossview(scene: str = "city", frames: int = 40, radius_m: float = 20.
                "prior": f"+-{radius_m:g} m / +-{yaw_deg:g} deg", "frames": len(seq), "s_per_frame": round(s, 4),
                "frames_per_s": round(1.0 / s, 2), "median_error_m": round(float(np.nanmedian(pe["error"])), 3),
                "threads": os.cpu_count()}
+
+
+_STARTUP_SCRIPT = """
+import json, sys, time
+t0 = time.perf_counter()
+import gymnasium as gym
+import satloc_env
+t1 = time.perf_counter()
+env = gym.make("satloc/SatLoc-v0", scene=sys.argv[1])
+t2 = time.perf_counter()
+obs, info = env.reset(seed=0)
+t3 = time.perf_counter()
+env.close()
+print(json.dumps({"import_s": round(t1 - t0, 2), "make_s": round(t2 - t1, 2), "reset_s": round(t3 - t2, 2),
+                  "total_s": round(t3 - t0, 2), "error_m": round(float(info["error_m"]), 3)}))
+"""
+
+
+def bench_startup(scene: str = "city", runs: int = 2, work=None) -> Iterator[dict]:
+    """``import satloc_env``, ``gym.make("satloc/SatLoc-v0")`` and the first ``reset`` with the default localizer
+    (``cross``), each in a fresh Python process: first with an empty cache (``SATLOC_CACHE`` a new folder: the scene
+    built, the map's features computed, both kept), then ``runs`` times with the cache it left (warm: the scene,
+    its world, the features and the learned channels read back). One row per process: ``cache`` cold or warm and
+    the seconds of each part."""
+    import json
+    import subprocess
+    import sys
+    import tempfile
+
+    with tempfile.TemporaryDirectory(dir=work) as tmp:
+        env = dict(os.environ, SATLOC_CACHE=str(Path(tmp) / "cache"))
+        for i in range(1 + runs):
+            r = subprocess.run([sys.executable, "-c", _STARTUP_SCRIPT, scene], capture_output=True, text=True,
+                               env=env, timeout=1200)
+            if r.returncode != 0:
+                raise ConfigError(f"bench startup: the process failed: {r.stderr.strip()[-2000:]}")
+            row = json.loads(r.stdout.strip().splitlines()[-1])
+            yield {"bench": "startup", "scene": scene, "cache": "cold" if i == 0 else "warm", **row}

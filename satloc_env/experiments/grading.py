@@ -98,6 +98,7 @@ def run_graded(loc: Any, key: str, name: str, context: Context, q, sel: np.ndarr
     from .scene_run import table_stats
 
     run = run_localizer(loc, context, q, sel, odometry, priors, progress=progress, on_result=on_result)
+    run.name = name   # the row's name (the paper's modes: their table names)
     truth = np.asarray(q.poses, np.float64)[np.asarray(sel, np.int64)]
     s = {"mode": key, "name": name, "queries": run.queries, **table_stats(run.errors, truth, db_poses),
          "s_per_query": float(run.seconds.mean()) if run.queries else float("nan"),

@@ -99,6 +99,56 @@ class World:
     sky_rgb: tuple[int, int, int] = SKY_RGB
 
 
+WORLD_FORMAT = "satloc-world"
+
+
+def save_world(world: World, path) -> None:
+    """``world`` in one npz (plain arrays; atomic): each chunk's geometry, and each texture once (chunks that share
+    a texture, a mirrored chunk and its source, share it again when loaded)."""
+    from satloc.persist import save_npz
+
+    arrays: dict[str, np.ndarray] = {}
+    textures: dict[int, int] = {}
+    tex_of, flags = [], []
+    for k, c in enumerate(world.chunks):
+        for name in ("positions", "uvs", "shade", "faces"):
+            arrays[f"c{k}_{name}"] = getattr(c, name)
+        t = textures.setdefault(id(c.texture), len(textures))
+        if t == len(textures) - 1 and f"t{t}_texture" not in arrays:
+            arrays[f"t{t}_texture"], arrays[f"t{t}_labels"] = c.texture, c.labels
+        tex_of.append(t)
+        flags.append([int(c.repeat), int(c.mirror)])
+    arrays["texture_of"] = np.asarray(tex_of, np.int64)
+    arrays["flags"] = np.asarray(flags, np.int64).reshape(-1, 2)
+    arrays["sun_direction"] = np.asarray(world.sun_direction, np.float64)
+    save_npz(path, WORLD_FORMAT, arrays, {"width_m": float(world.width_m), "height_m": float(world.height_m),
+                                          "chunk_m": float(world.chunk_m), "sky_rgb": [int(v) for v in world.sky_rgb],
+                                          "chunks": len(world.chunks)})
+
+
+def load_world(path) -> World:
+    """What :func:`save_world` wrote; :class:`satloc.FormatError` for a damaged or foreign file."""
+    from satloc.errors import FormatError
+    from satloc.persist import load_npz
+
+    a, m = load_npz(path, WORLD_FORMAT)
+    try:
+        n = int(m["chunks"])
+        tex_of, flags = a["texture_of"], a["flags"]
+        chunks = []
+        shared: dict[int, tuple[np.ndarray, np.ndarray]] = {}
+        for k in range(n):
+            t = int(tex_of[k])
+            if t not in shared:
+                shared[t] = (a[f"t{t}_texture"], a[f"t{t}_labels"])
+            chunks.append(TexturedMesh(a[f"c{k}_positions"], a[f"c{k}_uvs"], a[f"c{k}_shade"], a[f"c{k}_faces"],
+                                       shared[t][0], shared[t][1], bool(flags[k, 0]), bool(flags[k, 1])))
+        return World(float(m["width_m"]), float(m["height_m"]), float(m["chunk_m"]), chunks,
+                     np.asarray(a["sun_direction"], np.float64), tuple(int(v) for v in m["sky_rgb"]))
+    except (KeyError, IndexError, TypeError, ValueError) as e:
+        raise FormatError(f"{path}: not a complete world ({e})") from None
+
+
 def sun_direction(azimuth: float, elevation: float) -> np.ndarray:
     """Unit vector towards the sun for an azimuth (counter-clockwise from east) and elevation, radians."""
     ce = math.cos(elevation)

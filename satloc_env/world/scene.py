@@ -542,10 +542,29 @@ class Scene:
         return road_graph(self.spec.road_graph, None, self.layout.ground_labels, self.layout.ground_mpp,
                           f"scene {self.name!r}")
 
+    #: the disk cache folder this scene was read from or saved to (:func:`scene_cache_path`), where its world is
+    #: kept too; None: not cached
+    cache_dir = None
+
     @functools.cached_property
     def world(self):
-        """Renderable geometry of the scene (:class:`satloc_env.world.meshes.World`), built once per scene."""
-        return self.spec.build_world(self.layout)
+        """Renderable geometry of the scene (:class:`satloc_env.world.meshes.World`), built once per scene (and
+        once per machine for a scene of the disk cache: read from its ``world.npz`` there)."""
+        from .meshes import load_world, save_world
+
+        path = None if self.cache_dir is None else Path(self.cache_dir) / "world.npz"
+        if path is not None and path.is_file():
+            try:
+                return load_world(path)
+            except FormatError:
+                pass   # damaged: built again
+        world = self.spec.build_world(self.layout)
+        if path is not None:
+            try:
+                save_world(world, path)
+            except OSError:
+                pass
+        return world
 
     def _check_routes(self, where: str) -> None:
         W, H = self.layout.width_m, self.layout.height_m
@@ -1028,10 +1047,63 @@ def build_scene(spec: SceneSpec, base_dir: Path | None = None, aliasing: float |
     return scene
 
 
+#: set to 0 to build every scene anew instead of reading it from the disk cache
+SCENE_CACHE_ENV = "SATLOC_SCENE_CACHE"
+
+
+def scene_cache_path(path: str, spec: SceneSpec, base: Path, aliasing: float | None,
+                     satellite_gap: float | None) -> Path | None:
+    """Where the disk cache keeps the scene ``path`` built with ``aliasing`` and ``satellite_gap``: under
+    ``$SATLOC_CACHE/scenes``, named by a digest of the scene's files (its YAML and, for scenes over imagery or map
+    vectors, those files), the knobs, the satloc version and the simulator's world code (:mod:`satloc_env.world`),
+    so that an edit of any of them misses. None where a file cannot be read."""
+    import hashlib
+    import json
+
+    from satloc import __version__
+
+    from .cache import cache_root, code_digest
+
+    h = hashlib.sha256()
+    try:
+        files = [("scene.yaml", Path(path))]
+        g = spec.generator_spec(path)
+        if g.type in ("image", "vectors"):
+            files += g.files(base)
+        for name, f in files:
+            h.update(name.encode() + b"\0" + Path(f).read_bytes() + b"\0")
+    except (OSError, ConfigError):   # a file missing or unreadable: not cached (building it says what is wrong)
+        return None
+    h.update(json.dumps([aliasing, satellite_gap, __version__, code_digest(str(Path(__file__).parent))]).encode())
+    return cache_root() / "scenes" / f"{spec.name}-{h.hexdigest()[:20]}"
+
+
 @functools.lru_cache(maxsize=4)
 def _cached_scene(path: str, aliasing: float | None, satellite_gap: float | None = None) -> Scene:
+    """The scene built once per process, and once per machine: a scene built before with the same files, knobs
+    and code is read from the disk cache (:func:`scene_cache_path`; 0.3 s for ``city`` against 8-13 s to build it
+    on 2 cores). Scenes whose road graph or building footprints come from their data (what :meth:`Scene.save`
+    does not keep) are built every time."""
     spec, base = load_spec(path)
-    return build_scene(spec, base, aliasing, where=path, satellite_gap=satellite_gap)
+    use = os.environ.get(SCENE_CACHE_ENV, "1").strip() not in ("0", "false", "no")
+    cached = scene_cache_path(path, spec, base, aliasing, satellite_gap) if use else None
+    damaged = False
+    if cached is not None and (cached / "scene.json").is_file():
+        try:
+            scene = Scene.load(cached)
+            scene.cache_dir = cached
+            return scene
+        except (FormatError, ConfigError, OSError):
+            damaged = True   # built again below, and saved over it
+    scene = build_scene(spec, base, aliasing, where=path, satellite_gap=satellite_gap)
+    if cached is not None and "road_graph" not in scene.__dict__ and scene.footprints is None:
+        try:
+            if damaged or not (cached / "scene.json").is_file():   # another process may have saved it meanwhile
+                scene.save(cached)
+            scene.cache_dir = cached
+        except OSError:   # a read-only cache, or another process saved it first: the scene is used all the same
+            pass
+    return scene
 
 
 def _saved_gap(meta: dict) -> None:
