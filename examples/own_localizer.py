@@ -23,6 +23,7 @@ from satloc import Pose2
 from satloc.errors import run_script
 
 
+# --8<-- [start:localizer]
 class GpsOdometryFilter:
     """Dead reckoning pulled towards each prior by ``gain`` (0: dead reckoning alone, 1: the prior alone)."""
 
@@ -54,6 +55,7 @@ class GpsOdometryFilter:
             self.pose = Pose2(self.pose.x + g * (p.x - self.pose.x), self.pose.y + g * (p.y - self.pose.y),
                               self.pose.yaw)
         return self.pose
+# --8<-- [end:localizer]
 
 
 def main(argv=None):

@@ -33,6 +33,17 @@ def test_example_stress_runs_and_writes_its_table_and_curve(tmp_path):
     assert meta["pass_config"]["occlusion"] == 0.5
 
 
+def test_example_own_localizer_runs_in_the_environment(tmp_path):
+    """examples/own_localizer.py: a localizer of one's own in SatLoc-v0, better than its prior alone."""
+    r = subprocess.run([sys.executable, str(ROOT / "examples" / "own_localizer.py"), "--steps", "40"],
+                       capture_output=True, text=True, timeout=600, env=dict(os.environ, SATLOC_CACHE=str(tmp_path)))
+    assert r.returncode == 0, r.stderr
+    line = r.stdout.strip().splitlines()[-1]
+    assert line.startswith("GPS + odometry filter on city, 40 steps: mean error ")
+    mean = float(line.split("mean error ")[1].split(" m")[0])
+    assert 0 < mean < 13.3, line   # the prior alone is 13.3 m off on average
+
+
 @pytest.fixture(scope="module")
 def small_city_build(tmp_path_factory):
     """A small localizer build of city's database pass (its first 25 m, RGB features)."""

@@ -82,7 +82,7 @@ def test_sweep_on_ray_matches_serial_and_a_rerun_skips_finished_stages(cluster, 
     # sweep.csv holds no timing column: byte-identical (so are sweep.md and each combination's localizations)
     for name in ("sweep.csv", "sweep.md", "a0_o0_p0.5_g0/localization_full.npz", "a0_o0.3_p0.5_g0/baseline_fabmap.npz"):
         assert (ser / name).read_bytes() == (par / name).read_bytes(), name
-    assert len((par / "sweep.csv").read_text().splitlines()) == 1 + 2 * 3
+    assert len((par / "sweep.csv").read_text().splitlines()) == 1 + 2 * 5   # 3 methods and the 2 reference floors
     # rerun on Ray: every stage of every unit skipped (stamps untouched), the same table
     stamps = {p: p.stat().st_mtime_ns for pattern in STAGES for p in par.glob(pattern)}
     assert len(stamps) == 1 + 3 * 2

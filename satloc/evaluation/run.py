@@ -71,15 +71,17 @@ class Run:
         return round(len(self.frames) / s, 2) if s > 0 else None
 
     def arrays(self) -> dict:
-        """The arrays the results files hold (``localization_<name>.npz``)."""
+        """The arrays the results files hold (``localization_<name>.npz``): what was answered, not how long it
+        took (the times go into the summaries, so that the same run on another machine or on Ray writes the same
+        bytes)."""
         return {"frames": self.frames, "estimates": self.estimates, "truth": self.truth, "errors": self.errors,
                 "inlier_score": self.inlier_score, "inlier": self.inlier, "top_poses": self.top_poses,
-                "top_probs": self.top_probs, "prior": self.priors, "seconds": self.seconds}
+                "top_probs": self.top_probs, "prior": self.priors}
 
     def save(self, path: str | Path, meta: dict | None = None) -> None:
-        """The arrays into ``path`` (a ``localization`` npz), with ``meta`` (the localizer's name added)."""
-        save_npz(path, "localization", self.arrays(), dict(meta or {}, name=self.name, reset_s=self.reset_s,
-                                                            failed=len(self.failures)))
+        """The arrays into ``path`` (a ``localization`` npz), with ``meta`` (the localizer's name and the queries
+        without an answer added)."""
+        save_npz(path, "localization", self.arrays(), dict(meta or {}, name=self.name, failed=len(self.failures)))
 
 
 def odometry_queries(odometry: np.ndarray | None, n: int) -> list[Pose2 | None]:

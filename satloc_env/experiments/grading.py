@@ -12,7 +12,7 @@ Each goes through :func:`satloc.evaluation.run.run_localizer` exactly as the bui
 queries, the same odometry as the tracked modes and one prior per query drawn around its true pose as a GPS fix
 gives it (:func:`query_priors`: uniform within ``cross_area.prior_radius_m`` and ``cross_area.prior_yaw_deg``,
 seeded by ``cross_area.seed`` and the query's frame index, so every protocol and every method sees the same
-prior for the same frame). Its rows carry the same columns (:func:`satloc_env.experiments.scene_run.table_stats`),
+prior for the same frame). Its rows carry the same columns (:func:`table_stats`),
 named by the object's ``name`` attribute or its class name; its answers go into ``localization_<key>.npz``.
 """
 from __future__ import annotations
@@ -24,19 +24,37 @@ from typing import Any
 import numpy as np
 
 from satloc.errors import ConfigError
+from satloc.evaluation.metrics import bootstrap_ci, ci_method, error_stats, stationary_block_length, worst_case_errors
 from satloc.evaluation.run import Run, run_localizer
 from satloc.localizers.crossview import draw_prior
 from satloc.localizers.interface import Context, localizer_name, resolve_localizer
 from satloc.localizers.reference import REFERENCES, reference_localizer
 from satloc.persist import header, write_json
 
-__all__ = ["REFERENCE_NAMES", "USER_PREFIX", "query_priors", "extra_localizers", "check_extra", "run_graded",
+__all__ = ["REFERENCE_NAMES", "USER_PREFIX", "table_stats", "query_priors", "extra_localizers", "check_extra", "run_graded",
            "user_key"]
 
 #: the reference localizers' rows
 REFERENCE_NAMES = {k: v.name for k, v in REFERENCES.items()}
 #: the key (and file name) of a user's localizer's rows: this prefix and its name made safe for a file name
 USER_PREFIX = "user-"
+
+
+def table_stats(errors, truth, db_poses, seed: int = 0) -> dict:
+    """The error columns of every table row, one rule for every method (:mod:`satloc.evaluation.metrics`): a query not
+    answered is a gross failure, counted with the worst answer on the map (the farthest database pose from its
+    truth); ``mean_m, std_m, median_m, within_1m, within_10m`` (error <= 1 m, 10 m), ``failure_rate`` and the
+    95 % bootstrap interval of the mean (``ci95_low, ci95_high``, seeded) over the queries in their order along
+    the pass: a stationary block bootstrap (errors persist from query to query), named by ``ci_method``."""
+    e = np.asarray(errors, np.float64)
+    gross = worst_case_errors(np.asarray(truth, np.float64)[:, :2], np.asarray(db_poses, np.float64)[:, :2])
+    st = error_stats(e, gross)
+    counted = np.where(np.isfinite(e), e, gross)
+    block = stationary_block_length(counted)
+    lo, hi = bootstrap_ci(counted, seed=seed, method="stationary", block_length=block)
+    return {"mean_m": st["mean"], "std_m": st["std"], "median_m": st["median"], "within_1m": st["within_1m"],
+            "within_10m": st["within_10m"], "failure_rate": st["failure_rate"], "ci95_low": lo, "ci95_high": hi,
+            "ci_method": ci_method("stationary", block)}
 
 
 def query_priors(ca, truth: np.ndarray, frames: np.ndarray) -> list:
@@ -92,11 +110,9 @@ def run_graded(loc: Any, key: str, name: str, context: Context, q, sel: np.ndarr
                priors: list, out: Path, db_poses: np.ndarray, label: str, progress: bool = True, log=print,
                meta: dict | None = None, on_result=None, stem: str = "localization") -> tuple[dict, Run]:
     """Run ``loc`` over the frames ``sel`` of ``q`` (:func:`satloc.evaluation.run.run_localizer`) and grade it as
-    every table row is graded (:func:`satloc_env.experiments.scene_run.table_stats`; ``db_poses``: where the worst
+    every table row is graded (:func:`table_stats`; ``db_poses``: where the worst
     answer of a query with no answer is measured). Writes ``out/<stem>_<key>.npz`` (the run's arrays) and
     ``.json`` (the summary); returns the summary (with the arrays ``errors`` and ``inlier_score``) and the run."""
-    from .scene_run import table_stats
-
     run = run_localizer(loc, context, q, sel, odometry, priors, progress=progress, on_result=on_result)
     run.name = name   # the row's name (the paper's modes: their table names)
     truth = np.asarray(q.poses, np.float64)[np.asarray(sel, np.int64)]
@@ -105,7 +121,7 @@ def run_graded(loc: Any, key: str, name: str, context: Context, q, sel: np.ndarr
          "queries_per_s": run.queries_per_s, "failed": len(run.failures), "reset_s": round(run.reset_s, 3)}
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
-    run.save(out / f"{stem}_{key}.npz", dict(meta or {}, method=key, sequence=q.name, s_per_query=s["s_per_query"]))
+    run.save(out / f"{stem}_{key}.npz", dict(meta or {}, method=key, sequence=q.name))
     write_json(out / f"{stem}_{key}.json", dict(header("localization_summary"),
                                                       **{k: v for k, v in s.items() if not isinstance(v, np.ndarray)}))
     log(f"[{label}] {name}: mean {s['mean_m']:.2f} m (std {s['std_m']:.2f}), median {s['median_m']:.2f} m, "

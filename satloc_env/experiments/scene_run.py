@@ -34,7 +34,6 @@ import numpy as np
 from satloc.baselines import EfmConfig, FabMapConfig
 from satloc.config import added_field, from_dict, to_dict
 from satloc.errors import ConfigError, FormatError
-from satloc.evaluation.metrics import bootstrap_ci, ci_method, error_stats, stationary_block_length, worst_case_errors
 from satloc.features.context import ContextConfig
 from satloc.features.projection import ProjectionConfig
 from satloc.geometry import Pose2, wrap_angle
@@ -56,6 +55,8 @@ from satloc_env.envs.record import (
 )
 from satloc_env.envs.vehicle import DEFAULT_SPEED_WANDER, DEFAULT_WANDER_M
 from satloc_env.world.scene import load_scene
+
+from .grading import table_stats  # noqa: F401  (the tables import it from here)
 
 # "<mode>[+track][+align]": tracked over the query sequence with odometry (satloc.tracking.track), refined by bird's-eye
 # alignment (satloc.tracking.align)
@@ -194,23 +195,6 @@ class ExperimentConfig:
         from .grading import check_extra
 
         check_extra(self)
-
-
-def table_stats(errors, truth, db_poses, seed: int = 0) -> dict:
-    """The error columns of every table row, one rule for every method (:mod:`satloc.evaluation.metrics`): a query not
-    answered is a gross failure, counted with the worst answer on the map (the farthest database pose from its
-    truth); ``mean_m, std_m, median_m, within_1m, within_10m`` (error <= 1 m, 10 m), ``failure_rate`` and the
-    95 % bootstrap interval of the mean (``ci95_low, ci95_high``, seeded) over the queries in their order along
-    the pass: a stationary block bootstrap (errors persist from query to query), named by ``ci_method``."""
-    e = np.asarray(errors, np.float64)
-    gross = worst_case_errors(np.asarray(truth, np.float64)[:, :2], np.asarray(db_poses, np.float64)[:, :2])
-    st = error_stats(e, gross)
-    counted = np.where(np.isfinite(e), e, gross)
-    block = stationary_block_length(counted)
-    lo, hi = bootstrap_ci(counted, seed=seed, method="stationary", block_length=block)
-    return {"mean_m": st["mean"], "std_m": st["std"], "median_m": st["median"], "within_1m": st["within_1m"],
-            "within_10m": st["within_10m"], "failure_rate": st["failure_rate"], "ci95_low": lo, "ci95_high": hi,
-            "ci_method": ci_method("stationary", block)}
 
 
 def _stage_done(path: Path, config: dict) -> bool:

@@ -260,7 +260,7 @@ def soak(cfg: SoakConfig = SoakConfig(), emit: Callable[[dict], None] | None = N
                                     mean_error_m=_r(err_sum / finite if finite else float("nan"), 2))
         record(env_summary)
         # --- phase 2: localize_stream over queries read from disk ----------------------------------------
-        loc = env.unwrapped.localizer
+        loc = getattr(env.unwrapped.localizer, "engine", None)   # the paper's method itself: its stream
         u = env.unwrapped
         with tempfile.TemporaryDirectory(prefix="satloc_soak_") as tmp:
             env.reset(seed=cfg.seed + 10_000, options={"lane_offset_m": -1.25})   # another lane than the database

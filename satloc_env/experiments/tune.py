@@ -1,7 +1,7 @@
 """``satloc experiment tune``: choose the settings that were once tuned on test runs again, on a calibration scene
 that no table tests on, and report the choice with the figures behind it.
 
-The settings (issue 22 found each of them tuned on the scenes its tables report):
+The settings (each of them was once tuned on the scenes its tables report):
 
 * the method's ``ef_search`` (HNSW search breadth of the ground index): the smallest value of ``ef_search``
   whose mean error in ``ef_mode`` stays within ``ef_tolerance_m`` of the largest value's, with no more failures
