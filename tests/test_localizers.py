@@ -284,6 +284,19 @@ def test_a_users_localizer_in_the_replay_gets_priors_around_the_drives_poses(tmp
     assert np.isclose(info["error_m"], math.hypot(rec.queries[-1].prior.x + 1 - seq.poses[3][0],
                                                   rec.queries[-1].prior.y - seq.poses[3][1]))
     replay.close()
+    # the replay's priors also let the no-database localizer run on a replayed drive, against its map
+    from satloc_env.world.scene import load_scene
+
+    load_scene("city").satmap.save(tmp_path / "map")
+    cross = gym.make("satloc/SatLocReplay-v0", sequence=seq, map=str(tmp_path / "map"), localizer="cross",
+                     localizer_track=True)
+    _, info = cross.reset(seed=1)
+    errors = [info["error_m"]] + [cross.step(1)[4]["error_m"] for _ in range(2)]
+    assert np.all(np.isfinite(errors)) and np.median(errors) < 2.0, errors
+    cross.close()
+    with pytest.raises(ConfigError, match="'cross' localizes against the satellite map; give map="):
+        gym.make("satloc/SatLocReplay-v0", sequence=Sequence(seq.camera, [seq[i] for i in range(3)], "mapless"),
+                 localizer="cross")
 
 
 def test_a_users_localizer_in_activeloc_drives_the_belief():

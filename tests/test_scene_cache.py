@@ -1,6 +1,6 @@
 """The scenes' disk cache (satloc_env.world.scene.load_scene): a scene built once is read back the same, world
-and renders included, in another process; an edited scene file, other knobs or another version of the world code
-miss; SATLOC_SCENE_CACHE=0 builds every time."""
+and renders included, in another process; a damaged entry is built again; an edited scene file, other knobs or
+another version of the world code miss; SATLOC_SCENE_CACHE=0 builds every time."""
 import shutil
 
 import numpy as np
@@ -51,34 +51,41 @@ def test_a_cached_scene_is_the_scene_it_was(fresh):
     b = _render(read)
     for k in ("left", "right", "depth_left", "labels_left"):
         assert np.array_equal(a[k], b[k]), k
+    # a damaged entry is built again and saved over
+    (d / "layout.npz").write_bytes(b"not an npz")
+    S._cached_scene.cache_clear()
+    again = S.load_scene("loop")
+    assert again.cache_dir == d and np.array_equal(again.satmap.image, built.satmap.image)
+    S._cached_scene.cache_clear()
+    assert np.array_equal(S.load_scene("loop").layout.ground_rgb, built.layout.ground_rgb)   # readable again
 
 
 def test_what_the_cache_key_holds(fresh, monkeypatch):
-    first = S.load_scene("loop").cache_dir
-    assert S.load_scene("loop", aliasing=0.5).cache_dir != first          # other knobs
-    assert S.load_scene("loop", satellite_gap=0.0).cache_dir != first
-    yaml = fresh / "loop.yaml"                                              # the same file elsewhere: the same
+    def key(path="loop", aliasing=0.0, gap=0.5):
+        path = str(S.scene_path(path))
+        spec, base = S.load_spec(path)
+        return S.scene_cache_path(path, spec, base, aliasing, gap)
+
+    first = key()
+    assert first == key() and first.parent == fresh / "cache" / "scenes"
+    assert key(aliasing=0.5) != first and key(gap=0.0) != first                 # other knobs
+    yaml = fresh / "loop.yaml"                                                  # the same file elsewhere: the same
     shutil.copy(S.scene_path("loop"), yaml)
-    assert S.load_scene(str(yaml)).cache_dir == first
-    yaml.write_text(yaml.read_text().replace("seed:", "# edited\nseed:", 1))   # an edited file misses (in
-    S._cached_scene.cache_clear()                                           # another process: this one keeps it)
-    assert S.load_scene(str(yaml)).cache_dir != first
+    assert key(str(yaml)) == first
+    yaml.write_text(yaml.read_text().replace("seed:", "# edited\nseed:", 1))    # an edited file misses
+    assert key(str(yaml)) != first
     from satloc_env.world import cache
 
     monkeypatch.setattr(cache, "code_digest", lambda d: "other world code")
-    S._cached_scene.cache_clear()
-    assert S.load_scene("loop").cache_dir != first                          # other world code misses
+    assert key() != first                                                       # other world code misses
+    monkeypatch.undo()
+    monkeypatch.setenv("SATLOC_CACHE", str(fresh / "cache"))
+    assert key() == first
+    # off: built every time, never kept
     monkeypatch.setenv("SATLOC_SCENE_CACHE", "0")
+    built = []
+    monkeypatch.setattr(S, "build_scene", lambda *a, **k: built.append(1) or type("Stub", (), {"footprints": None})())
     S._cached_scene.cache_clear()
-    assert S.load_scene("loop").cache_dir is None                           # off: built, not kept
-
-
-def test_a_damaged_entry_is_built_again(fresh):
-    d = S.load_scene("loop").cache_dir
-    (d / "layout.npz").write_bytes(b"not an npz")
-    S._cached_scene.cache_clear()
-    again = S.load_scene("loop")                          # built, and saved over the damaged entry
-    assert again.cache_dir == d and again.satmap.image.shape[0] > 0
-    S._cached_scene.cache_clear()
-    third = S.load_scene("loop")
-    assert np.array_equal(third.satmap.image, again.satmap.image)
+    s = S.load_scene("loop")
+    assert built == [1] and getattr(s, "cache_dir", None) is None
+    assert not (fresh / "cache" / "scenes").exists()

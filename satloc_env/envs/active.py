@@ -26,6 +26,13 @@ junction is drawn again (``info["redraws"]``): there the choice cannot matter.
 that a guess is worth nothing on average at 50 % and an agent cannot profit from locking early on purpose: its
 alternative is to drive on and pay only distance. Truncation adds nothing.
 
+**A localizer of one's own** (``gym.make("satloc/ActiveLoc-v0", localizer=obj | Class | "module:Name")``, any
+localizer of :mod:`satloc.localizers.interface`): each frame to fuse is rendered at its recorded pose (the scene's
+world, the map's camera), localized with the odometry since the last fused frame and no prior, and its answer
+(its pose, or each entry of its posterior) spread over the map's candidate poses as a Gaussian of
+``evidence_sigma_m`` within ``evidence_yaw_deg`` of heading; that is the frame's posterior the tracker fuses. A
+frame with no answer adds no evidence. ``reset(context)`` is called at every start drawn.
+
 **Observation** (``Box``, float32, :data:`OBS_FIELDS`): the belief's normalised entropy, the locked mass,
 P(on the map), the budget used; the ``top_k`` most probable places (modes of the belief at least ``lock_m``
 apart) relative to the most probable one (dx, dy in 100 m, cos and sin of the heading difference) and their

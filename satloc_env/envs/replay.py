@@ -173,8 +173,13 @@ class SatLocReplayEnv(SharedSpecMixin, gym.Env):
     cannot be localized has NaN ``estimate`` and ``error_m``, and its message in ``env.unwrapped
     .localization_error``.
 
-    **Localizer**: None (default), a build directory (``satloc build`` + ``satloc train-projection``, loaded in
-    ``localizer_mode``, once per process) or a :class:`satloc.localizers.database.Localizer` (its own mode holds). It
+    **Localizer**: None (default); ``"cross"`` (no database: the replay's map alone, which must then be given
+    as ``map``); a build directory (``satloc build`` + ``satloc train-projection``, loaded in ``localizer_mode``,
+    once per process) or a :class:`satloc.localizers.database.Localizer` (its own mode holds); or a localizer of
+    one's own (:mod:`satloc.localizers.interface`: an object, its class or ``"module:Name"``). Every localization
+    is given a prior drawn around the frame's pose in the data (the GPS / OXTS fix): its centre uniformly within
+    ``prior_radius_m`` of it, its heading within ``prior_yaw_deg``, from a generator seeded by the episode's seed
+    (``env.unwrapped.last_prior``; none for a frame without a pose). A built-in localizer
     must have been built for the sequence's camera (every :class:`StereoCamera` field; the message gives both
     cameras' differing values) and for the sequence's data: :class:`satloc.ConfigError`, naming the localizer
     (its build directory and recorded scene where known) and the sequence, when the two record different
