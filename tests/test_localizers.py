@@ -130,7 +130,7 @@ def test_module_name_and_file_specs(tmp_path):
     assert isinstance(resolve_localizer("satloc.localizers.reference:PriorAlone"), PriorAlone)
     for spec, msg in [("nocolon", "expected 'module:Name'"), (f"{f}:Nope", "has no attribute 'Nope'"),
                       (f"{tmp_path / 'gone.py'}:Mine", "no file"), ("no_such_module_x:Mine", "no module named"),
-                      (f"{f}:needs_args", "could not be made with no arguments"),
+                      (f"{f}:needs_args", "cannot be made with no arguments"),
                       ("satloc.geometry:Pose2", "is not a localizer")]:
         with pytest.raises(ConfigError, match=msg):
             resolve_localizer(spec, "localizers")
@@ -231,7 +231,7 @@ def test_a_users_localizer_in_satloc_v0():
     assert len(rec.contexts) == 2 and rec.contexts[1].seed == ctx.seed   # seeded: the same context seed
     assert np.allclose(info2["estimate"], steps[0]["estimate"])             # and the same prior
     env.close()
-    with pytest.raises(ConfigError, match="localizer_track: tracks the built-in localizers"):
+    with pytest.raises(ConfigError, match="localizer_track: tracks the localizers the environment makes"):
         gym.make("satloc/SatLoc-v0", scene="city", localizer=Recorder(), localizer_track=True)
     with pytest.raises(ConfigError, match="is not a localizer"):
         gym.make("satloc/SatLoc-v0", scene="city", localizer=lambda: object())
@@ -330,3 +330,46 @@ def test_a_users_localizer_in_activeloc_drives_the_belief():
     obs, info = env.reset(seed=0)
     assert env.observation_space.contains(obs) and not info["locked"]
     env.close()
+
+
+def test_close_once_and_malformed_answers_are_no_answers():
+    class Closing(Recorder):
+        closed = 0
+
+        def close(self):
+            Closing.closed += 1
+
+        def localize(self, query):
+            return [float("nan"), 0.0, 0.0] if query.index == 1 else super().localize(query)
+
+    loc = Closing()
+    env = gym.make("satloc/SatLoc-v0", scene="city", localizer=loc)
+    _, info = env.reset(seed=0)
+    assert np.isfinite(info["error_m"])
+    _, _, _, _, info = env.step(env.unwrapped.autopilot_action())
+    assert np.isnan(info["error_m"]) and "not finite" in env.unwrapped.localization_error
+    env.close()
+    env.close()
+    assert Closing.closed == 1
+    seq = tiny_sequence()
+    run = run_localizer(Closing(), Context(seq.camera, blank_map()), seq, [0, 1, 2], None,
+                        [Prior(*p, radius_m=5.0) for p in seq.poses[:3]])
+    assert [f for f, _ in run.failures] == [1] and "not finite" in run.failures[0][1]
+
+
+def test_a_name_for_an_instance_cannot_serve_several_cars(tmp_path):
+    f = tmp_path / "inst.py"
+    f.write_text("class L:\n    def reset(self, c): pass\n    def localize(self, q): return None\none = L()\n")
+    with pytest.raises(ConfigError, match="cannot serve 2 cars"):
+        gym.make_vec("satloc/SatLoc-v0", num_envs=2, scene="city", localizer=f"{f}:one")
+
+
+def test_stale_rows_of_dropped_localizers_are_removed(tmp_path):
+    from satloc_env.experiments.grading import prune_extra
+
+    for key in ("prior", "dead-reckoning", "user-old", "go", "full+track"):
+        (tmp_path / f"localization_{key}.npz").write_bytes(b"x")
+        (tmp_path / f"localization_{key}.json").write_text("{}")
+    prune_extra(tmp_path, {"prior"})
+    assert sorted(p.name for p in tmp_path.iterdir()) == sorted(
+        f"localization_{k}.{e}" for k in ("prior", "go", "full+track") for e in ("npz", "json"))

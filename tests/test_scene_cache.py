@@ -76,7 +76,7 @@ def test_what_the_cache_key_holds(fresh, monkeypatch):
     assert key(str(yaml)) != first
     from satloc_env.world import cache
 
-    monkeypatch.setattr(cache, "code_digest", lambda d: "other world code")
+    monkeypatch.setattr(cache, "code_digest", lambda d, recursive=True: "other code")
     assert key() != first                                                       # other world code misses
     monkeypatch.undo()
     monkeypatch.setenv("SATLOC_CACHE", str(fresh / "cache"))

@@ -9,7 +9,8 @@ the priors, the time per query); the tables compute their columns from them with
 (:func:`satloc.evaluation.metrics.error_stats`).
 
 The frames a localizer sees carry no pose and no semantic labels (depth where the sequence has it). A query
-answered with ``None`` or by raising :class:`~satloc.errors.ConfigError` has no answer: NaN estimate and error,
+answered with ``None``, by raising :class:`~satloc.errors.ConfigError` or with something that is not an answer (a
+non-finite pose, a posterior whose shape does not match its candidates) has no answer: NaN estimate and error,
 ``inlier`` False, the message kept in :attr:`Run.failures`. A localizer with the optional
 ``localize_many(queries)`` (answers in order, a ConfigError instance for no answer) is run through it: the
 paper's method overlaps the next frame's stereo and features with the current frame's scoring there.
@@ -164,7 +165,11 @@ def run_localizer(localizer: Any, context: Context, sequence: Sequence, frames: 
         if isinstance(a, ConfigError):
             failures.append((int(idx[i]), str(a)))
             continue
-        e = as_estimate(a, f"localizer {name!r}")
+        try:   # an answer that is not one (a non-finite pose, a posterior of the wrong shape): no answer, said why
+            e = as_estimate(a, f"localizer {name!r}")
+        except ConfigError as err:
+            failures.append((int(idx[i]), str(err)))
+            continue
         if e is None:
             failures.append((int(idx[i]), "no answer"))
             continue

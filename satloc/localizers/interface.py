@@ -27,8 +27,8 @@ frame is believed to lie on the map), such as an :class:`Estimate`. Any other ex
 localizer stops the run that meets it.
 
 Optional attributes a localizer may have: ``name`` (str), ``posterior_k`` (how many posterior entries the
-environments report, default 32), ``wants_depth`` (True: the simulator's frames carry the true depth) and
-``close()`` (called when an environment closes).
+environments and the results files keep, default 32), ``wants_depth`` (True: the simulator's frames carry the
+true depth) and ``close()`` (called once when an environment that holds it closes).
 
 Every consumer (the environments, the tables, the sweep, ``satloc evaluate``) goes through this interface and
 grades every localizer with the same code (:func:`satloc.evaluation.run.run_localizer`). The built-in ones
@@ -107,8 +107,10 @@ class Context:
     vectors rasterised). ``seed``: the episode's seed, for a localizer's own randomness (``None``: not seeded).
     ``database``: a drive through the place with posed frames, where the protocol has one (Table I's revisit,
     city and residential protocols; ``satloc evaluate``); ``None`` where the place is known only from above
-    (the environments, the cross-area protocol). ``roads``: the road centre lines in the map's frame
-    (:class:`satloc.geodata.vectors.RoadLines`) where they were given. ``place``: a name for messages."""
+    (the environments, the cross-area protocol). ``roads``: road centre lines in the map's frame,
+    ``(lines, widths)`` (a list of (N_i, 2) arrays of map metres and each road's width in metres, what
+    :func:`satloc.localizers.crossview.drivable_from_roads` takes), where the run has them; the environments
+    and the tables give None: there the map's ``labels`` carry the roads. ``place``: a name for messages."""
 
     camera: StereoCamera
     satmap: SatelliteMap
@@ -155,7 +157,10 @@ class Estimate:
             if k:
                 poses[0], probs[0] = self.pose.as_array(), 1.0
             return poses, probs
-        order = np.argsort(-self.posterior, kind="stable")[:k]
+        d = np.diff(self.posterior)
+        # already sorted, most probable first (the no-database localizer's): as given; else numpy's default sort
+        # (the paper's method's own order of tied entries)
+        order = np.arange(min(k, len(self.posterior))) if np.all(d <= 0) else np.argsort(-self.posterior)[:k]
         poses[: len(order)] = self.candidates[order]
         probs[: len(order)] = self.posterior[order]
         return poses, probs
@@ -226,7 +231,7 @@ def as_estimate(answer: Any, where: str = "localizer") -> Estimate | None:
     elif hasattr(answer, "pose") or hasattr(answer, "estimate"):
         pose = getattr(answer, "pose", None)
         if pose is None:
-            pose = getattr(answer, "estimate")
+            pose = getattr(answer, "estimate", None)
         if pose is None:
             return None
         cand, post = getattr(answer, "candidates", None), getattr(answer, "posterior", None)
@@ -302,10 +307,12 @@ def resolve_localizer(value: Any, where: str = "localizer") -> Any:
     obj = import_object(value, where) if isinstance(value, str) else value
     if inspect.isclass(obj) or (callable(obj) and not callable(getattr(obj, "localize", None))):
         try:
-            made = obj()
+            inspect.signature(obj).bind()
         except TypeError as e:
-            raise ConfigError(f"{where}: {getattr(obj, '__name__', obj)!r} could not be made with no arguments "
+            raise ConfigError(f"{where}: {getattr(obj, '__name__', obj)!r} cannot be made with no arguments "
                               f"({e}); name a class or function that needs none, or pass an instance") from None
-        obj = made
+        except ValueError:   # no signature to read (a builtin): try it
+            pass
+        obj = obj()
     return check_localizer(obj, where)
 

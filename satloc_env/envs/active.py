@@ -58,7 +58,7 @@ from satloc.geometry import Pose2, wrap_angle
 from satloc.tracking.track import TrackConfig, Tracker, compose_motion, relative_motion
 
 from .active_map import SLOTS, ActiveMap
-from .drive import ActionError
+from .drive import ActionError, SharedSpecMixin
 from .ids import ACTIVE_ID
 
 __all__ = ["ActiveConfig", "ActiveLocEnv", "OBS_FIELDS", "ACTIVE_ID", "belief_entropy"]
@@ -135,7 +135,7 @@ def belief_entropy(b: np.ndarray) -> float:
     return float(-(p * np.log(p)).sum())
 
 
-class ActiveLocEnv(gym.Env):
+class ActiveLocEnv(SharedSpecMixin, gym.Env):
     """See the module docstring. ``ActiveLocEnv(map="active_grid", budget_m=800, ...)``: the fields of
     :class:`ActiveConfig` (unknown keys are an error), or ``config=ActiveConfig(...)``."""
 
@@ -281,8 +281,9 @@ class ActiveLocEnv(gym.Env):
     def _scene(self):
         from satloc_env.world.scene import load_scene
 
-        if getattr(self, "_scene_obj", None) is None or self._scene_obj[0] != self.map.scene:
-            self._scene_obj = (self.map.scene, load_scene(self.map.scene, None, self.map.satellite_gap))
+        key = (self.map.scene, self.map.satellite_gap)
+        if getattr(self, "_scene_obj", None) is None or self._scene_obj[0] != key:
+            self._scene_obj = (key, load_scene(self.map.scene, None, self.map.satellite_gap))
         return self._scene_obj[1]
 
     def _user_context(self):
@@ -293,7 +294,7 @@ class ActiveLocEnv(gym.Env):
 
         scene = self._scene()
         camera = StereoCamera.preset(str((self.map.meta.get("config") or {}).get("resolution", "half")))
-        if self._renderer is None or self._renderer.camera != camera:
+        if self._renderer is None or self._renderer.camera != camera or self._renderer.world is not scene.world:
             from satloc_env.render.stereo import StereoRenderer
 
             if self._renderer is not None:
@@ -344,9 +345,9 @@ class ActiveLocEnv(gym.Env):
         if self._renderer is not None:
             self._renderer.close()
             self._renderer = None
-        closer = getattr(self._user, "close", None)
-        if callable(closer):
-            closer()
+        from .drive import close_localizer
+
+        close_localizer(self._user)
 
     def _drive(self) -> str | None:
         """Drive on along the current leg (and through junctions with one branch), fusing frames, until a

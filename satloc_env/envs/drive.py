@@ -256,8 +256,10 @@ def make_localizer(value: Any, track: bool, owner: str = "SatLocEnv") -> tuple[A
         loc = resolve_localizer(value, f"{owner} config.localizer")
         ident = {"source": f"the localizer {localizer_name(loc)!r}"}
     if track:
-        raise ConfigError(f"localizer_track: tracks the built-in localizers ('cross', 'auto', a build directory); "
-                          f"{ident['source']} is your own: it gets every query's odometry and tracks as it likes")
+        named = "'cross', 'auto' or a build directory" if owner == "SatLocEnv" else "'cross' or a build directory"
+        raise ConfigError(f"localizer_track: tracks the localizers the environment makes ({named}); "
+                          f"{ident['source']} is an object given to it, which tracks as it was made (a localizer "
+                          "of your own gets every query's odometry; a built-in one takes track=True where made)")
     return loc, ident
 
 
@@ -324,6 +326,17 @@ def check_localizer_config(cfg, have_instance: bool, allow_auto: bool = True, al
     if cfg.reward == "neg_error" and loc is None:
         raise ConfigError("reward: 'neg_error' needs a localizer (localizer is None)")
     return cfg
+
+
+def close_localizer(loc) -> None:
+    """A localizer's optional ``close()`` (what it holds: a model, files, processes), once."""
+    closer = getattr(loc, "close", None)
+    if callable(closer) and not getattr(loc, "_satloc_closed", False):
+        closer()
+        try:
+            loc._satloc_closed = True
+        except AttributeError:   # slots or a frozen object: it may be closed again
+            pass
 
 
 def is_localizer_spec(value: str) -> bool:
@@ -715,7 +728,8 @@ class SatLocEnv(SharedSpecMixin, gym.Env):
             self.localizer, self._loc_identity = make_localizer(instance if instance is not None else cfg.localizer,
                                                                 cfg.localizer_track)
             engine = getattr(self.localizer, "engine", None)   # the paper's method given as its engine
-            if engine is not None and instance is not None and not callable(getattr(instance, "reset", None)):
+            if (engine is not None and instance is not None and not callable(getattr(instance, "reset", None))
+                    and hasattr(engine.config, "mode")):
                 self.config = dataclasses.replace(cfg, localizer_mode=engine.config.mode,
                                                   localizer_refine=engine.config.refine,
                                                   localizer_track=bool(self.localizer.track))
@@ -1064,6 +1078,7 @@ class SatLocEnv(SharedSpecMixin, gym.Env):
             self._renderer.close()
             self._renderer = None
         self._scene = self._scene_key = None
+        close_localizer(self._loc.localizer)
 
 
 PANEL_PX = 360

@@ -53,6 +53,7 @@ from .drive import (
     check_localizer_camera,
     check_localizer_config,
     check_reset_options,
+    close_localizer,
     compose_view,
     is_localizer_spec,
     make_localizer,
@@ -230,7 +231,8 @@ class SatLocReplayEnv(SharedSpecMixin, gym.Env):
             self._loc.localizer, self._loc_identity = make_localizer(
                 loc_instance if loc_instance is not None else cfg.localizer, cfg.localizer_track, "SatLocReplayEnv")
             engine = getattr(self.localizer, "engine", None)   # the paper's method given as its engine
-            if engine is not None and loc_instance is not None and not callable(getattr(loc_instance, "reset", None)):
+            if (engine is not None and loc_instance is not None and not callable(getattr(loc_instance, "reset", None))
+                    and hasattr(engine.config, "mode")):
                 cfg = dataclasses.replace(cfg, localizer_mode=engine.config.mode, localizer_refine=engine.config.refine,
                                           localizer_track=bool(self.localizer.track))
         elif cfg.localizer not in (None, "cross"):
@@ -268,7 +270,12 @@ class SatLocReplayEnv(SharedSpecMixin, gym.Env):
             if self._blank_map_used:
                 raise ConfigError("localizer: 'cross' localizes against the satellite map; give map= (a map "
                                   "directory or georeferenced imagery of the drive)")
-            key = ("replay", str(cfg.map) if cfg.map not in (None, INSTANCE) else id(sm))
+            import hashlib
+
+            # the map's own pixels and georeference, not where it came from (an object's id may be reused)
+            h = hashlib.sha256(np.ascontiguousarray(sm.image).tobytes())
+            h.update(repr((float(sm.meters_per_pixel), tuple(sm.origin))).encode())
+            key = ("replay", h.hexdigest())
             self._loc.localizer = cross_localizer(sm, self.camera, key).as_localizer(cfg.localizer_track)
             self._loc_identity = {"source": "the cross-view localizer of the replay's map"}
         # spaces
@@ -564,6 +571,7 @@ class SatLocReplayEnv(SharedSpecMixin, gym.Env):
 
     def close(self):
         self._stereo = None
+        close_localizer(self._loc.localizer)
 
 
 # --- helpers ----------------------------------------------------------------------------------------------

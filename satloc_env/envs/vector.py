@@ -63,7 +63,14 @@ class SatLocVectorEnv(VectorEnv):
         self.max_episode_steps = None if limit is None else int(limit)
         self.num_envs = int(num_envs)
         loc = config.get("localizer")
-        loc = unshare(loc)
+        loc = unshare(loc)   # as gym.make's spec holds it
+        if isinstance(loc, str) and self.num_envs > 1:
+            from .drive import is_localizer_spec
+
+            if is_localizer_spec(loc):   # 'module:Name' naming an object: each car gets it, so it must be a maker
+                from satloc.localizers.interface import import_object
+
+                loc = import_object(loc, "localizer")
         if (self.num_envs > 1 and callable(getattr(loc, "localize", None)) and callable(getattr(loc, "reset", None))
                 and not isinstance(loc, type)):
             raise ConfigError(f"localizer: one {type(loc).__name__} object cannot serve {self.num_envs} cars (each "

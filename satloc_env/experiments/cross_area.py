@@ -146,6 +146,9 @@ def run_cross(q: Sequence, sel: np.ndarray, ca: CrossAreaConfig, odometry: np.nd
         res[row] = m
         if row == "cross" and pictures:
             _pictures(ca, label, satmap, sdir, q, sel, priors, m["errors"], out)
+    from .grading import prune_extra
+
+    prune_extra(out, {k for k, _, _ in extra or ()})
     for key, name, obj in extra or ():   # the same queries, priors and odometry, known only from above
         m, _ = run_graded(obj, key, name, context, q, sel, odometry, priors, out, db_poses, label, progress, log,
                           meta={"odometry": odometry_kind})

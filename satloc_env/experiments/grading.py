@@ -32,7 +32,7 @@ from satloc.localizers.reference import REFERENCES, reference_localizer
 from satloc.persist import header, write_json
 
 __all__ = ["REFERENCE_NAMES", "USER_PREFIX", "table_stats", "query_priors", "extra_localizers", "check_extra", "run_graded",
-           "user_key"]
+           "user_key", "prune_extra"]
 
 #: the reference localizers' rows
 REFERENCE_NAMES = {k: v.name for k, v in REFERENCES.items()}
@@ -77,14 +77,27 @@ def user_key(name: str) -> str:
 
 
 def check_extra(cfg) -> None:
-    """:class:`ConfigError` for an unknown reference or a ``localizers`` entry that is not ``module:Name`` (before
-    any work; the objects themselves are made when they run)."""
+    """:class:`ConfigError` for an unknown reference or a ``localizers`` entry that does not name an object
+    (``module:Name``, imported now: before any work; the localizers themselves are made when they run)."""
+    from satloc.localizers.interface import import_object
+
     bad = [r for r in getattr(cfg, "references", ()) if r not in REFERENCES]
     if bad:
         raise ConfigError(f"references: unknown {bad}; expected some of {list(REFERENCES)}")
     for spec in getattr(cfg, "localizers", ()):
         if not isinstance(spec, str) or ":" not in spec or spec.startswith(":") or spec.endswith(":"):
             raise ConfigError(f"localizers: expected 'module:Name' or 'path/to/file.py:Name', got {spec!r}")
+        import_object(spec, f"localizers: {spec}")
+
+
+def prune_extra(out: Path, keep: set[str]) -> None:
+    """Remove the results of reference floors and user's localizers in ``out`` that this run did not produce
+    (``localization_<key>.npz/.json`` for a key of :data:`REFERENCES` or with :data:`USER_PREFIX` not in ``keep``),
+    so that a localizer dropped from the configuration leaves no stale row behind."""
+    for p in Path(out).glob("localization_*"):
+        key = p.name[len("localization_"):].split(".")[0]
+        if (key in REFERENCES or key.startswith(USER_PREFIX)) and key not in keep:
+            p.unlink(missing_ok=True)
 
 
 def extra_localizers(cfg, taken: set[str] = frozenset()) -> list[tuple[str, str, Any]]:
@@ -113,7 +126,11 @@ def run_graded(loc: Any, key: str, name: str, context: Context, q, sel: np.ndarr
     every table row is graded (:func:`table_stats`; ``db_poses``: where the worst
     answer of a query with no answer is measured). Writes ``out/<stem>_<key>.npz`` (the run's arrays) and
     ``.json`` (the summary); returns the summary (with the arrays ``errors`` and ``inlier_score``) and the run."""
-    run = run_localizer(loc, context, q, sel, odometry, priors, progress=progress, on_result=on_result)
+    from satloc.localizers.interface import DEFAULT_POSTERIOR_K
+
+    k = getattr(loc, "posterior_k", DEFAULT_POSTERIOR_K)
+    k = int(k) if isinstance(k, (int, np.integer)) and not isinstance(k, bool) and k > 0 else DEFAULT_POSTERIOR_K
+    run = run_localizer(loc, context, q, sel, odometry, priors, top=k, progress=progress, on_result=on_result)
     run.name = name   # the row's name (the paper's modes: their table names)
     truth = np.asarray(q.poses, np.float64)[np.asarray(sel, np.int64)]
     s = {"mode": key, "name": name, "queries": run.queries, **table_stats(run.errors, truth, db_poses),

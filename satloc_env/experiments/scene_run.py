@@ -440,7 +440,7 @@ def localize_and_report(cfg, label: str, db: Sequence, q: Sequence, sel: np.ndar
     from satloc.localizers.database import DatabaseLocalizer
     from satloc.localizers.interface import Context
 
-    from .grading import extra_localizers, query_priors, run_graded
+    from .grading import extra_localizers, prune_extra, query_priors, run_graded
 
     # tracked modes: the odometry between consecutive evaluated queries (given, or of the query pass itself)
     odo = odometry
@@ -485,8 +485,11 @@ def localize_and_report(cfg, label: str, db: Sequence, q: Sequence, sel: np.ndar
     # the reference floors and the user's localizers, with the same queries, priors and odometry
     others: dict[str, dict] = {}
     extra = extra_localizers(cfg, {METHOD_NAMES[m] for m in cfg.modes})
+    prune_extra(out, {k for k, _, _ in extra})
     if extra:
-        eodo = odo if odo is not None else noisy_odometry(truth, cfg.odometry_noise, cfg.odometry_seed)
+        eodo = odo if odo is not None else noisy_odometry(
+            truth, cfg.odometry_noise, cfg.odometry_seed, scale_error=getattr(cfg, "odometry_scale_error", 0.0),
+            yaw_bias=getattr(cfg, "odometry_yaw_bias", 0.0))
         for key, name, obj in extra:
             s, _ = run_graded(obj, key, name, context, q, sel, eodo, priors, out, db.poses, label, progress, log,
                               meta={"odometry": cfg.odometry if odo is not None else "noisy_truth"})

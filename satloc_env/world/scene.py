@@ -1055,14 +1055,15 @@ def scene_cache_path(path: str, spec: SceneSpec, base: Path, aliasing: float | N
                      satellite_gap: float | None) -> Path | None:
     """Where the disk cache keeps the scene ``path`` built with ``aliasing`` and ``satellite_gap``: under
     ``$SATLOC_CACHE/scenes``, named by a digest of the scene's files (its YAML and, for scenes over imagery or map
-    vectors, those files), the knobs, the satloc version and the simulator's world code (:mod:`satloc_env.world`),
-    so that an edit of any of them misses. None where a file cannot be read."""
+    vectors, those files), the knobs, the satloc version, the code that builds it (:mod:`satloc_env.world`,
+    the data model's modules, :mod:`satloc.geodata`) and the versions of the libraries that paint and read it,
+    so that an edit or an upgrade of any of them misses. None where a file cannot be read."""
     import hashlib
     import json
 
     from satloc import __version__
 
-    from .cache import cache_root, code_digest
+    from .cache import cache_root, code_digest, library_versions
 
     h = hashlib.sha256()
     try:
@@ -1074,7 +1075,15 @@ def scene_cache_path(path: str, spec: SceneSpec, base: Path, aliasing: float | N
             h.update(name.encode() + b"\0" + Path(f).read_bytes() + b"\0")
     except (OSError, ConfigError):   # a file missing or unreadable: not cached (building it says what is wrong)
         return None
-    h.update(json.dumps([aliasing, satellite_gap, __version__, code_digest(str(Path(__file__).parent))]).encode())
+    import satloc
+
+    sat = Path(satloc.__file__).parent
+    code = [code_digest(str(Path(__file__).parent)),            # the world's code
+            code_digest(str(sat), recursive=False),             # the data model it builds on (labels, maps, ...)
+            code_digest(str(sat / "geodata"))]                  # imagery and map vectors
+    libs = library_versions("numpy", "opencv-python-headless", "opencv-python", "trimesh", "shapely", "pyproj",
+                            "rasterio", "scikit-image", "scipy", "networkx", "pyogrio")
+    h.update(json.dumps([aliasing, satellite_gap, __version__, code, libs]).encode())
     return cache_root() / "scenes" / f"{spec.name}-{h.hexdigest()[:20]}"
 
 
