@@ -382,3 +382,26 @@ def test_cross_area_protocol_beside_the_database_rows(tmp_path):
     table = json.loads((tmp_path / "table1.json").read_text())["rows"]
     assert [(r["protocol"], r["method"]) for r in table] == [(r["protocol"], r["method"]) for r in rows]
     assert len(t) == 2 and all(p.stat().st_mtime_ns == m for p, m in t.items())
+
+
+def test_kitti_city_protocol_splits_one_dense_pass(tmp_path):
+    """The paper's KITTI-City protocol as it ran it: one pass with a frame every 0.77 m (7.7 m/s, a frame per
+    0.1 s step), a seeded random 40 % of it the database and the rest the queries."""
+    from satloc_env.experiments.tables import table1
+
+    small = {"database_frames": 24, "query_frames": 3, "query_spacing_m": 6.0, "features": "rgb", "modes": ["go"],
+             "compare": {"baselines": []}, "pictures": False, "protocols": ["kitti-city"],
+             "kitti_city_length_m": 25.0}
+    rows = table1(tmp_path, ("city",), small, progress=False, log=lambda m: None)
+    assert [(r["protocol"], r["method"]) for r in rows] == [("kitti-city", m) for m in
+                                                           ("Ours-GO", "Prior alone", "Dead reckoning")]
+    p = Sequence.load(tmp_path / "city" / "protocol_kitti-city" / "pass")
+    gaps = np.hypot(*np.diff(p.poses[:, :2], axis=0).T)
+    # a frame at every 0.1 s step at 7.7 m/s, its speed drifting by 10 % (over 25 m the drift's slow start shows)
+    assert len(p) == int(np.ceil(25.0 / 0.77)) + 1 and np.allclose(np.diff(p.timestamps), 0.1)
+    assert 0.5 < gaps.mean() < 1.0, gaps.mean()
+    n_db = round(0.4 * len(p))
+    assert rows[0]["queries"] == len(p) - n_db
+    build = json.loads((tmp_path / "city" / "protocol_kitti-city" / "build_stage.json").read_text())
+    assert len(build["config"]["database_frames"]) == n_db and build["config"]["protocol"] == "kitti-city"
+    assert "kitti-city" in (tmp_path / "table1.csv").read_text()

@@ -836,25 +836,58 @@ def plot_sweep(rows: list[dict], path: Path) -> None:
 
 def protocol_split(protocol: str, n: int, fraction: float = 0.4, seed: int = 0, step: int = 8
                    ) -> tuple[np.ndarray, np.ndarray | None]:
-    """Database frame indices of a Table I protocol over a database pass of ``n`` frames, and for ``city``
-    the query indices (the rest of the pass): ``city``: a random ``round(fraction * n)`` frames (seeded by
-    ``seed``), sorted; ``residential``: every ``step``-th frame from the first (queries: a second pass)."""
-    if protocol == "city":
+    """Database frame indices of a Table I protocol over a pass of ``n`` frames, and for ``city`` and
+    ``kitti-city`` the query indices (the rest of the pass): there a random ``round(fraction * n)`` frames
+    (seeded by ``seed``), sorted; ``residential``: every ``step``-th frame from the first (queries: a second
+    pass)."""
+    if protocol in ("city", "kitti-city"):
         perm = np.random.default_rng(seed).permutation(n)
         k = int(round(fraction * n))
         return np.sort(perm[:k]), np.sort(perm[k:])
     if protocol == "residential":
         return np.arange(0, n, max(1, int(step))), None
-    raise ConfigError(f"protocol: expected 'city' or 'residential', got {protocol!r}")
+    raise ConfigError(f"protocol: expected 'city', 'kitti-city' or 'residential', got {protocol!r}")
+
+
+def _kitti_city_pass(cfg: ExperimentConfig, label: str, pdir: Path, db_full: Sequence, rc: dict, progress: bool,
+                     log) -> Sequence:
+    """The kitti-city protocol's one pass (:data:`satloc_env.experiments.scene_run.KITTI_CITY_LENGTH_M` or
+    ``cfg.kitti_city_length_m`` of the database route, at the database pass's lane and conditions, drifting, at
+    :data:`~satloc_env.experiments.scene_run.KITTI_CITY_SPEED_MPS` with a frame at every 0.1 s step: a frame
+    every 0.77 m on average), recorded into ``pdir/pass`` unless done for the same settings."""
+    from .scene_run import KITTI_CITY_SEED, KITTI_CITY_SPEED_MPS
+
+    db_pass = rc.get("database", {})
+    step_m = KITTI_CITY_SPEED_MPS * 0.1
+    p = PassConfig(route=db_pass.get("route"), lane_offset_m=db_pass.get("lane_offset_m", -1.75), spacing_m=0.5,
+                   max_frames=int(np.ceil(cfg.kitti_city_length_m / step_m)) + 1, seed=KITTI_CITY_SEED,
+                   wander_m=cfg.wander_m, speed_wander=cfg.speed_wander)
+    prc = {"pass": to_dict(p, stamp=True), "speed_mps": KITTI_CITY_SPEED_MPS, "record": rc}
+    if not _stage_done(pdir / "record.json", prc):
+        log(f"[{label}] recording the kitti-city pass ({cfg.kitti_city_length_m:g} m, a frame every {step_m:.2f} m)")
+        env = make_env(scene=cfg.scene, resolution=rc.get("resolution", "half"), aliasing=cfg.aliasing,
+                       speed_mps=KITTI_CITY_SPEED_MPS, depth=p.depth, labels=False, localizer=None,
+                       satellite_gap=cfg.satellite_gap)
+        try:
+            env.reset(seed=p.seed)
+            route = p.route or env.scene.spec.database_route
+            record_pass(env, p, route, pdir / "pass", "kitti-city pass", progress, dict(db_full.meta))
+        finally:
+            env.close()
+        _stamp(pdir / "record.json", prc)
+    return Sequence.load(pdir / "pass")
 
 
 def _protocol(cfg: ExperimentConfig, protocol: str, label: str, sdir: Path, db_full: Sequence, rc: dict,
               progress: bool, log) -> dict:
-    """Table I's ``city`` or ``residential`` protocol on the scene folder ``sdir`` (its recorded database pass
-    and its map), in ``sdir/protocol_<protocol>``: the dictionary and the projections of the protocol's database
-    frames alone; returns :func:`satloc_env.experiments.tables.compare`."""
+    """Table I's ``city``, ``kitti-city`` or ``residential`` protocol on the scene folder ``sdir`` (its recorded
+    database pass and its map), in ``sdir/protocol_<protocol>``: the dictionary and the projections of the
+    protocol's database frames alone; returns :func:`satloc_env.experiments.tables.compare`. ``kitti-city`` splits
+    a pass of its own (:func:`_kitti_city_pass`) as ``city`` splits the database pass."""
     pdir = sdir / f"protocol_{protocol}"
     pdir.mkdir(exist_ok=True)
+    if protocol == "kitti-city":
+        db_full = _kitti_city_pass(cfg, label, pdir, db_full, rc, progress, log)
     speed = float(rc.get("speed_mps", RecordConfig().speed_mps))
     # one frame per second: the pass's frames as recorded lie further apart than its spacing_m (at most one
     # per simulator step: 1.6 m at 8 m/s for spacing_m 1), so the step is measured on its poses
@@ -867,11 +900,14 @@ def _protocol(cfg: ExperimentConfig, protocol: str, label: str, sdir: Path, db_f
     dbi, qi = protocol_split(protocol, len(db_full), cfg.city_database_fraction, cfg.split_seed, step)
     db = db_full.view(dbi, name=f"{protocol} protocol database")
     source = {"record": rc, "protocol": protocol, "database_frames": [int(i) for i in dbi]}
+    if protocol == "kitti-city":   # its own pass: a pass recorded anew is built anew
+        source["pass"] = read_json(pdir / "record.json")["config"]
     odo = None
-    if protocol == "city":
+    if protocol in ("city", "kitti-city"):
         q, sel = db_full.view(qi, name=f"{protocol} protocol queries"), np.arange(len(qi))
-        if is_tracked(cfg):   # over the database pass, between the queries
-            odo = tracked_odometry(cfg, db_full, qi, sdir / "odometry_visual_database.npz")
+        if is_tracked(cfg):   # over the pass, between the queries
+            cache = sdir / "odometry_visual_database.npz" if protocol == "city" else pdir / "odometry_visual.npz"
+            odo = tracked_odometry(cfg, db_full, qi, cache)
     else:
         # a second pass over the database's route at one frame per second (the revisit pass's lane,
         # appearance and occluders, another seed; recorded densely for visual odometry)
