@@ -157,8 +157,8 @@ def cmd_experiment(args) -> int:
             raise SatlocError(f"{p}: config file not found")
         config = yaml.safe_load(p.read_text()) or {}
     log = (lambda *a, **k: None) if args.quiet else (lambda m: print(m, file=sys.stderr, flush=True))
-    if args.ray is not None and args.which not in ("table1", "table2", "sweep", "gap"):
-        raise SatlocError(f"--ray: only table1, table2, sweep and gap run on Ray, not {args.which}")
+    if args.ray is not None and args.which not in ("table1", "table2", "sweep", "gap", "fidelity"):
+        raise SatlocError(f"--ray: only table1, table2, sweep, gap and fidelity run on Ray, not {args.which}")
     from satloc_env.experiments.scale import Runner
 
     with Runner(ray=args.ray is not None, address=args.ray, exact=args.ray_threads == "serial") as runner:
@@ -181,6 +181,13 @@ def cmd_experiment(args) -> int:
             print((Path(args.out) / "sweep.md").read_text(), end="")
             extra = f", {Path(args.out) / 'gap.png'}" if args.which == "gap" else ""
             print(f"written: {Path(args.out) / 'sweep.csv'}, {Path(args.out) / 'sweep.png'}{extra}")
+            return 0
+        if args.which == "fidelity":
+            from satloc_env.experiments.fidelity import fidelity
+
+            fidelity(args.out, config, progress=not args.quiet, log=log, runner=runner)
+            print((Path(args.out) / "fidelity.md").read_text(), end="")
+            print(f"written: {Path(args.out) / 'fidelity.csv'}, {Path(args.out) / 'fidelity.json'}")
             return 0
         if args.which == "table1":
             config = _with_localizers(config, args.localizer)
@@ -545,8 +552,10 @@ def build_parser() -> argparse.ArgumentParser:
                                            "occlusion x appearance x satellite gap); gap (each method's error "
                                            "against the satellite map's capture gap); aliasing (how often each "
                                            "single-image cue prefers a look-alike place); tune (the tuned "
-                                           "settings chosen on a calibration scene no table tests on)")
-    ex.add_argument("which", choices=["table1", "table2", "sweep", "gap", "aliasing", "tune"])
+                                           "settings chosen on a calibration scene no table tests on); fidelity "
+                                           "(the default world against the paper's real KITTI figures and real "
+                                           "street frames)")
+    ex.add_argument("which", choices=["table1", "table2", "sweep", "gap", "aliasing", "tune", "fidelity"])
     ex.add_argument("--out", required=True)
     ex.add_argument("--scenes", nargs="+", default=["city", "residential"])
     ex.add_argument("--config", help="YAML with ExperimentConfig fields (satloc_env/experiments/scene_run.py); table2: "

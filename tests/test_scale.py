@@ -70,7 +70,7 @@ def test_ray_missing_and_ray_for_another_experiment(monkeypatch, tmp_path, capsy
     assert "pip install" in capsys.readouterr().err
     monkeypatch.undo()
     assert main(["experiment", "aliasing", "--out", str(tmp_path), "--ray"]) == 2
-    assert "only table1, table2, sweep and gap" in capsys.readouterr().err
+    assert "only table1, table2, sweep, gap and fidelity" in capsys.readouterr().err
 
 
 def test_sweep_on_ray_matches_serial_and_a_rerun_skips_finished_stages(cluster, tmp_path, capsys):
