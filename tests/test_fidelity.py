@@ -46,3 +46,25 @@ def test_fidelity_report_on_a_tiny_section(tmp_path):
     assert "ORB keypoints" in md and "**kitti-city** on `city`, aliasing 0" in md
     with pytest.raises(ConfigError, match="unknown \\['revisit'\\]"):
         fidelity(tmp_path / "g", {"protocols": ["revisit"]}, progress=False, log=lambda m: None)
+
+
+def test_fidelity_images_at_each_variety(tmp_path):
+    import yaml
+
+    scene = {"name": "tiny", "seed": 3,
+             "generator": {"type": "grid", "style": "city", "blocks": [2, 2], "pitch_m": 60, "margin_m": 10},
+             "meters_per_pixel": 0.2, "ground_mpp": 0.2,
+             "routes": {"main": {"waypoints": [[10, 10], [130, 10], [130, 130], [10, 130]], "closed": True}}}
+    path = tmp_path / "tiny.yaml"
+    path.write_text(yaml.safe_dump(scene))
+    cfg = {"aliasing": [0.0], "protocols": [], "image_scenes": [str(path)], "frames": 3, "variety": [0.0, 1.0],
+           "reference_images": str(tmp_path / "none")}
+    rep = fidelity(tmp_path / "f", cfg, progress=False, log=lambda m: None)
+    assert [i["source"] for i in rep["images"]] == [f"{path} (aliasing 0, variety 0)",
+                                                    f"{path} (aliasing 0, variety 1)"]
+    copy = yaml.safe_load((tmp_path / "f" / "scenes" / "tiny_variety1.yaml").read_text())
+    assert copy["generator"]["variety"] == 1.0 and copy["routes"] == scene["routes"]
+    pic = cv2.imread(str(tmp_path / "f" / "pictures_tiny.jpg"))
+    assert pic.shape == (2 * (188 + 4), 3 * 620, 3)        # a row per variety: the same three places
+    with pytest.raises(ConfigError, match="variety: expected values in"):
+        fidelity(tmp_path / "g", dict(cfg, variety=[2.0]), progress=False, log=lambda m: None)

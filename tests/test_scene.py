@@ -132,3 +132,73 @@ def test_route_sampling_and_projection():
     assert loop.project((5.0, 0.0), s_hint=42.0)[0] == pytest.approx(45.0)
     with pytest.raises(ValueError, match="laps > 1 needs a closed route"):
         Route([[0, 0], [1, 0]], laps=2)
+
+
+def _objects(lay):
+    return ([b.footprint.tolist() for b in lay.buildings], [t.center for t in lay.trees],
+            [c.center for c in lay.cars])
+
+
+def test_variety_gives_objects_their_own_looks_and_moves_nothing():
+    p0 = GridParams(blocks=(2, 2), pitch_m=60, margin_m=10)
+    p1 = GridParams(blocks=(2, 2), pitch_m=60, margin_m=10, variety=1.0)
+    lay0, _ = generate_grid(p0, 3, 0.0, 0.2)
+    lay1, _ = generate_grid(p1, 3, 0.0, 0.2)
+    # variety 0: the one look of each kind, as before the knob
+    assert all(b.style_seed is None for b in lay0.buildings)
+    assert {t.species for t in lay0.trees} == {0} and {c.body for c in lay0.cars} == {0}
+    # variety 1: every object its own, all of variety 0's objects where they stood, more cars and trees
+    b0, t0, c0 = _objects(lay0)
+    b1, t1, c1 = _objects(lay1)
+    assert b1 == b0
+    assert set(map(tuple, t0)) <= set(map(tuple, t1)) and set(map(tuple, c0)) <= set(map(tuple, c1))
+    assert len(c1) > len(c0) and len(t1) > len(t0)
+    seeds = [b.style_seed for b in lay1.buildings]
+    assert None not in seeds and len(set(seeds)) == len(seeds)
+    assert {t.species for t in lay1.trees} <= {1, 2, 3, 4} and len({t.species for t in lay1.trees}) >= 2
+    assert {c.body for c in lay1.cars} <= {1, 2, 3, 4, 5} and len({c.body for c in lay1.cars}) >= 3
+    # the worn road: the same labels, other pixels on the road
+    assert np.array_equal(lay0.ground_labels, lay1.ground_labels)
+    road = lay0.ground_labels == CLASS_ID["road"]
+    assert not np.array_equal(lay0.ground_rgb[road], lay1.ground_rgb[road])
+    # deterministic per seed
+    again, _ = generate_grid(p1, 3, 0.0, 0.2)
+    assert np.array_equal(again.ground_rgb, lay1.ground_rgb)
+    assert [b.style_seed for b in again.buildings] == seeds
+    assert [(c.body, c.rgb, c.length) for c in again.cars] == [(c.body, c.rgb, c.length) for c in lay1.cars]
+
+
+def test_variety_aliased_blocks_copy_their_looks():
+    p = GridParams(blocks=(3, 3), pitch_m=60, margin_m=10, variety=1.0)
+    lay, src = generate_grid(p, 5, 0.5, 0.2)
+    copies = [(i, s) for i, s in enumerate(src) if s != i]
+
+    def looks(k):
+        x0, y0 = 10 + (k % 3) * 60, 10 + (k // 3) * 60
+        inside = lambda xy: x0 <= xy[0] < x0 + 60 and y0 <= xy[1] < y0 + 60  # noqa: E731
+        return (sorted(b.style_seed for b in lay.buildings if inside(b.footprint.mean(0))),
+                sorted((t.species, t.shade) for t in lay.trees if inside(t.center)),
+                sorted((c.body, c.rgb) for c in lay.cars if inside(c.center)))
+
+    for i, s in copies:
+        assert looks(i) == looks(s)
+    assert sum(len(looks(i)[0]) for i, _ in copies) > 0 and sum(len(looks(i)[2]) for i, _ in copies) > 0
+
+
+def test_variety_round_trips_and_builds_its_world(tmp_path):
+    import copy
+
+    d = copy.deepcopy(SMALL)
+    d["generator"]["variety"] = 1.0
+    s = load_scene(write(tmp_path, d))
+    assert s.spec.beyond_edge == "mirror"   # a street goes on past the map's edge
+    s.save(tmp_path / "saved")
+    r = Scene.load(tmp_path / "saved")
+    assert [b.style_seed for b in r.layout.buildings] == [b.style_seed for b in s.layout.buildings]
+    assert [t.species for t in r.layout.trees] == [t.species for t in s.layout.trees]
+    assert [c.body for c in r.layout.cars] == [c.body for c in s.layout.cars]
+    world = s.spec.build_world(s.layout)
+    assert sum(len(c.faces) for c in world.chunks) > 0
+    d["generator"]["variety"] = 1.5
+    with pytest.raises(ConfigError, match=r"generator\.variety: expected a number from 0 to 1"):
+        load_scene(write(tmp_path, d, "bad.yaml"))

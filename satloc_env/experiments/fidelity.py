@@ -16,6 +16,12 @@ controls aliasing):
   (seed 0), beside the same statistics of real street frames where they are at hand (KITTI raw frames resized
   to 620x188, e.g. ``../shared/realdata``).
 
+With ``variety`` (a list of values of the grid generator's ``variety``,
+:mod:`satloc_env.world.variety`), the image statistics are measured on each scene at each, from a copy of its
+scene file with that value (``out/scenes/<scene>_variety<v>.yaml``), and ``pictures_<scene>.jpg`` shows the same
+places (the 1st, middle and last rendered frame) at each, a row per value (``<scene>``: the file's stem for a
+path).
+
 Writes ``fidelity.md``, ``fidelity.csv`` and ``fidelity.json`` into ``out``; the Table I runs live in
 ``out/a<aliasing>/`` and are reused when run again.
 """
@@ -58,6 +64,8 @@ class FidelityConfig:
     reference_images: str | None = None   # a folder of real street frames (PNG/JPEG, searched recursively);
                                           # None: ../shared/realdata beside the checkout, where it is
     frames: int = 15                      # rendered frames per scene: one every 20 steps of the autopilot
+    variety: tuple[float, ...] = ()       # the image statistics at each of these generator variety values
+                                          # (grid scenes; empty: the scenes as they are)
 
     def __post_init__(self):
         bad = [p for p in self.protocols if p not in PAPER]
@@ -65,6 +73,8 @@ class FidelityConfig:
             raise ConfigError(f"fidelity protocols: unknown {bad}; expected some of {list(PAPER)}")
         if not self.aliasing or any(not 0 <= a <= 1 for a in self.aliasing):
             raise ConfigError(f"fidelity aliasing: expected values in [0, 1], got {list(self.aliasing)}")
+        if any(not 0 <= v <= 1 for v in self.variety):
+            raise ConfigError(f"fidelity variety: expected values in [0, 1], got {list(self.variety)}")
 
 
 def orb_keypoints(gray: np.ndarray) -> int:
@@ -137,6 +147,41 @@ def real_frames(folder: str | os.PathLike) -> list:
     return out
 
 
+def variety_scene(scene: str, variety: float, folder: Path) -> Path:
+    """A copy of the grid scene file ``scene`` (a shipped name or a path to a YAML file) with
+    ``generator.variety`` set, written into ``folder`` as ``<name>_variety<v>.yaml``."""
+    import yaml
+
+    from satloc_env.world.scene import SCENES_DIR
+
+    src = Path(scene) if str(scene).endswith((".yaml", ".yml")) else SCENES_DIR / f"{scene}.yaml"
+    if not src.is_file():
+        raise ConfigError(f"fidelity variety: no scene file {src}")
+    data = yaml.safe_load(src.read_text())
+    gen = data.get("generator") if isinstance(data, dict) else None
+    if not isinstance(gen, dict) or gen.get("type", "grid") != "grid":
+        raise ConfigError(f"fidelity variety: {src}: variety is a grid generator's field; this scene has none")
+    name = f"{data.get('name', src.stem)}_variety{variety:g}"
+    data = dict(data, name=name, generator=dict(gen, variety=float(variety)))
+    folder.mkdir(parents=True, exist_ok=True)
+    dst = folder / f"{name}.yaml"
+    with atomic_path(dst, suffix=".yaml") as tmp:
+        tmp.write_text(yaml.safe_dump(data, sort_keys=False))
+    return dst
+
+
+def _write_pictures(path: Path, rows: list[list]) -> None:
+    """A row per list of frames: its first, middle and last frame side by side."""
+    strips = []
+    for frames in rows:
+        pick = [frames[0], frames[len(frames) // 2], frames[-1]] if len(frames) >= 3 else list(frames)
+        strips.append(np.hstack([cv2.resize(f, (620, 188)) for f in pick]))
+    width = max(s.shape[1] for s in strips)
+    img = np.vstack([np.pad(s, ((0, 4), (0, width - s.shape[1]), (0, 0)), constant_values=255) for s in strips])
+    with atomic_path(path, suffix=".jpg") as tmp:
+        cv2.imwrite(str(tmp), cv2.cvtColor(img, cv2.COLOR_RGB2BGR), [cv2.IMWRITE_JPEG_QUALITY, 88])
+
+
 def _default_reference() -> Path | None:
     p = Path(__file__).resolve().parents[2].parent / "shared" / "realdata"
     return p if p.is_dir() else None
@@ -175,12 +220,22 @@ def fidelity(out: str | Path, config: dict | None = None, progress: bool = True,
     cfg = from_dict(FidelityConfig, dict(config or {}), "fidelity config")
     images = []
     if cfg.images:
+        shown: dict[str, list] = {}
         for a in cfg.aliasing:
             for scene in cfg.image_scenes:
-                s = image_stats(rendered_frames(scene, a, cfg.frames))
-                images.append({"source": f"{scene} (aliasing {a:g})", **s})
-                log(f"[fidelity] {scene} at aliasing {a:g}: {s['orb_keypoints']} ORB keypoints, spectral slope "
-                    f"{s['spectral_slope']:.2f} ({s['frames']} frames)")
+                for v in cfg.variety or (None,):
+                    path = scene if v is None else variety_scene(scene, v, out / "scenes")
+                    frames = rendered_frames(str(path), a, cfg.frames)
+                    s = image_stats(frames)
+                    label = f"{scene} (aliasing {a:g}" + ("" if v is None else f", variety {v:g}") + ")"
+                    images.append({"source": label, **s})
+                    log(f"[fidelity] {label}: {s['orb_keypoints']} ORB keypoints, spectral slope "
+                        f"{s['spectral_slope']:.2f} ({s['frames']} frames)")
+                    if v is not None and a == cfg.aliasing[0]:
+                        shown.setdefault(scene, []).append(frames)
+        for scene, rows in shown.items():
+            if len(rows) > 1:
+                _write_pictures(out / f"pictures_{Path(scene).stem}.jpg", rows)
         ref = Path(cfg.reference_images) if cfg.reference_images else _default_reference()
         if ref is not None:
             frames = real_frames(ref)

@@ -5,9 +5,15 @@ A grid scene has ``nx x ny`` cells of ``pitch`` metres, road centre lines on the
 ``margin`` of open land (with the roads continuing to the edge) around them. Each cell is painted in its own
 coordinates from a cell seed, so an *aliased* cell (one that reuses another cell's seed) is an exact copy of
 it: the same layout, objects and texture.
+
+``variety`` (0 to 1, :mod:`satloc_env.world.variety`) gives that share of the objects looks of their own (a facade
+grammar, a tree species, a car body and colour), parks more cars at the kerbs and plants more street trees, and
+wears the road surface. Its draws come from a generator of their own, so at ``variety`` 0 a scene is exactly what
+it was before the knob, and at any ``variety`` every object stands where it stood.
 """
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass
 from typing import Literal
@@ -18,6 +24,7 @@ from satloc.labels import CLASS_ID as C
 
 from .layout import Building, Car, Layout, Tree
 from .paint import fill_poly, noise, tint, to_px
+from .variety import BODIES, SPECIES, car_body, car_colour, road_wear
 
 LANE_W = 3.5            # metres, one driving lane
 MARK_W = 0.15           # lane marking width
@@ -31,6 +38,7 @@ class GridParams:
     road_width_m: float = 12.0
     sidewalk_m: float = 3.0
     margin_m: float = 20.0
+    variety: float = 0.0    # satloc_env.world.variety: objects of their own, denser kerbs, a worn road (0: none)
 
     def size_m(self) -> tuple[float, float]:
         return (self.blocks[0] * self.pitch_m + 2 * self.margin_m, self.blocks[1] * self.pitch_m + 2 * self.margin_m)
@@ -89,6 +97,7 @@ class CellPainter:
     def __init__(self, p: GridParams, mpp: float, seed: int):
         self.p, self.mpp = p, mpp
         self.rng = np.random.default_rng(seed)
+        self.vrng = np.random.default_rng([seed, 4242])   # variety's own draws: the layout's stay as they were
         self.n = int(round(p.pitch_m / mpp))
         self.labels = np.full((self.n, self.n), C["sidewalk"], np.uint8)
         self.buildings: list[Building] = []
@@ -115,9 +124,12 @@ class CellPainter:
             self._residential_block(inner0, inner1)
         self._street_trees(hr, inner0, inner1)
         self._curb_cars(hr)
+        if p.variety > 0:
+            self._more_street_objects(hr, inner0, inner1)
         self._markings(hr)
         rgb = np.zeros((self.n, self.n, 3), np.uint8)
         _paint_base(self.labels, rgb, self.rng, self.mpp)
+        road_wear(self.labels, rgb, self.vrng, self.mpp, p.variety, C["road"], C["sidewalk"])
         self._parking_stripes(rgb)
         return rgb
 
@@ -141,8 +153,8 @@ class CellPainter:
                     inset = r.uniform(0.0, 1.5)
                     fp = np.array([[xa + inset, ya + inset], [xb - inset, ya + inset], [xb - inset, yb - inset],
                                    [xa + inset, yb - inset]])
-                    self.buildings.append(Building(fp, float(r.uniform(8, 30)), int(r.integers(0, 8)),
-                                                   _roof_rgb(r, 95, 175)))
+                    self.buildings.append(self._styled(Building(fp, float(r.uniform(8, 30)), int(r.integers(0, 8)),
+                                                                _roof_rgb(r, 95, 175))))
                     self.rect(xa + inset, ya + inset, xb - inset, yb - inset, C["building"])
                 elif kind == "parking":
                     self.rect(xa + 1, ya + 1, xb - 1, yb - 1, C["parking"])
@@ -169,8 +181,8 @@ class CellPainter:
                 y_front = i0 + setback if side == 0 else i1 - setback
                 y0, y1 = (y_front, y_front + hd) if side == 0 else (y_front - hd, y_front)
                 fp = np.array([[cx - hw / 2, y0], [cx + hw / 2, y0], [cx + hw / 2, y1], [cx - hw / 2, y1]])
-                self.buildings.append(Building(fp, float(r.uniform(5.5, 9)), int(r.integers(0, 8)),
-                                               _roof_rgb(r, 70, 150)))
+                self.buildings.append(self._styled(Building(fp, float(r.uniform(5.5, 9)), int(r.integers(0, 8)),
+                                                            _roof_rgb(r, 70, 150))))
                 self.rect(fp[0, 0], y0, fp[1, 0], y1, C["building"])
                 # driveway from the sidewalk to the house, beside it
                 dx = cx + hw / 2 + 0.5 if cx + hw / 2 + 3.5 < xb else cx - hw / 2 - 3.5
@@ -207,19 +219,73 @@ class CellPainter:
                     fill_poly(self.labels, q, C["lane_marking"])
                 x += 2.6
 
-    def _car(self, x, y, yaw) -> Car:
+    def _styled(self, b: Building) -> Building:
+        """``b`` with a facade of its own (a style seed) for a share ``variety`` of the buildings."""
+        v = self.vrng
+        if self.p.variety > 0 and v.random() < self.p.variety:
+            b.style_seed = int(v.integers(0, 2**31 - 1))
+        return b
+
+    def _car(self, x, y, yaw, own: bool = False) -> Car:
+        """A parked car: one of ``variety`` 0's (the layout's draws, always made), or for a share ``variety`` of
+        them (``own``: always) a body type and colour of its own (variety's draws)."""
         r = self.rng
         palette = [(200, 200, 205), (30, 30, 35), (150, 25, 30), (40, 60, 120), (120, 120, 125), (230, 230, 230),
                    (60, 90, 60), (170, 140, 90)]
-        return Car((float(x), float(y)), float(yaw), float(r.uniform(3.9, 4.8)), float(r.uniform(1.7, 1.9)),
-                   float(r.uniform(1.4, 1.6)), palette[int(r.integers(len(palette)))])
+        car = Car((float(x), float(y)), float(yaw), float(r.uniform(3.9, 4.8)), float(r.uniform(1.7, 1.9)),
+                  float(r.uniform(1.4, 1.6)), palette[int(r.integers(len(palette)))])
+        v = self.vrng
+        if own or (self.p.variety > 0 and v.random() < self.p.variety):
+            body = car_body(v)
+            spec = BODIES[body]
+            car = Car(car.center, car.yaw, float(v.uniform(*spec["length"])), float(v.uniform(*spec["width"])),
+                      float(v.uniform(*spec["height"])), car_colour(v), body)
+        return car
 
-    def _tree(self, x, y) -> None:
+    def _tree(self, x, y, own: bool = False) -> None:
+        """A tree: one of ``variety`` 0's (the layout's draws, always made), or for a share ``variety`` of them
+        (``own``: always) a species of its own with its size (variety's draws)."""
         r = self.rng
         rad = float(r.uniform(1.8, 3.8))
         bottom = float(r.uniform(2.0, 3.5))
-        self.trees.append(Tree((float(x), float(y)), rad, bottom, bottom + float(r.uniform(2.5, 6.0)),
-                               int(r.integers(0, 4))))
+        tree = Tree((float(x), float(y)), rad, bottom, bottom + float(r.uniform(2.5, 6.0)), int(r.integers(0, 4)))
+        v = self.vrng
+        if own or (self.p.variety > 0 and v.random() < self.p.variety):
+            sp = int(v.choice(list(SPECIES), p=[0.45, 0.15, 0.15, 0.25]))
+            s = SPECIES[sp]
+            bottom = float(v.uniform(*s["bottom"]))
+            tree = Tree(tree.center, float(v.uniform(*s["radius"])), bottom, bottom + float(v.uniform(*s["crown"])),
+                        int(v.integers(0, len(s["leaf"]))), sp)
+        self.trees.append(tree)
+
+    def _more_street_objects(self, hr, i0, i1) -> None:
+        """``variety``: kerbs lined with more parked cars and sidewalks with more trees, as streets have them
+        (variety's draws; none within a car's length of a parked car or a tree's crown of a tree)."""
+        v, P = self.vrng, self.p.pitch_m
+        city = self.p.style == "city"
+        off_car = hr - 1.2
+        taken = np.array([c.center for c in self.cars] or np.zeros((0, 2)), np.float64).reshape(-1, 2)
+        p_car = self.p.variety * (0.55 if city else 0.4)
+        for side in range(4):
+            t = hr + 6 + v.uniform(0, 3)
+            while t < P - hr - 6:
+                x, y, yaw = ((t, off_car, 0.0), (t, P - off_car, math.pi), (off_car, t, -math.pi / 2),
+                             (P - off_car, t, math.pi / 2))[side]
+                if v.random() < p_car and (len(taken) == 0 or np.hypot(*(taken - (x, y)).T).min() > 5.2):
+                    c = self._car(x, y, yaw + (math.pi if v.random() < 0.15 else 0.0), own=True)
+                    self.cars.append(c)
+                    taken = np.vstack([taken, c.center])
+                t += v.uniform(5.3, 6.2)
+        off_tree = hr + self.p.sidewalk_m * 0.55
+        trees = np.array([tr.center for tr in self.trees] or np.zeros((0, 2)), np.float64).reshape(-1, 2)
+        p_tree = self.p.variety * (0.3 if city else 0.45)
+        t = i0 + 3
+        while t < i1 - 3:
+            for x, y in ((t, off_tree), (t, P - off_tree), (off_tree, t), (P - off_tree, t)):
+                if v.random() < p_tree and (len(trees) == 0 or np.hypot(*(trees - (x, y)).T).min() > 5.0):
+                    self._tree(x, y, own=True)
+                    trees = np.vstack([trees, (x, y)])
+            t += v.uniform(6, 9)
 
     def _street_trees(self, hr, i0, i1) -> None:
         r = self.rng
@@ -286,11 +352,8 @@ def _ordered(x0, y0, x1, y1):
 
 def _shift(obj, dx: float, dy: float):
     if isinstance(obj, Building):
-        return Building(obj.footprint + np.array([dx, dy]), obj.height, obj.facade, obj.roof_rgb)
-    if isinstance(obj, Tree):
-        return Tree((obj.center[0] + dx, obj.center[1] + dy), obj.canopy_radius, obj.canopy_bottom, obj.canopy_top,
-                    obj.shade)
-    return Car((obj.center[0] + dx, obj.center[1] + dy), obj.yaw, obj.length, obj.width, obj.height, obj.rgb)
+        return dataclasses.replace(obj, footprint=obj.footprint + np.array([dx, dy]))
+    return dataclasses.replace(obj, center=(obj.center[0] + dx, obj.center[1] + dy))
 
 
 def generate_grid(p: GridParams, seed: int, aliasing: float, mpp: float) -> tuple[Layout, np.ndarray]:

@@ -21,6 +21,8 @@ class Building:
     roof_from_ground: bool = False   # the roof shows the layout's ground image under it (real imagery)
     base: float = 0.0          # metres above the ground the walls start at (OSM min_height)
     roof: str = "flat"         # "flat", or "gabled" (a ridge along a rectangular footprint's long axis)
+    style_seed: int | None = None   # a facade of its own drawn from this seed (satloc_env.world.variety); None: the
+                                    # ``facade`` style
 
 
 @dataclass
@@ -30,6 +32,7 @@ class Tree:
     canopy_bottom: float       # trunk height, metres
     canopy_top: float          # metres
     shade: int = 0             # foliage colour variant
+    species: int = 0           # satloc_env.world.variety.SPECIES (0: the one tree of variety 0)
 
 
 @dataclass
@@ -40,6 +43,7 @@ class Car:
     width: float = 1.8
     height: float = 1.5
     rgb: tuple[int, int, int] = (150, 30, 30)
+    body: int = 0              # satloc_env.world.variety.BODIES (0: the one car of variety 0)
 
 
 @dataclass

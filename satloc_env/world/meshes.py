@@ -50,6 +50,8 @@ from satloc.errors import ConfigError
 from satloc.labels import CLASS_ID
 
 from .layout import Building, Car, Layout, Obstacle, Person, Tree
+from .paint import fbm as _fbm
+from .variety import BODIES, SPECIES, facade_params, facade_texture, leaf_texture
 
 __all__ = ["TexturedMesh", "World", "build_world", "BEYOND", "build_occluders", "sun_direction", "SKY_RGB", "PAD"]
 
@@ -604,6 +606,9 @@ def _add_building(mb: _MeshBuilder, b: Building, index: int, layout: Layout | No
     # a roof from the imagery stays flat: the picture shows it from above already, light and all
     gable = _gable(fp, base, height) if b.roof == "gabled" and not b.roof_from_ground else None
     walls = lambda segs, h: _facade_texture(rng, style, [length for _, length in segs], h, _FACADE_M)  # noqa: E731
+    if b.style_seed is not None:         # a facade of its own (satloc_env.world.variety)
+        own = facade_params(int(b.style_seed), city=height - base > 10.0)
+        walls = lambda segs, h: facade_texture(rng, own, [length for _, length in segs], h, _FACADE_M)  # noqa: E731
     if gable is None:
         _add_prism(mb, fp, base, height, _FACADE_M, CLASS_ID["building"], walls, top,
                    top_shade=1.0 if b.roof_from_ground and layout is not None else None)
@@ -675,24 +680,37 @@ def _add_tree(mb: _MeshBuilder, t: Tree, index: int) -> None:
                lambda walls, h: _bark_texture(rng, h, _round_px(sum(ln for _, ln in walls), _BARK_M)), None)
     n = 10
     profile = [(0.0, 0.0), (0.12, 0.75), (0.4, 1.0), (0.72, 0.85), (0.92, 0.45), (1.0, 0.0)]
+    species = SPECIES.get(int(t.species))          # a species of its own (satloc_env.world.variety), else None
+    if species is not None:
+        n, profile = 12, species["profile"]
     phase = rng.uniform(0, 2 * math.pi)
     rings = [_ring(t.center, zb + f * hc, r * k * rng.uniform(0.85, 1.1, n), n, phase) for f, k in profile]
     rows, cols = _round_px(hc * 1.6, _FOLIAGE_M), _patch_cols(mb, 2 * math.pi * r, _FOLIAGE_M)
-    _add_loft(mb, rings, mb.add_patch(_foliage_texture(rng, rows, cols, t.shade), CLASS_ID["tree"]))
+    if species is None:
+        leaves = _foliage_texture(rng, rows, cols, t.shade)
+    else:
+        leaves = leaf_texture(rng, rows, cols, species["leaf"][int(t.shade) % len(species["leaf"])])
+    _add_loft(mb, rings, mb.add_patch(leaves, CLASS_ID["tree"]))
 
 
 def _add_car(mb: _MeshBuilder, c: Car, key: tuple) -> None:
     rng = _rng("car", *key)
     length, width, height = float(c.length), float(c.width), float(c.height)
     paint = np.asarray(c.rgb, dtype=np.float32)
-    z_body = 0.55 * height
+    shape = BODIES.get(int(c.body))
+    if shape is None:                          # variety 0's one shape
+        shape, roof_dx = {"cab": 0.52, "dx": 0.06, "roof": 0.7, "body": 0.55}, 0.09
+    else:                                      # a body of its own (satloc_env.world.variety): the roof set back as
+        roof_dx = shape["dx"] + 0.1 * (1 - shape["roof"])     # much as the windscreen slopes
+    z_body = shape["body"] * height
     body = _rect(c.center, c.yaw, length, width)
     _add_prism(mb, body, 0.12, z_body, _CAR_M, CLASS_ID["car"],
                lambda walls, h: _car_body_texture(rng, paint, walls, h, z_body - 0.12),
                lambda h, w: _paint(rng, paint, h, w))
-    cab_len, cab_w = 0.52 * length, 0.88 * width
-    lower = _rect(c.center, c.yaw, cab_len, cab_w, dx=-0.06 * length)
-    upper = _rect(c.center, c.yaw, cab_len * 0.7, cab_w * 0.92, dx=-0.09 * length)
+    cab_len, cab_w = shape["cab"] * length, 0.88 * width
+    lower = _rect(c.center, c.yaw, cab_len, cab_w, dx=-shape["dx"] * length)
+    upper = _rect(c.center, c.yaw, cab_len * shape["roof"], cab_w * 0.92,
+                  dx=-roof_dx * length)
     rings = [np.c_[lower, np.full(4, z_body)], np.c_[upper, np.full(4, height)]]
     side = _car_cabin_texture(rng, paint, _round_px(height - z_body, _CAR_M),
                               _patch_cols(mb, 2 * (cab_len + cab_w), _CAR_M), [cab_len, cab_w, cab_len, cab_w])
@@ -743,20 +761,6 @@ _FACADE_STYLES = (
     _FacadeStyle((175, 120, 85), True, 3.0, 1.2, 1.5, 2.8, (65, 80, 95), (240, 240, 235), (110, 40, 35), False),
     _FacadeStyle((228, 222, 200), False, 3.1, 1.0, 1.4, 2.4, (75, 85, 100), (120, 80, 50), (80, 50, 30), False),
 )
-
-
-def _noise(rng: np.random.Generator, h: int, w: int, cell: int) -> np.ndarray:
-    """Smooth value noise in [-1, 1], (h, w) float32, with features about ``cell`` texels wide."""
-    gh, gw = h // cell + 2, w // cell + 2
-    grid = rng.uniform(-1.0, 1.0, (gh, gw)).astype(np.float32)
-    if cell == 1:
-        return grid[:h, :w]
-    return cv2.resize(grid, (gw * cell, gh * cell), interpolation=cv2.INTER_LINEAR)[:h, :w]
-
-
-def _fbm(rng: np.random.Generator, h: int, w: int, cells: Sequence[int], amps: Sequence[float]) -> np.ndarray:
-    """Sum of value noises of several feature sizes (``cells``) and amplitudes."""
-    return sum(a * _noise(rng, h, w, c) for c, a in zip(cells, amps))
 
 
 def _to_u8(img: np.ndarray) -> np.ndarray:

@@ -47,3 +47,17 @@ def rect_poly(cx: float, cy: float, length: float, width: float, yaw: float) -> 
     hl, hw = length / 2, width / 2
     local = np.array([[hl, hw], [-hl, hw], [-hl, -hw], [hl, -hw]])
     return np.stack([cx + c * local[:, 0] - s * local[:, 1], cy + s * local[:, 0] + c * local[:, 1]], axis=1)
+
+
+def value_noise(rng: np.random.Generator, h: int, w: int, cell: int) -> np.ndarray:
+    """Smooth value noise in [-1, 1], (h, w) float32, with features about ``cell`` texels wide."""
+    gh, gw = h // cell + 2, w // cell + 2
+    grid = rng.uniform(-1.0, 1.0, (gh, gw)).astype(np.float32)
+    if cell == 1:
+        return grid[:h, :w]
+    return cv2.resize(grid, (gw * cell, gh * cell), interpolation=cv2.INTER_LINEAR)[:h, :w]
+
+
+def fbm(rng: np.random.Generator, h: int, w: int, cells, amps) -> np.ndarray:
+    """Sum of value noises (:func:`value_noise`) of several feature sizes (``cells``) and amplitudes."""
+    return sum(a * value_noise(rng, h, w, c) for c, a in zip(cells, amps))

@@ -5,7 +5,7 @@ A scene file (see ``scenes/*.yaml``)::
     name: city
     seed: 7
     generator: {type: grid, style: city, blocks: [4, 4], pitch_m: 80, road_width_m: 12, sidewalk_m: 3,
-                margin_m: 20}
+                margin_m: 20, variety: 0}   # variety 0..1: objects with looks of their own (world.variety)
       # or {type: image, image: tile.tif, roads: roads.png}  (paths relative to the YAML file; see below)
     meters_per_pixel: 0.2          # satellite tile resolution
     ground_mpp: 0.1                # resolution of the ground texture the camera sees
@@ -143,6 +143,7 @@ class GridGeneratorSpec:
     road_width_m: float = 12.0
     sidewalk_m: float = 3.0
     margin_m: float = 20.0
+    variety: float = 0.0   #: 0..1: that share of the objects with looks of their own (satloc_env.world.variety)
 
 
 @dataclass
@@ -322,11 +323,15 @@ class SceneSpec:
     @property
     def beyond_edge(self) -> str:
         """What the world is beyond the tile: ``ground_beyond`` if given, else ``mirror`` for scenes of real
-        places (image and vector generators) and ``neutral`` for generated grids, whose measured figures
-        (the tables, the tuned settings, the active-localization maps) rest on it."""
+        places (image and vector generators) and for grids with ``variety`` (a street goes on past the map's
+        edge), and ``neutral`` for generated grids without it, whose measured figures (the tables, the tuned
+        settings, the active-localization maps) rest on it."""
         if self.ground_beyond is not None:
             return self.ground_beyond
-        return "neutral" if self.generator.get("type") == "grid" else "mirror"
+        if self.generator.get("type") == "grid":
+            variety = self.generator.get("variety") or 0.0
+            return "mirror" if isinstance(variety, (int, float)) and variety > 0 else "neutral"
+        return "mirror"
 
     def build_world(self, layout):
         """The renderable world of ``layout`` (this scene's or a changed copy) with this spec's ground beyond
@@ -607,6 +612,10 @@ class Scene:
                                    for t in lay.trees], np.float64).reshape(-1, 6),
                 "cars": np.array([[*c.center, c.yaw, c.length, c.width, c.height, *c.rgb] for c in lay.cars],
                                  np.float64).reshape(-1, 9),
+                # variety (satloc_env.world.variety): a facade's own seed (-1: its style), species, car bodies
+                "bld_style": np.array([-1 if x.style_seed is None else x.style_seed for x in b], np.int64),
+                "tree_species": np.array([t.species for t in lay.trees], np.int64),
+                "car_body": np.array([c.body for c in lay.cars], np.int64),
             }
             save_npz(d / "layout.npz", "scene_layout", arrays, {
                 "width_m": lay.width_m, "height_m": lay.height_m, "ground_mpp": lay.ground_mpp,
@@ -675,11 +684,22 @@ class Scene:
         base = np.zeros(len(bp)) if base is None else base
         gabled = a.get("bld_gabled")
         gabled = np.zeros(len(bp), bool) if gabled is None else gabled.astype(bool)
+        def extra(key: str, n: int, fill: int) -> np.ndarray:   # scenes saved before the field: its default
+            v = a.get(key)
+            if v is None:
+                return np.full(n, fill, np.int64)
+            if v.shape != (n,):
+                raise FormatError(f"{lz}: array {key!r} of shape {v.shape}, expected ({n},)")
+            return v.astype(np.int64)
+
+        styles, species, bodies = extra("bld_style", len(bp), -1), extra("tree_species", len(tr), 0), \
+            extra("car_body", len(ca), 0)
         buildings = [Building(v, float(q[0]), int(q[1]), tuple(int(c) for c in q[2:5]), bool(rg), float(z),
-                              "gabled" if gb else "flat")
-                     for v, q, rg, z, gb in zip(verts_split, bp, roof_ground, base, gabled)]
-        trees = [Tree((t[0], t[1]), t[2], t[3], t[4], int(t[5])) for t in tr]
-        cars = [Car((c[0], c[1]), c[2], c[3], c[4], c[5], tuple(int(v) for v in c[6:9])) for c in ca]
+                              "gabled" if gb else "flat", None if s < 0 else int(s))
+                     for v, q, rg, z, gb, s in zip(verts_split, bp, roof_ground, base, gabled, styles)]
+        trees = [Tree((t[0], t[1]), t[2], t[3], t[4], int(t[5]), int(sp)) for t, sp in zip(tr, species)]
+        cars = [Car((c[0], c[1]), c[2], c[3], c[4], c[5], tuple(int(v) for v in c[6:9]), int(bd))
+                for c, bd in zip(ca, bodies)]
         lay = Layout(w_m, h_m, mpp, a["ground_rgb"], a["ground_labels"], buildings, trees, cars, az, el)
         tile = d / "tile"
         sm = SatelliteMap.load(tile)
@@ -999,10 +1019,13 @@ def build_scene(spec: SceneSpec, base_dir: Path | None = None, aliasing: float |
     ground = None
     check_spec(spec, where)
     if g.type == "grid":
-        params = GridParams(g.style, tuple(g.blocks), g.pitch_m, g.road_width_m, g.sidewalk_m, g.margin_m)
+        params = GridParams(g.style, tuple(g.blocks), g.pitch_m, g.road_width_m, g.sidewalk_m, g.margin_m,
+                            float(g.variety))
         if min(g.blocks) < 1 or not (g.pitch_m > 0 and g.road_width_m > 0 and g.sidewalk_m >= 0 and g.margin_m >= 0):
             raise ConfigError(f"{where}: generator: expected blocks >= 1, pitch_m and road_width_m > 0, sidewalk_m "
                               f"and margin_m >= 0, got {to_dict(g)}")
+        if not 0.0 <= float(g.variety) <= 1.0:
+            raise ConfigError(f"{where}: generator.variety: expected a number from 0 to 1, got {g.variety!r}")
         _check_size(*params.size_m(), spec.ground_mpp, where, "generator", "fewer blocks, a smaller pitch_m or margin_m")
         try:
             lay, src = generate_grid(params, spec.seed, aliasing, spec.ground_mpp)
