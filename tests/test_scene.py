@@ -3,6 +3,7 @@ import pytest
 import yaml
 
 from satloc import ConfigError
+from satloc.errors import FormatError
 from satloc.labels import CLASS_ID
 from satloc_env.world.generator import GridParams, alias_sources, generate_grid
 from satloc_env.world.route import Route
@@ -157,6 +158,13 @@ def test_variety_gives_objects_their_own_looks_and_moves_nothing():
     assert None not in seeds and len(set(seeds)) == len(seeds)
     assert {t.species for t in lay1.trees} <= {1, 2, 3, 4} and len({t.species for t in lay1.trees}) >= 2
     assert {c.body for c in lay1.cars} <= {1, 2, 3, 4, 5} and len({c.body for c in lay1.cars}) >= 3
+    # street furniture on the sidewalks: none at variety 0, most kinds at 1, off the tree trunks
+    assert lay0.furniture == [] and {f.kind for f in lay1.furniture} >= {1, 2, 3}
+    sidewalk = lay1.ground_labels == CLASS_ID["sidewalk"]
+    rc = np.round(lay1.world_to_raster(np.array([f.center for f in lay1.furniture]))).astype(int)
+    assert sidewalk[rc[:, 1], rc[:, 0]].mean() > 0.9
+    trunks = np.array([t.center for t in lay1.trees])
+    assert all(np.hypot(*(trunks - f.center).T).min() > 0.5 for f in lay1.furniture)
     # the worn road: the same labels, other pixels on the road
     assert np.array_equal(lay0.ground_labels, lay1.ground_labels)
     road = lay0.ground_labels == CLASS_ID["road"]
@@ -178,7 +186,8 @@ def test_variety_aliased_blocks_copy_their_looks():
         inside = lambda xy: x0 <= xy[0] < x0 + 60 and y0 <= xy[1] < y0 + 60  # noqa: E731
         return (sorted(b.style_seed for b in lay.buildings if inside(b.footprint.mean(0))),
                 sorted((t.species, t.shade) for t in lay.trees if inside(t.center)),
-                sorted((c.body, c.rgb) for c in lay.cars if inside(c.center)))
+                sorted((c.body, c.rgb) for c in lay.cars if inside(c.center)),
+                sorted((f.kind, f.seed) for f in lay.furniture if inside(f.center)))
 
     for i, s in copies:
         assert looks(i) == looks(s)
@@ -197,8 +206,27 @@ def test_variety_round_trips_and_builds_its_world(tmp_path):
     assert [b.style_seed for b in r.layout.buildings] == [b.style_seed for b in s.layout.buildings]
     assert [t.species for t in r.layout.trees] == [t.species for t in s.layout.trees]
     assert [c.body for c in r.layout.cars] == [c.body for c in s.layout.cars]
+    assert r.layout.furniture == s.layout.furniture and len(s.layout.furniture) > 0
+    assert s.summary()["furniture"] == len(s.layout.furniture)
     world = s.spec.build_world(s.layout)
     assert sum(len(c.faces) for c in world.chunks) > 0
+    # the furniture is in the world (class obstacle: nothing else of a scene's own is) and on the tile
+    assert any((c.labels == CLASS_ID["obstacle"]).any() for c in world.chunks)
+    import dataclasses
+
+    from satloc_env.world.tile import paint_tile
+    bare = dataclasses.replace(s.layout, furniture=[])
+    assert not np.array_equal(paint_tile(s.layout, 0.2, 0)[0], paint_tile(bare, 0.2, 0)[0])
+    # a damaged furniture array is named
+    import zipfile
+
+    with zipfile.ZipFile(tmp_path / "saved" / "layout.npz") as z:
+        arrays = {n[:-4]: np.load(z.open(n)) for n in z.namelist()}
+    bad = arrays["furniture"].copy()
+    bad[0, 3] = 99
+    np.savez(tmp_path / "saved" / "layout.npz", **{**arrays, "furniture": bad})
+    with pytest.raises(FormatError, match=r"layout\.npz: array 'furniture': every kind"):
+        Scene.load(tmp_path / "saved")
     d["generator"]["variety"] = 1.5
     with pytest.raises(ConfigError, match=r"generator\.variety: expected a number from 0 to 1"):
         load_scene(write(tmp_path, d, "bad.yaml"))

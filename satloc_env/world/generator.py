@@ -22,7 +22,8 @@ import numpy as np
 
 from satloc.labels import CLASS_ID as C
 
-from .layout import Building, Car, Layout, Tree
+from .furniture import footprint_radius
+from .layout import Building, Car, Furniture, Layout, Tree
 from .paint import fill_poly, noise, tint, to_px
 from .variety import BODIES, SPECIES, car_body, car_colour, road_wear
 
@@ -103,6 +104,7 @@ class CellPainter:
         self.buildings: list[Building] = []
         self.trees: list[Tree] = []
         self.cars: list[Car] = []
+        self.furniture: list[Furniture] = []
 
     # geometry helpers -----------------------------------------------------------------------------
     def poly(self, pts_m, cls: int) -> None:
@@ -286,6 +288,47 @@ class CellPainter:
                     self._tree(x, y, own=True)
                     trees = np.vstack([trees, (x, y)])
             t += v.uniform(6, 9)
+        self._street_furniture(hr)
+
+    def _street_furniture(self, hr: float) -> None:
+        """``variety``: the sidewalks' furniture (:mod:`satloc_env.world.furniture`): lamp posts of one style per
+        side at the kerb, traffic lights at corners, signs, bins, hydrants, benches and bollards, a bus shelter;
+        none on a tree's trunk or another piece (variety's draws)."""
+        v, P, sw, amount = self.vrng, self.p.pitch_m, self.p.sidewalk_m, self.p.variety
+        city = self.p.style == "city"
+        taken = [(t.center[0], t.center[1], 0.5) for t in self.trees]
+
+        def place(side: int, t: float, d: float, kind: int, seed: int, facing: str = "road") -> None:
+            x, y = ((t, hr + d), (t, P - hr - d), (hr + d, t), (P - hr - d, t))[side]
+            r = footprint_radius(kind)
+            if any(math.hypot(x - a, y - b) < r + q for a, b, q in taken):
+                return
+            road = (-math.pi / 2, math.pi / 2, math.pi, 0.0)[side]
+            yaw = road if facing == "road" else road + (math.pi / 2 if v.random() < 0.5 else -math.pi / 2)
+            self.furniture.append(Furniture((float(x), float(y)), float(yaw), kind, seed))
+            taken.append((x, y, r))
+
+        seed = lambda: int(v.integers(0, 2**31 - 1))   # noqa: E731
+        lo, hi = hr + 3.0, P - hr - 3.0
+        for corner in range(4):                       # traffic lights at the corners
+            if v.random() < amount * (0.5 if city else 0.15):
+                side = (0, 0, 1, 1)[corner] if v.random() < 0.5 else (2, 3, 2, 3)[corner]
+                t = hr + 0.6 if corner in (0, 2) and side < 2 or corner in (0, 1) and side >= 2 else P - hr - 0.6
+                place(side, t, 0.6, 7, seed(), "along")
+        for side in range(4):
+            if v.random() < amount * (0.3 if city else 0.15):     # a bus shelter
+                place(side, v.uniform(lo + 4, hi - 4), sw / 2 + 0.15, 8, seed())
+            style = seed()                            # the side's lamp posts are all alike
+            t = lo + v.uniform(2, 8)
+            while t < hi:
+                if v.random() < amount * 0.9:
+                    place(side, t, 0.45, 1, style)
+                t += v.uniform(22, 30)
+            for kind, n, d, facing in ((2, 2.5, 0.35, "along"), (3, 1.5, 0.5, "road"), (6, 0.6, 0.4, "road"),
+                                       (4, 0.7 if city else 0.3, sw - 0.5, "road"), (5, 0.4 if city else 0.1, 0.35,
+                                                                                      "road")):
+                for _ in range(int(v.poisson(amount * n))):
+                    place(side, v.uniform(lo, hi), d, kind, seed(), facing)
 
     def _street_trees(self, hr, i0, i1) -> None:
         r = self.rng
@@ -380,7 +423,7 @@ def generate_grid(p: GridParams, seed: int, aliasing: float, mpp: float) -> tupl
     rgb = np.zeros((Hp, Wp, 3), np.uint8)
     _paint_base(labels, rgb, np.random.default_rng([seed, 3]), mpp)
     cache: dict[int, CellPainter] = {}
-    buildings, trees, cars = [], [], []
+    buildings, trees, cars, furniture = [], [], [], []
     for j in range(ny):
         for i in range(nx):
             k = src[j * nx + i]
@@ -397,4 +440,5 @@ def generate_grid(p: GridParams, seed: int, aliasing: float, mpp: float) -> tupl
             buildings += [_shift(b, dx, dy) for b in cp.buildings]
             trees += [_shift(t, dx, dy) for t in cp.trees]
             cars += [_shift(c, dx, dy) for c in cp.cars]
-    return Layout(W, H, mpp, rgb, labels, buildings, trees, cars), src
+            furniture += [_shift(f, dx, dy) for f in cp.furniture]
+    return Layout(W, H, mpp, rgb, labels, buildings, trees, cars, furniture=furniture), src

@@ -47,6 +47,16 @@ class Car:
 
 
 @dataclass
+class Furniture:
+    """A piece of street furniture (satloc_env.world.furniture.KINDS: lamp post, sign, bin, ...), its look
+    drawn from ``seed``, facing ``yaw`` (radians, counter-clockwise from east)."""
+    center: tuple[float, float]
+    yaw: float
+    kind: int
+    seed: int = 0
+
+
+@dataclass
 class Person:
     center: tuple[float, float]
     radius: float = 0.3
@@ -77,6 +87,7 @@ class Layout:
     cars: list[Car] = field(default_factory=list)   # parked cars: in the world and on the tile
     sun_azimuth: float = 2.4                   # radians, direction the light comes from (ccw from east)
     sun_elevation: float = 0.9                 # radians
+    furniture: list[Furniture] = field(default_factory=list)   # street furniture: in the world and on the tile
 
     def world_to_raster(self, xy: np.ndarray, mpp: float | None = None) -> np.ndarray:
         mpp = mpp or self.ground_mpp

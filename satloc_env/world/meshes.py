@@ -49,7 +49,8 @@ import numpy as np
 from satloc.errors import ConfigError
 from satloc.labels import CLASS_ID
 
-from .layout import Building, Car, Layout, Obstacle, Person, Tree
+from .furniture import furniture_parts, part_paint
+from .layout import Building, Car, Furniture, Layout, Obstacle, Person, Tree
 from .paint import fbm as _fbm
 from .variety import BODIES, SPECIES, facade_params, facade_texture, leaf_texture
 
@@ -193,6 +194,8 @@ def build_world(layout: Layout, chunk_m: float = 204.8, pad_m: float = 0.0, beyo
         members[chunk_of(*t.center)].append(lambda mb, t=t, k=k: _add_tree(mb, t, k))
     for k, c in enumerate(layout.cars):
         members[chunk_of(*c.center)].append(lambda mb, c=c, k=k: _add_car(mb, c, ("parked", k)))
+    for k, f in enumerate(layout.furniture):
+        members[chunk_of(*f.center)].append(lambda mb, f=f, k=k: _add_furniture(mb, f, k))
 
     chunks, extents = [], []
     for j in range(ny):
@@ -716,6 +719,15 @@ def _add_car(mb: _MeshBuilder, c: Car, key: tuple) -> None:
                               _patch_cols(mb, 2 * (cab_len + cab_w), _CAR_M), [cab_len, cab_w, cab_len, cab_w])
     top = _paint(rng, paint, _round_px(cab_w, _CAR_M), _patch_cols(mb, cab_len, _CAR_M))
     _add_loft(mb, rings, mb.add_patch(side, CLASS_ID["car"]), mb.add_patch(top, CLASS_ID["car"]))
+
+
+def _add_furniture(mb: _MeshBuilder, f: Furniture, index: int) -> None:
+    """Street furniture (:mod:`satloc_env.world.furniture`): its parts as prisms, class ``obstacle``."""
+    rng = _rng("furniture", index)
+    for part in furniture_parts(f):
+        _add_prism(mb, part.footprint, part.z0, part.z1, part.texel, CLASS_ID["obstacle"],
+                   lambda walls, h, part=part: part_paint(rng, part, walls, h),
+                   lambda h, w, part=part: _paint(rng, np.asarray(part.rgb, np.float32), h, w))
 
 
 def _add_person(mb: _MeshBuilder, p: Person, index: int) -> None:

@@ -121,8 +121,9 @@ from satloc.persist import (
 from satloc.satmap import SatelliteMap, read_image
 
 from .capture import DEFAULT_GAP, capture_image, capture_tile
+from .furniture import KINDS as FURNITURE_KINDS
 from .generator import GridParams, generate_grid
-from .layout import Building, Car, Layout, Tree
+from .layout import Building, Car, Furniture, Layout, Tree
 from .meshes import BEYOND, DEFAULT_GROUND_PAD_M
 from .roadgraph import GraphParams
 from .route import Route
@@ -530,6 +531,8 @@ class Scene:
                "routes_m": {k: round(r.length, 1) for k, r in self.routes.items()},
                "buildings": len(self.layout.buildings), "trees": len(self.layout.trees),
                "cars": len(self.layout.cars)}
+        if self.layout.furniture:
+            out["furniture"] = len(self.layout.furniture)
         if self.satmap.radiometry is not None:
             out["radiometry"] = self.satmap.radiometry
         if self.footprints is not None:
@@ -616,6 +619,9 @@ class Scene:
                 "bld_style": np.array([-1 if x.style_seed is None else x.style_seed for x in b], np.int64),
                 "tree_species": np.array([t.species for t in lay.trees], np.int64),
                 "car_body": np.array([c.body for c in lay.cars], np.int64),
+                # street furniture (satloc_env.world.furniture): x, y, yaw, kind, seed
+                "furniture": np.array([[*f.center, f.yaw, f.kind, f.seed] for f in lay.furniture],
+                                      np.float64).reshape(-1, 5),
             }
             save_npz(d / "layout.npz", "scene_layout", arrays, {
                 "width_m": lay.width_m, "height_m": lay.height_m, "ground_mpp": lay.ground_mpp,
@@ -651,7 +657,8 @@ class Scene:
             "bld_roof_ground": ArraySpec("iub", ("B",), min=0, max=1, required=False),
             "bld_base": ArraySpec("f", ("B",), min=0, required=False),
             "bld_gabled": ArraySpec("iub", ("B",), min=0, max=1, required=False),
-            "trees": ArraySpec("f", (None, 6)), "cars": ArraySpec("f", (None, 9))})
+            "trees": ArraySpec("f", (None, 6)), "cars": ArraySpec("f", (None, 9)),
+            "furniture": ArraySpec("f", (None, 5), required=False)})
         if a["ground_rgb"].dtype != np.uint8 or a["ground_labels"].dtype != np.uint8 or min(a["ground_rgb"].shape) < 1:
             raise FormatError(f"{lz}: ground_rgb and ground_labels must be non-empty uint8 rasters, got "
                               f"{a['ground_rgb'].dtype} {a['ground_rgb'].shape}, {a['ground_labels'].dtype}")
@@ -700,7 +707,14 @@ class Scene:
         trees = [Tree((t[0], t[1]), t[2], t[3], t[4], int(t[5]), int(sp)) for t, sp in zip(tr, species)]
         cars = [Car((c[0], c[1]), c[2], c[3], c[4], c[5], tuple(int(v) for v in c[6:9]), int(bd))
                 for c, bd in zip(ca, bodies)]
-        lay = Layout(w_m, h_m, mpp, a["ground_rgb"], a["ground_labels"], buildings, trees, cars, az, el)
+        fu = a.get("furniture")
+        fu = np.zeros((0, 5)) if fu is None else fu
+        if len(fu) and not (np.isin(fu[:, 3], list(FURNITURE_KINDS)).all() and (fu[:, 4] >= 0).all()
+                            and (fu[:, 4] == np.round(fu[:, 4])).all()):
+            raise FormatError(f"{lz}: array 'furniture': every kind must be one of {sorted(FURNITURE_KINDS)} and "
+                              f"every seed a non-negative integer")
+        furniture = [Furniture((f[0], f[1]), f[2], int(f[3]), int(f[4])) for f in fu]
+        lay = Layout(w_m, h_m, mpp, a["ground_rgb"], a["ground_labels"], buildings, trees, cars, az, el, furniture)
         tile = d / "tile"
         sm = SatelliteMap.load(tile)
         x0, x1, y0, y1 = sm.extent

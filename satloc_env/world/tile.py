@@ -13,6 +13,7 @@ import numpy as np
 
 from satloc.labels import CLASS_ID as C
 
+from .furniture import furniture_parts
 from .layout import Layout
 from .paint import fill_poly, noise, rect_poly
 
@@ -67,6 +68,11 @@ def paint_tile(lay: Layout, mpp: float, seed: int, lean: tuple[float, float] = (
     for car in lay.cars:
         c = np.array(car.center) - sun * car.height * cot * 0.5
         fill_poly(shadow, _poly_px(lay, rect_poly(c[0], c[1], car.length, car.width, car.yaw), mpp), 1)
+    parts = [p for f in lay.furniture for p in furniture_parts(f)]     # street furniture: thin shadows, small tops
+    for p in parts:
+        hull = cv2.convexHull(np.vstack([p.footprint - sun * p.z0 * cot, p.footprint - sun * p.z1 * cot])
+                              .astype(np.float32)).reshape(-1, 2)
+        fill_poly(shadow, _poly_px(lay, hull, mpp), 1)
     img[shadow > 0] *= 0.55
 
     # roofs: base colour, texture, a darker outline and a ridge; off nadir, the roof moves by its height x lean
@@ -116,6 +122,8 @@ def paint_tile(lay: Layout, mpp: float, seed: int, lean: tuple[float, float] = (
         patch = col[None, None] * shade[..., None] + 22 * tex[y0:y1, x0:x1, None]
         img[y0:y1, x0:x1][sel] = np.clip(patch[sel], 0, 255)
         labels[y0:y1, x0:x1][sel] = C["tree"]
+    for p in sorted(parts, key=lambda q: q.z1):
+        fill_poly(img, _poly_px(lay, p.footprint + lean_v * p.z1, mpp), tuple(float(v) for v in p.rgb))
     # cars: body, darker windscreen and rear window
     for car in lay.cars:
         body = rect_poly(car.center[0], car.center[1], car.length, car.width, car.yaw)

@@ -1,0 +1,237 @@
+"""Street furniture: lamp posts, traffic signs and lights, bins, benches, bollards, hydrants and bus shelters.
+
+A generated grid with ``variety`` > 0 (:mod:`satloc_env.world.generator`) lines its sidewalks with them, each a
+:class:`~satloc_env.world.layout.Furniture` (a kind, a position, the direction it faces and a seed of its own).
+:func:`furniture_parts` turns one into simple solids (:class:`Part`: a vertical prism over a footprint, with a
+picture on some of its faces, such as a sign's face or a poster), which :mod:`satloc_env.world.meshes` builds
+like every other object and :mod:`satloc_env.world.tile` paints from above (tops and shadows). Everything comes
+from the object's seed, so an aliased cell copies its furniture too.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import cv2
+import numpy as np
+
+from .layout import Furniture
+from .paint import fbm
+
+__all__ = ["KINDS", "Part", "furniture_parts", "footprint_radius"]
+
+#: furniture kinds by their code in :attr:`Furniture.kind`
+KINDS = {1: "lamp post", 2: "traffic sign", 3: "litter bin", 4: "bench", 5: "bollards", 6: "hydrant",
+         7: "traffic light", 8: "bus shelter"}
+
+#: how far (metres) the kind reaches from its centre on the ground: what placement keeps clear
+_REACH = {1: 0.3, 2: 0.3, 3: 0.4, 4: 1.1, 5: 2.6, 6: 0.3, 7: 0.3, 8: 1.9}
+
+
+def footprint_radius(kind: int) -> float:
+    """Metres around a piece of furniture's centre that nothing else may stand on."""
+    return _REACH[int(kind)]
+
+
+@dataclass
+class Part:
+    """A vertical prism: ``footprint`` (N, 2, metres, map frame) from ``z0`` to ``z1``, painted ``rgb``
+    (mottled), with ``faces`` mapping an edge index of the footprint (edge k runs from point k to k+1) to a
+    picture (H, W, 3 uint8) shown on it; ``texel`` metres per texel."""
+
+    footprint: np.ndarray
+    z0: float
+    z1: float
+    rgb: tuple[int, int, int]
+    texel: float = 0.04
+    faces: dict[int, np.ndarray] = field(default_factory=dict)
+
+
+def _box(center, yaw: float, length: float, width: float, dx: float = 0.0, dy: float = 0.0) -> np.ndarray:
+    """Corners (4, 2) of a ``length`` (along ``yaw``) x ``width`` rectangle whose centre is ``dx`` ahead and
+    ``dy`` to the left of ``center``; edges: right side, front, left side, rear."""
+    c, s = math.cos(yaw), math.sin(yaw)
+    local = np.array([[-length / 2, -width / 2], [length / 2, -width / 2],
+                      [length / 2, width / 2], [-length / 2, width / 2]]) + [dx, dy]
+    return local @ np.array([[c, s], [-s, c]]) + np.asarray(center, np.float64)
+
+
+def _disc(center, r: float, n: int = 8) -> np.ndarray:
+    a = 2 * math.pi * (np.arange(n) + 0.5) / n
+    return np.stack([center[0] + r * np.cos(a), center[1] + r * np.sin(a)], axis=1)
+
+
+def _pick(rng: np.random.Generator, options):
+    return options[int(rng.integers(len(options)))]
+
+
+def _jitter(rng: np.random.Generator, rgb, spread: float = 10.0) -> tuple[int, int, int]:
+    return tuple(int(v) for v in np.clip(np.asarray(rgb, np.float64) + rng.normal(0, spread), 0, 255))
+
+
+# --- pictures ---------------------------------------------------------------------------------------------------
+def _sign_face(rng: np.random.Generator, h: int, w: int) -> np.ndarray:
+    """A traffic sign's face: a prohibition (red ring), a mandatory (blue disc with an arrow), a warning (red
+    triangle), an information (blue square) or a street-name plate with text."""
+    img = np.full((h, w, 3), 235, np.uint8)
+    kind = int(rng.integers(5))
+    c, r = (w // 2, h // 2), max(2, min(h, w) // 2 - 1)
+    if kind == 0:
+        cv2.circle(img, c, r, (200, 30, 30), -1, cv2.LINE_AA)
+        cv2.circle(img, c, int(r * 0.72), (240, 240, 240), -1, cv2.LINE_AA)
+        cv2.putText(img, str(int(_pick(rng, (20, 30, 40, 50)))), (int(w * 0.2), int(h * 0.64)),
+                    cv2.FONT_HERSHEY_SIMPLEX, w / 64, (20, 20, 20), max(1, w // 24), cv2.LINE_AA)
+    elif kind == 1:
+        img[:] = 140
+        cv2.circle(img, c, r, (30, 70, 170), -1, cv2.LINE_AA)
+        cv2.arrowedLine(img, (w // 2, int(h * 0.8)), (w // 2, int(h * 0.2)), (245, 245, 245), max(1, w // 10),
+                        cv2.LINE_AA, tipLength=0.4)
+    elif kind == 2:
+        img[:] = 140
+        tri = np.array([[w // 2, 2], [w - 2, h - 3], [2, h - 3]], np.int32)
+        cv2.fillPoly(img, [tri], (200, 30, 30), cv2.LINE_AA)
+        inner = ((tri - tri.mean(0)) * 0.62 + tri.mean(0) + [0, h * 0.05]).astype(np.int32)
+        cv2.fillPoly(img, [inner], (240, 240, 235), cv2.LINE_AA)
+        cv2.putText(img, "!", (int(w * 0.44), int(h * 0.8)), cv2.FONT_HERSHEY_SIMPLEX, w / 70, (20, 20, 20),
+                    max(1, w // 20), cv2.LINE_AA)
+    elif kind == 3:
+        img[:] = (30, 80, 160)
+        cv2.rectangle(img, (2, 2), (w - 3, h - 3), (240, 240, 240), max(1, w // 30))
+        cv2.putText(img, _pick(rng, ("P", "i", "H", "+")), (int(w * 0.3), int(h * 0.75)),
+                    cv2.FONT_HERSHEY_SIMPLEX, w / 40, (245, 245, 245), max(1, w // 12), cv2.LINE_AA)
+    else:
+        img[:] = _pick(rng, ((30, 90, 50), (30, 60, 140), (240, 240, 235)))
+        fg = (20, 20, 20) if img[0, 0, 0] > 200 else (240, 240, 240)
+        word = "".join(chr(int(v)) for v in rng.integers(65, 91, int(rng.integers(4, 8))))
+        cv2.putText(img, word + " ST", (3, int(h * 0.7)), cv2.FONT_HERSHEY_SIMPLEX, w / 190, fg,
+                    max(1, w // 80), cv2.LINE_AA)
+    return img
+
+
+def _signal_face(rng: np.random.Generator, h: int, w: int) -> np.ndarray:
+    """A traffic light's front: a dark housing with three lamps, one of them lit."""
+    img = np.full((h, w, 3), _pick(rng, ((30, 30, 30), (40, 44, 40), (190, 160, 40))), np.uint8)
+    lit = int(rng.integers(3))
+    for k, col in enumerate(((220, 40, 30), (230, 160, 30), (40, 200, 90))):
+        c = (w // 2, int(h * (k + 0.5) / 3))
+        cv2.circle(img, c, max(1, int(min(w, h / 3) * 0.36)), col if k == lit else tuple(v // 4 for v in col), -1,
+                   cv2.LINE_AA)
+    return img
+
+
+def _poster(rng: np.random.Generator, h: int, w: int) -> np.ndarray:
+    """An advertising poster: colour fields, a shape and a word."""
+    base = rng.integers(30, 230, 3)
+    img = np.empty((h, w, 3), np.float32)
+    img[:] = base
+    img += 40 * fbm(rng, h, w, (max(2, w // 3), max(2, w // 10)), (0.7, 0.3))[..., None]
+    band = int(rng.integers(h // 4, h // 2))
+    img[band:band + h // 5] = rng.integers(0, 255, 3)
+    img = np.clip(img, 0, 255).astype(np.uint8)
+    cv2.circle(img, (int(rng.integers(w)), int(rng.integers(h // 2))), int(w * rng.uniform(0.15, 0.35)),
+               tuple(int(v) for v in rng.integers(0, 255, 3)), -1, cv2.LINE_AA)
+    word = "".join(chr(int(v)) for v in rng.integers(65, 91, int(rng.integers(3, 6))))
+    cv2.putText(img, word, (2, int(h * 0.9)), cv2.FONT_HERSHEY_SIMPLEX, w / 110, (245, 245, 240), max(1, w // 40),
+                cv2.LINE_AA)
+    return img
+
+
+# --- the kinds --------------------------------------------------------------------------------------------------
+_METAL = ((48, 52, 50), (32, 34, 36), (110, 114, 116), (40, 70, 55), (150, 150, 146))
+
+
+def furniture_parts(f: Furniture) -> list[Part]:
+    """The solids of one piece of furniture (see :data:`KINDS`), facing ``f.yaw`` (towards the road)."""
+    rng = np.random.default_rng([int(f.seed), 90210, int(f.kind)])
+    c, yaw, kind = np.asarray(f.center, np.float64), float(f.yaw), int(f.kind)
+    fwd = np.array([math.cos(yaw), math.sin(yaw)])
+    left = np.array([-fwd[1], fwd[0]])
+    parts: list[Part] = []
+    if kind == 1:                                       # lamp post: a pole, an arm over the road and a head
+        metal = _jitter(rng, _pick(rng, _METAL), 6)
+        h = float(rng.uniform(5.5, 9.0))
+        r = float(rng.uniform(0.06, 0.11))
+        parts.append(Part(_disc(c, r * 1.6, 8), 0.0, 0.5, metal))
+        parts.append(Part(_disc(c, r, 6), 0.5, h, metal))
+        if rng.random() < 0.3:                          # a lantern on top
+            parts.append(Part(_box(c, yaw, 0.45, 0.45), h, h + 0.6, (230, 226, 200), 0.03))
+            parts.append(Part(_box(c, yaw, 0.55, 0.55), h + 0.6, h + 0.7, metal))
+        else:
+            arm = float(rng.uniform(0.8, 2.2))
+            parts.append(Part(_box(c, yaw, arm, 0.08, dx=arm / 2), h - 0.12, h, metal))
+            parts.append(Part(_box(c, yaw, 0.7, 0.28, dx=arm), h - 0.22, h + 0.02, metal))
+    elif kind == 2:                                     # traffic sign: a post and one or two plates
+        parts.append(Part(_disc(c, 0.035, 6), 0.0, float(rng.uniform(2.6, 3.2)), (150, 152, 150)))
+        z = float(rng.uniform(2.0, 2.4))
+        for k in range(1 + int(rng.random() < 0.35)):
+            wd = float(rng.uniform(0.5, 0.75))
+            hd = wd if rng.random() < 0.7 else wd * 0.45
+            plate = _box(c, yaw, 0.04, wd, dx=0.05)
+            side = int(rng.integers(64, 96))
+            parts.append(Part(plate, z - hd, z, (150, 152, 150), 0.01,
+                              {1: _sign_face(rng, max(8, int(side * hd / wd)), side)}))
+            z -= hd + 0.08
+    elif kind == 3:                                     # litter bin
+        col = _jitter(rng, _pick(rng, ((40, 90, 50), (60, 62, 66), (30, 30, 32), (30, 70, 140), (210, 120, 30))))
+        r, h = float(rng.uniform(0.22, 0.34)), float(rng.uniform(0.85, 1.1))
+        parts.append(Part(_disc(c, r, 8), 0.0, h, col))
+        parts.append(Part(_disc(c, r * 1.08, 8), h, h + 0.06, tuple(int(v * 0.6) for v in col)))
+    elif kind == 4:                                     # bench: legs, a seat and a back, facing the road
+        wood = _jitter(rng, _pick(rng, ((120, 80, 50), (150, 110, 70), (70, 70, 72), (40, 80, 60))), 12)
+        ln = float(rng.uniform(1.5, 2.1))
+        for s in (-0.4, 0.4):
+            parts.append(Part(_box(c, yaw, 0.4, 0.06, dy=s * ln), 0.0, 0.4, (40, 40, 42)))
+        parts.append(Part(_box(c, yaw, 0.45, ln), 0.4, 0.46, wood))
+        parts.append(Part(_box(c, yaw, 0.06, ln, dx=-0.22), 0.5, 0.9, wood))
+    elif kind == 5:                                     # bollards: a row along the kerb
+        col = _jitter(rng, _pick(rng, ((40, 40, 42), (150, 152, 150), (200, 170, 40), (110, 40, 30))), 8)
+        n, step = int(rng.integers(3, 6)), float(rng.uniform(1.0, 1.5))
+        r, h = float(rng.uniform(0.06, 0.11)), float(rng.uniform(0.7, 1.05))
+        for k in range(n):
+            p = c + left * (k - (n - 1) / 2) * step
+            parts.append(Part(_disc(p, r, 6), 0.0, h, col))
+            if rng.random() < 0.5:
+                parts.append(Part(_disc(p, r * 1.02, 6), h - 0.18, h - 0.1, (235, 235, 230)))
+    elif kind == 6:                                     # hydrant
+        col = _pick(rng, ((190, 30, 30), (220, 180, 30), (200, 200, 200)))
+        parts.append(Part(_disc(c, 0.12, 8), 0.0, 0.55, col))
+        parts.append(Part(_box(c, yaw, 0.34, 0.1), 0.3, 0.4, col))
+        parts.append(Part(_disc(c, 0.08, 8), 0.55, 0.68, tuple(int(v * 0.7) for v in col)))
+    elif kind == 7:                                     # traffic light: a pole and a signal facing the road
+        metal = _jitter(rng, _pick(rng, _METAL[:3]), 6)
+        h = float(rng.uniform(3.0, 3.8))
+        parts.append(Part(_disc(c, 0.08, 6), 0.0, h, metal))
+        head = c + fwd * 0.2
+        parts.append(Part(_box(head, yaw, 0.25, 0.32), h - 1.0, h, (30, 30, 30), 0.01,
+                          {1: _signal_face(rng, 96, 32)}))
+    elif kind == 8:                                     # bus shelter: back glass, a poster panel, a roof, a bench
+        ln, dp, h = float(rng.uniform(2.8, 3.6)), float(rng.uniform(1.3, 1.6)), float(rng.uniform(2.3, 2.6))
+        frame = _jitter(rng, _pick(rng, _METAL), 6)
+        back = c - fwd * dp / 2
+        parts.append(Part(_box(back, yaw, 0.06, ln), 0.1, h, (120, 140, 150), 0.05))
+        end = back + left * (ln / 2) + fwd * dp / 2
+        parts.append(Part(_box(end, yaw + math.pi / 2, 0.08, dp), 0.1, h, frame, 0.01,
+                          {1: _poster(rng, 220, 128), 3: _poster(rng, 220, 128)}))
+        for s in (-1, 1):
+            parts.append(Part(_disc(back + left * s * ln / 2, 0.05, 4), 0.0, h, frame))
+        parts.append(Part(_box(c, yaw, dp + 0.2, ln + 0.2), h, h + 0.12, frame))
+        parts.append(Part(_box(back + fwd * 0.3, yaw, 0.4, ln * 0.7), 0.42, 0.48, (150, 152, 154)))
+    else:
+        raise ValueError(f"furniture kind {kind}: expected one of {sorted(KINDS)}")
+    return parts
+
+
+def part_paint(rng: np.random.Generator, part: Part, walls: list[tuple[int, float]], h: int) -> np.ndarray:
+    """The texture strip of ``part``'s walls (``walls``: (edge, length m) left to right, ``h`` texels high):
+    its paint, mottled, with each edge in ``part.faces`` showing its picture."""
+    cols = [max(1, int(round(ln / part.texel))) for _, ln in walls]
+    w = sum(cols)
+    base = np.asarray(part.rgb, np.float32)
+    img = base * (1 + 0.07 * fbm(rng, h, w, (8, 1), (0.6, 0.4)))[..., None]
+    x = 0
+    for (edge, _), n in zip(walls, cols):
+        pic = part.faces.get(edge)
+        if pic is not None:
+            img[:, x:x + n] = cv2.resize(pic, (n, h), interpolation=cv2.INTER_AREA)
+        x += n
+    return np.clip(img + 0.5, 0, 255).astype(np.uint8)
