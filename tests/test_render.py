@@ -452,3 +452,31 @@ def test_the_road_goes_on_past_the_edge_in_the_mirror(layout, camera):
     bld = lab_m == CLASS_ID["building"]
     assert bld.any() and np.all(pts[bld & (d > 0), 1] > SIZE)
     assert not (lab_n == CLASS_ID["building"]).any()
+
+
+def test_a_tilted_body_moves_the_view(renderer, camera):
+    """``tilt``: nose down shows more ground and less sky; the ground's depth below the camera follows the
+    pitched mount (a flat ground at mount height, seen at the image's centre column); level is the default."""
+    renderer.set_occluders([], [], [])
+    level = renderer.render(POSE, depth="left", labels=True)
+    again = renderer.render(POSE, depth="left", labels=True, tilt=None)
+    assert np.array_equal(level["left"], again["left"])
+    down = renderer.render(POSE, depth="left", labels=True, tilt=(0.05, 0.0))
+    up = renderer.render(POSE, depth="left", labels=True, tilt=(-0.05, 0.0))
+    sky = lambda out: float((out["labels_left"] == CLASS_ID["void"]).mean())  # noqa: E731
+    assert sky(down) < sky(level) < sky(up)
+    # roll: left side up tilts the horizon; the sky's share of the left and right halves differ in opposite ways
+    rolled = renderer.render(POSE, depth="left", labels=True, tilt=(0.0, 0.05))
+    w = camera.width // 2
+    left_sky = lambda out: float((out["labels_left"][:, :w] == 0).mean())    # noqa: E731
+    right_sky = lambda out: float((out["labels_left"][:, w:] == 0).mean())   # noqa: E731
+    assert (left_sky(rolled) - left_sky(level)) * (right_sky(rolled) - right_sky(level)) < 0
+    # the ground at the bottom row: z-depth of the flat ground as the pitched camera sees it
+    from satloc_env.render.stereo import body_tilt
+
+    v, u = camera.height - 1, int(round(camera.cx))
+    ray = np.array([(u - camera.cx) / camera.fx, (v - camera.cy) / camera.fy, 1.0])
+    m = POSE.matrix3d() @ body_tilt(0.05, 0.0) @ camera.vehicle_from_camera("left")
+    d = m[:3, :3] @ ray
+    z = -m[2, 3] / d[2]                        # the ray's z-depth where it meets the ground (z = 0)
+    assert abs(float(down["depth_left"][v, u]) - z) < 0.02 * z

@@ -33,6 +33,7 @@ from satloc.persist import read_json
 from satloc.satmap import SatelliteMap
 from satloc.sequence import Frame
 from satloc.tracking.track import compose_motion
+from satloc_env.render.sensor import Sensor
 from satloc_env.world.scene import Scene, load_scene
 
 from .occluders import Appearance, sample_occluders
@@ -40,6 +41,7 @@ from .vehicle import (
     DEFAULT_DT,
     DEFAULT_SPEED_WANDER,
     DEFAULT_WANDER_M,
+    Attitude,
     Autopilot,
     VehicleParams,
     Wander,
@@ -80,6 +82,11 @@ class EnvConfig:
                                             # sun, road wear, parked cars moved, season; 0 none
     satellite_gap: float | None = None      # how far the satellite map is a capture of the world, not the rendered
                                             # ground (satloc_env.world.capture); None: the scene's; fixed when made
+    sensor: float = 0.0                     # the camera's vignetting, motion blur and noise (satloc_env.render.sensor):
+                                            # 1 an automotive camera in daylight, 0 the renderer's exact pixels
+    attitude: float = 0.0                   # the body's pitch and roll as the car brakes, accelerates, turns and rides
+                                            # the road (satloc_env.envs.vehicle.Attitude): 1 a passenger car's, 0 a
+                                            # level, fixed mount (the bird's-eye homography exact)
     anisotropy: int = 1                     # >1: anisotropic texture filtering (sharper far ground, ~4x slower on llvmpipe)
     zfar_m: float = 150.0
     localizer: str | None = "cross"         # None/"none": off; "cross": no database, the satellite map alone
@@ -110,6 +117,8 @@ class EnvConfig:
         _check_finite(self, "dt", lo=0.0, lo_open=True)
         _check_finite(self, "zfar_m", lo=1.0)
         _check_noise(self.odometry_noise)
+        for k in ("sensor", "attitude"):
+            _check_finite(self, k, lo=0.0, hi=1.0)
         for k in ("aliasing", "occlusion", "appearance", "change", "satellite_gap"):
             v = getattr(self, k)
             if v is not None and not 0.0 <= v <= 1.0:   # False for NaN
@@ -154,6 +163,8 @@ PRIOR_SPAWN_KEY = 104729
 
 #: the spawn key of the seed sequence the localizer's ``context.seed`` is drawn from
 LOCALIZER_SPAWN_KEY = 130363
+#: spawn keys of the camera's noise and the body's ride: none of the episode's other draws change with them
+SENSOR_SPAWN_KEY, ATTITUDE_SPAWN_KEY = 154303, 179426
 
 #: the value of ``EnvConfig.localizer`` when a localizer object (or a class that makes one) was passed.
 LOCALIZER_INSTANCE = "<instance>"
@@ -163,7 +174,7 @@ LOCALIZER_INSTANCE = "<instance>"
 EPISODE_KEYS = frozenset({
     "scene", "route", "lane_offset_m", "start_s_m", "random_start", "speed_mps", "max_steps",
     "odometry", "odometry_noise", "aliasing", "occlusion", "appearance", "change",
-    "wander_m", "speed_wander", "wander_seed",
+    "wander_m", "speed_wander", "wander_seed", "sensor", "attitude",
 })
 
 
@@ -911,6 +922,11 @@ class SatLocEnv(SharedSpecMixin, gym.Env):
         # keys of their own and the episode's number since the last seeded reset (spawning would move the other
         # children's counter): none of the episode's other draws change
         self._episodes_since_seed = 0 if seed is not None else getattr(self, "_episodes_since_seed", -1) + 1
+        cam = self.camera
+        self.sensor = Sensor(cfg.sensor, cam.width, cam.height, cam.fx, cam.cx, cam.cy,
+                             np.random.default_rng(self._child_seed(SENSOR_SPAWN_KEY)))
+        self.attitude = Attitude(cfg.attitude, cfg.dt, np.random.default_rng(self._child_seed(ATTITUDE_SPAWN_KEY)))
+        self._motion = (0.0, 0.0)
         self._prior_rng = None
         if self.localizer is not None:
             self._prior_rng = np.random.default_rng(self._child_seed(PRIOR_SPAWN_KEY))
@@ -929,7 +945,8 @@ class SatLocEnv(SharedSpecMixin, gym.Env):
 
     def step(self, action):
         odometry, true_odo = self._advance(action)
-        return self._complete_step(self._renderer.render(self.pose, *self._render_args()), odometry, true_odo)
+        return self._complete_step(self._renderer.render(self.pose, *self._render_args(), tilt=self.attitude.tilt),
+                                   odometry, true_odo)
 
     def _advance(self, action) -> tuple[np.ndarray, np.ndarray]:
         """The first part of :meth:`step`, up to the rendering: move the car by ``action``; returns the odometry
@@ -940,7 +957,9 @@ class SatLocEnv(SharedSpecMixin, gym.Env):
         a = self._check_action(action)
         cfg = self._episode
         prev = self.pose
-        self.pose, _, _ = step_bicycle(prev, a[0], a[1], cfg.dt, self.vehicle)
+        self.pose, v, w = step_bicycle(prev, a[0], a[1], cfg.dt, self.vehicle)
+        self.attitude.step(v, w)
+        self._motion = (v, w)
         self.steps += 1
         self.pilot.follow(self.pose)
         true_odo = prev.between(self.pose).as_array()
@@ -1012,12 +1031,15 @@ class SatLocEnv(SharedSpecMixin, gym.Env):
         return ("left" if want_depth else False), self.config.labels
 
     def _observe(self, odometry: np.ndarray) -> dict:
-        return self._observe_rendered(self._renderer.render(self.pose, *self._render_args()), odometry)
+        return self._observe_rendered(self._renderer.render(self.pose, *self._render_args(), tilt=self.attitude.tilt),
+                                      odometry)
 
     def _observe_rendered(self, out: dict, odometry: np.ndarray) -> dict:
         cfg = self.config
         want_depth = cfg.depth or self._frame_depth_needed()
-        obs = {"left": self.appearance(out["left"]), "right": self.appearance(out["right"]), "odometry": odometry}
+        v, w = self._motion
+        obs = {"left": self.sensor(self.appearance(out["left"]), v, w),
+               "right": self.sensor(self.appearance(out["right"]), v, w), "odometry": odometry}
         if cfg.depth:
             obs["depth"] = out["depth_left"]
         if cfg.labels:

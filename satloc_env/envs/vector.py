@@ -152,7 +152,8 @@ class SatLocVectorEnv(VectorEnv):
                 groups.setdefault(self.envs[i]._render_args(), []).append(i)
             rendered: dict[int, dict] = {}
             for (depth, labels), idx in groups.items():
-                outs = self._batch.render_many([(self.envs[i]._renderer, self.envs[i].pose) for i in idx],
+                outs = self._batch.render_many([(self.envs[i]._renderer, self.envs[i].pose, self.envs[i].attitude.tilt)
+                                                for i in idx],
                                                depth=depth, labels=labels)
                 rendered.update(zip(idx, outs))
         observed = {i: self.envs[i]._observe_step(rendered[i], moved[i][0]) for i in stepping}

@@ -180,3 +180,53 @@ class Autopilot:
     @property
     def done(self) -> bool:
         return self.s >= self.route.length - 1.0
+
+
+@dataclass(frozen=True)
+class AttitudeParams:
+    """A passenger car's body motion (``strength`` 1 of :class:`Attitude`): pitch and roll gradients (radians per
+    m/s^2 of longitudinal and lateral acceleration), the suspension's time constant (s), and the ride's pitch
+    and roll over the road surface (standard deviations, radians; correlation time, s)."""
+
+    pitch_per_mps2: float = math.radians(0.35)
+    roll_per_mps2: float = math.radians(0.5)
+    tau_s: float = 0.25
+    ride_pitch: float = math.radians(0.25)
+    ride_roll: float = math.radians(0.15)
+    ride_tau_s: float = 0.4
+    max_accel_mps2: float = 8.0      # the accelerations the body feels are clipped to what tyres can give: the
+                                     # bicycle model changes speed in one step
+
+class Attitude:
+    """The body's pitch and roll (radians; :func:`satloc_env.render.stereo.body_tilt`) as the car brakes,
+    accelerates and turns (the accelerations through a first-order suspension) and rides the road (a smooth
+    random process drawn from ``rng``), all scaled by ``strength``; 0: level, :attr:`tilt` None (the fixed
+    mount)."""
+
+    def __init__(self, strength: float, dt: float, rng: np.random.Generator, params: AttitudeParams = AttitudeParams()):
+        self.strength, self.dt, self.rng, self.p = float(strength), float(dt), rng, params
+        self._dyn = np.zeros(2)          # pitch, roll from the accelerations
+        self._ride = np.zeros(2)         # unit-variance ride process
+        self._speed: float | None = None
+
+    @property
+    def tilt(self) -> tuple[float, float] | None:
+        """(pitch, roll) radians now, or None at strength 0."""
+        if self.strength == 0.0:
+            return None
+        ride = self.strength * np.array([self.p.ride_pitch, self.p.ride_roll]) * self._ride
+        return float(self._dyn[0] + ride[0]), float(self._dyn[1] + ride[1])
+
+    def step(self, speed: float, yaw_rate: float) -> None:
+        """Advance by one step at ``speed`` (m/s) and ``yaw_rate`` (rad/s)."""
+        if self.strength == 0.0:
+            return
+        p = self.p
+        accel = 0.0 if self._speed is None else (speed - self._speed) / self.dt
+        self._speed = speed
+        lim = p.max_accel_mps2
+        accel, lateral = (float(np.clip(x, -lim, lim)) for x in (accel, speed * yaw_rate))
+        target = self.strength * np.array([-p.pitch_per_mps2 * accel, p.roll_per_mps2 * lateral])
+        self._dyn += (1.0 - math.exp(-self.dt / p.tau_s)) * (target - self._dyn)
+        a = math.exp(-self.dt / p.ride_tau_s)
+        self._ride = a * self._ride + math.sqrt(1 - a * a) * self.rng.standard_normal(2)

@@ -70,24 +70,27 @@ class BatchStereoRenderer:
         self._slots.append(slot)
         return slot
 
-    def render_many(self, requests: Sequence[tuple["StereoSlot", Pose2]], depth: bool | str = True,
+    def render_many(self, requests: Sequence[tuple], depth: bool | str = True,
                     labels: bool = False) -> list[dict[str, np.ndarray]]:
-        """Render the stereo pair of each (slot, pose) of ``requests`` (each slot at most once), as
-        :meth:`StereoRenderer.render` does for one, in one framebuffer: one ``glReadPixels`` for all colour
-        images, one for the depth (and, with ``labels``, one more pass of the label meshes)."""
+        """Render the stereo pair of each (slot, pose) or (slot, pose, tilt) of ``requests`` (each slot at most
+        once; ``tilt`` as :meth:`StereoRenderer.render` takes it), as :meth:`StereoRenderer.render` does for one,
+        in one framebuffer: one ``glReadPixels`` for all colour images, one for the depth (and, with ``labels``,
+        one more pass of the label meshes)."""
         if depth not in (True, False, "left"):
             raise ValueError(f"depth: expected True, False or 'left', got {depth!r}")
-        if len({id(slot) for slot, _ in requests}) != len(requests):
+        requests = [tuple(r) if len(r) == 3 else (*r, None) for r in requests]
+        if len({id(slot) for slot, _, _ in requests}) != len(requests):
             raise ValueError("render_many: a slot appears twice in one call")
         if not requests:
             return []
         gl = self._context()
-        for slot, pose in requests:
+        for slot, pose, tilt in requests:
             if slot.batch is not self or slot.closed:
                 raise ValueError("render_many: a slot of another renderer, or a closed one")
-            slot._place(pose)
+            slot._place(pose, tilt)
         n = len(requests)
-        groups = [slot._draw_group(False, (*(v / 255.0 for v in slot.world.sky_rgb), 1.0)) for slot, _ in requests]
+        groups = [slot._draw_group(False, (*(v / 255.0 for v in slot.world.sky_rgb), 1.0))
+                  for slot, _, _ in requests]
         views = gl.render_groups(self._scene, groups, color="rgb",
                                  depth={True: True, False: False, "left": "first"}[depth])
         outs: list[dict[str, np.ndarray]] = []
@@ -100,7 +103,7 @@ class BatchStereoRenderer:
                     out["depth_right"] = right["depth"]
             outs.append(out)
         if labels:
-            groups = [slot._draw_group(True) for slot, _ in requests]
+            groups = [slot._draw_group(True) for slot, _, _ in requests]
             views = gl.render_groups(self._scene, groups, color="red", depth=False, bg_color=np.zeros(4))  # 0: void
             for i, out in enumerate(outs):
                 out["labels_left"], out["labels_right"] = views[2 * i]["color"], views[2 * i + 1]["color"]
@@ -169,6 +172,16 @@ class BatchStereoRenderer:
                 for node in pair:
                     self._scene.remove_node(node)
             del self._worlds[id(world)]
+
+
+def body_tilt(pitch: float, roll: float) -> np.ndarray:
+    """4x4 rotation of the vehicle's body about its origin (x forward, y left, z up): ``pitch`` radians nose
+    down (positive when braking), then ``roll`` radians left side up (positive in a right turn's... a left
+    turn's outward lean: the body rolls away from the turn's centre)."""
+    cp, sp, cr, sr = math.cos(pitch), math.sin(pitch), math.cos(roll), math.sin(roll)
+    ry = np.array([[cp, 0, sp, 0], [0, 1, 0, 0], [-sp, 0, cp, 0], [0, 0, 0, 1]])
+    rx = np.array([[1, 0, 0, 0], [0, cr, -sr, 0], [0, sr, cr, 0], [0, 0, 0, 1]])
+    return ry @ rx
 
 
 class _WorldNodes(NamedTuple):
@@ -243,23 +256,30 @@ class StereoSlot:
         if self.batch._scene is not None and not self.closed:
             self._attach_occluders()
 
-    def render(self, pose: Pose2, depth: bool | str = True, labels: bool = False) -> dict[str, np.ndarray]:
+    def render(self, pose: Pose2, depth: bool | str = True, labels: bool = False,
+               tilt: tuple[float, float] | None = None) -> dict[str, np.ndarray]:
         """See :meth:`StereoRenderer.render`."""
         if self.closed:
             raise RuntimeError("render: this slot was closed")
-        return self.batch.render_many([(self, pose)], depth, labels)[0]
+        return self.batch.render_many([(self, pose, tilt)], depth, labels)[0]
 
-    def _place(self, pose: Pose2) -> None:
-        """Put the cameras at ``pose`` and find the chunks whose footprint comes within reach of them."""
+    def _map_from_camera(self, pose: Pose2, side: str, tilt: tuple[float, float] | None) -> np.ndarray:
+        if tilt is None:
+            return self.camera.map_from_camera(pose, side)
+        return pose.matrix3d() @ body_tilt(*tilt) @ self.camera.vehicle_from_camera(side)
+
+    def _place(self, pose: Pose2, tilt: tuple[float, float] | None = None) -> None:
+        """Put the cameras at ``pose`` (the body tilted by ``tilt``) and find the chunks whose footprint comes
+        within reach of them."""
         scene = self.batch._scene
         for side, node in zip(_SIDES, self._cameras):
-            scene.set_pose(node, self.camera.map_from_camera(pose, side) @ _CV_TO_GL)
+            scene.set_pose(node, self._map_from_camera(pose, side, tilt) @ _CV_TO_GL)
         entry = self.batch._world_nodes(self.world)
         r = entry.rects
         dx = np.maximum(np.maximum(r[:, 0] - pose.x, pose.x - r[:, 2]), 0.0)
         dy = np.maximum(np.maximum(r[:, 1] - pose.y, pose.y - r[:, 3]), 0.0)
         self._visible = np.hypot(dx, dy) <= self.batch.reach
-        self._in_view = tuple(self._visible & _box_in_view(entry.corners, self.camera.map_from_camera(pose, side),
+        self._in_view = tuple(self._visible & _box_in_view(entry.corners, self._map_from_camera(pose, side, tilt),
                                                            self.camera, self.batch.znear) for side in _SIDES)
 
     def _draw_group(self, label_pass: bool, bg_color=None):
@@ -327,15 +347,17 @@ class StereoRenderer:
         """Replace the episode's extra objects (drawn as one mesh; all lists may be empty)."""
         self._slot.set_occluders(cars, persons, obstacles)
 
-    def render(self, pose: Pose2, depth: bool | str = True, labels: bool = False) -> dict[str, np.ndarray]:
-        """Render the stereo pair for the vehicle at ``pose``.
+    def render(self, pose: Pose2, depth: bool | str = True, labels: bool = False,
+               tilt: tuple[float, float] | None = None) -> dict[str, np.ndarray]:
+        """Render the stereo pair for the vehicle at ``pose``, its body tilted by ``tilt`` = (pitch, roll)
+        radians (:func:`body_tilt`; None: level, the camera's fixed mount).
 
         Returns ``left`` and ``right`` (H x W x 3 uint8 RGB), with ``depth`` also ``depth_left`` and
         ``depth_right`` (H x W float32 z-depth in metres, 0 where nothing was hit; ``depth="left"`` reads the
         left one only), with ``labels`` also
         ``labels_left`` and ``labels_right`` (H x W uint8 class ids, 0 = void / sky). All C-contiguous.
         """
-        return self._slot.render(pose, depth, labels)
+        return self._slot.render(pose, depth, labels, tilt)
 
     @property
     def gl_info(self) -> dict[str, str]:
