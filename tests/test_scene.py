@@ -210,10 +210,20 @@ def test_variety_round_trips_and_builds_its_world(tmp_path):
     assert s.summary()["furniture"] == len(s.layout.furniture)
     world = s.spec.build_world(s.layout)
     assert sum(len(c.faces) for c in world.chunks) > 0
-    # the furniture is in the world (class obstacle: nothing else of a scene's own is) and on the tile
-    assert any((c.labels == CLASS_ID["obstacle"]).any() for c in world.chunks)
+    # the camera's ground shows the world's cast shadows (variety's default), darker than the layout's ground;
+    # a revisit moves the sun and the world casts at it, once
+    assert s.spec.casts_shadows and not load_scene(write(tmp_path, SMALL, "plain.yaml")).spec.casts_shadows
     import dataclasses
 
+    flat = dataclasses.replace(s.spec, ground_shadows=False).build_world(s.layout)
+    ground = lambda w: w.chunks[0].texture[:600].astype(np.float64)  # noqa: E731  (the ground region: 716 rows)
+    assert ground(world).mean() < ground(flat).mean() - 2.0
+    from satloc_env.world.revisit import changed_layout
+
+    moved = changed_layout(s.layout, 0.5, 3, parts=("shadows",), cast=False)
+    assert np.array_equal(moved.ground_rgb, s.layout.ground_rgb) and moved.sun_azimuth != s.layout.sun_azimuth
+    # the furniture is in the world (class obstacle: nothing else of a scene's own is) and on the tile
+    assert any((c.labels == CLASS_ID["obstacle"]).any() for c in world.chunks)
     from satloc_env.world.tile import paint_tile
     bare = dataclasses.replace(s.layout, furniture=[])
     assert not np.array_equal(paint_tile(s.layout, 0.2, 0)[0], paint_tile(bare, 0.2, 0)[0])

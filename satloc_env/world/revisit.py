@@ -72,6 +72,7 @@ from satloc.errors import ConfigError
 from satloc.labels import CLASS_ID as C
 from satloc.labels import DRIVABLE
 
+from .furniture import furniture_parts
 from .layout import Car, Layout
 from .paint import fill_poly, noise, rect_poly
 
@@ -115,11 +116,14 @@ def _check(strength: float, seed: int, parts: Iterable[str]) -> tuple[float, int
     return strength, int(seed), parts
 
 
-def changed_layout(layout: Layout, strength: float, seed: int, parts: Iterable[str] = PARTS) -> Layout:
+def changed_layout(layout: Layout, strength: float, seed: int, parts: Iterable[str] = PARTS,
+                   cast: bool = True) -> Layout:
     """A revisit of ``layout`` (see the module docstring): a new :class:`Layout` with another sun, cast
     shadows, road wear, moved parked cars and another season's grass, deterministic for (``strength``,
-    ``seed``). ``parts``: which of :data:`PARTS` to apply. ``strength`` 0 (or no parts) returns ``layout``
-    itself. :class:`satloc.ConfigError` for a strength outside [0, 1], a negative seed or an unknown part."""
+    ``seed``). ``parts``: which of :data:`PARTS` to apply; ``cast`` False moves the sun without painting its
+    shadows (for a scene whose world casts them itself, :attr:`satloc_env.world.scene.SceneSpec.casts_shadows`).
+    ``strength`` 0 (or no parts) returns ``layout`` itself. :class:`satloc.ConfigError` for a strength outside
+    [0, 1], a negative seed or an unknown part."""
     strength, seed, parts = _check(strength, seed, parts)
     if strength == 0.0 or not parts:
         return layout
@@ -138,7 +142,9 @@ def changed_layout(layout: Layout, strength: float, seed: int, parts: Iterable[s
         d_az = math.radians(SUN_AZIMUTH_MAX_DEG) * strength * r.uniform(0.6, 1.0) * r.choice([-1.0, 1.0])
         lay.sun_azimuth = float((layout.sun_azimuth + d_az) % (2 * math.pi))
         lay.sun_elevation = float(np.clip(layout.sun_elevation + strength * r.uniform(-0.45, 0.2), 0.3, 1.3))
-        _cast_shadows(lay, min(1.0, 2.0 * strength) * r.uniform(0.75, 1.0))
+        depth = min(1.0, 2.0 * strength) * r.uniform(0.75, 1.0)
+        if cast:
+            cast_shadows(lay, depth)
     return lay
 
 
@@ -337,8 +343,9 @@ def _circle(center, radius: float, n: int = 16) -> np.ndarray:
     return np.asarray(center, np.float64) + radius * np.c_[np.cos(a), np.sin(a)]
 
 
-def _cast_shadows(lay: Layout, depth: float) -> None:
-    """Darken ``lay.ground_rgb`` where its buildings, trees and cars shade the ground from ``lay``'s sun."""
+def cast_shadows(lay: Layout, depth: float) -> None:
+    """Darken ``lay.ground_rgb`` (in place) where its buildings, trees, cars and street furniture shade the
+    ground from ``lay``'s sun, by ``depth`` (0 to 1) of a shadow's darkening (bluish: lit by the sky alone)."""
     mpp = float(lay.ground_mpp)
     h, w = lay.ground_labels.shape
     away = -np.array([math.cos(lay.sun_azimuth), math.sin(lay.sun_azimuth)]) / math.tan(max(lay.sun_elevation, 0.15))
@@ -360,6 +367,8 @@ def _cast_shadows(lay: Layout, depth: float) -> None:
     for car in lay.cars:
         box = rect_poly(car.center[0], car.center[1], car.length, car.width, car.yaw)
         fill_poly(solid, px(_hull(box, box + away * float(car.height))), 1)
+    for part in (q for f in lay.furniture for q in furniture_parts(f)):
+        fill_poly(solid, px(_hull(part.footprint + away * part.z0, part.footprint + away * part.z1)), 1)
     shade = np.maximum(solid.astype(np.float32), 0.85 * leafy.astype(np.float32))
     shade = cv2.GaussianBlur(shade, (0, 0), max(0.5, 0.1 / mpp))
     shade[lay.ground_labels == C["building"]] = 0.0   # not on roofs (an image scene's roofs are its ground image)
@@ -381,6 +390,7 @@ def changed_world(scene, strength: float, seed: int):
     strength, seed, _ = _check(strength, seed, ())
     if strength == 0.0:
         return scene.world
-    world = scene.spec.build_world(changed_layout(scene.layout, strength, seed))
+    world = scene.spec.build_world(changed_layout(scene.layout, strength, seed,
+                                                  cast=not scene.spec.casts_shadows))
     change_foliage(world, strength, seed)
     return world

@@ -20,6 +20,7 @@ A scene file (see ``scenes/*.yaml``)::
     road_graph: {snap_m: 2, edge_margin_m: 2, smooth_m: 3, spacing_m: 2, turn_radius_m: 4.5, snap_route_m: 20}
     ground_pad_m: 250              # world around the tile, so no view shows its edge
     ground_beyond: mirror          # what it is: the tile mirrored, or neutral ground (default: see below)
+    ground_shadows: true           # the camera's ground shows the world's cast shadows (default: grids with variety)
     objects: {buildings: [...], trees: [...], cars: [...]}   # extra hand-placed objects
     lighting: {sun_azimuth_deg: 135, sun_elevation_deg: 50}
     knobs: {aliasing: 0.0, occlusion: 0.0, appearance: 0.0, satellite_gap: 0.5}
@@ -303,6 +304,11 @@ class Knobs:
                 raise ConfigError(f"{k}: expected a value in [0, 1], got {v}")
 
 
+#: how dark (0 to 1 of :data:`satloc_env.world.revisit.SHADOW_RGB`'s darkening) the shadows of a world that
+#: casts them are (:attr:`SceneSpec.casts_shadows`): a clear day
+SHADOW_DEPTH = 0.85
+
+
 @dataclass
 class SceneSpec:
     name: str
@@ -320,6 +326,7 @@ class SceneSpec:
     road_graph: GraphParams = field(default_factory=GraphParams)
     ground_pad_m: float | None = None    # None: DEFAULT_GROUND_PAD_M
     ground_beyond: str | None = None     # satloc_env.world.meshes.BEYOND; None: see beyond_edge
+    ground_shadows: bool | None = None   # the camera's world casts its shadows on the ground; None: see casts_shadows
 
     @property
     def beyond_edge(self) -> str:
@@ -334,12 +341,28 @@ class SceneSpec:
             return "mirror" if isinstance(variety, (int, float)) and variety > 0 else "neutral"
         return "mirror"
 
+    @property
+    def casts_shadows(self) -> bool:
+        """Whether the camera's world has the shadows of its buildings, trees, cars and furniture on its ground
+        (at the layout's sun, :data:`SHADOW_DEPTH`): ``ground_shadows`` if given, else for grids with
+        ``variety`` only (the tables' worlds rest on none; an image scene's ground is imagery with its own)."""
+        if self.ground_shadows is not None:
+            return bool(self.ground_shadows)
+        variety = self.generator.get("variety") or 0.0
+        return self.generator.get("type") == "grid" and isinstance(variety, (int, float)) and variety > 0
+
     def build_world(self, layout):
         """The renderable world of ``layout`` (this scene's or a changed copy) with this spec's ground beyond
-        the tile (``ground_pad_m``, ``beyond_edge``)."""
+        the tile (``ground_pad_m``, ``beyond_edge``) and, where it :attr:`casts_shadows`, the layout's shadows
+        painted on its ground (the satellite tile paints its own, at its capture's sun)."""
         from .meshes import build_world
 
         pad = DEFAULT_GROUND_PAD_M if self.ground_pad_m is None else self.ground_pad_m
+        if self.casts_shadows:
+            from .revisit import cast_shadows
+
+            layout = dataclasses.replace(layout, ground_rgb=layout.ground_rgb.copy())
+            cast_shadows(layout, SHADOW_DEPTH)
         return build_world(layout, pad_m=pad, beyond=self.beyond_edge)
 
     @property
