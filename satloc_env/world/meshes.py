@@ -685,7 +685,7 @@ def _add_tree(mb: _MeshBuilder, t: Tree, index: int) -> None:
     profile = [(0.0, 0.0), (0.12, 0.75), (0.4, 1.0), (0.72, 0.85), (0.92, 0.45), (1.0, 0.0)]
     species = SPECIES.get(int(t.species))          # a species of its own (satloc_env.world.variety), else None
     if species is not None:
-        n, profile = 12, species["profile"]
+        n, profile = 8, species["profile"]
     phase = rng.uniform(0, 2 * math.pi)
     rings = [_ring(t.center, zb + f * hc, r * k * rng.uniform(0.85, 1.1, n), n, phase) for f, k in profile]
     rows, cols = _round_px(hc * 1.6, _FOLIAGE_M), _patch_cols(mb, 2 * math.pi * r, _FOLIAGE_M)
@@ -722,12 +722,14 @@ def _add_car(mb: _MeshBuilder, c: Car, key: tuple) -> None:
 
 
 def _add_furniture(mb: _MeshBuilder, f: Furniture, index: int) -> None:
-    """Street furniture (:mod:`satloc_env.world.furniture`): its parts as prisms, class ``obstacle``."""
+    """Street furniture (:mod:`satloc_env.world.furniture`): its parts as prisms, class ``obstacle``; no top
+    on a part above 2 m (the camera, 1.65 m up, never sees it)."""
     rng = _rng("furniture", index)
     for part in furniture_parts(f):
         _add_prism(mb, part.footprint, part.z0, part.z1, part.texel, CLASS_ID["obstacle"],
                    lambda walls, h, part=part: part_paint(rng, part, walls, h),
-                   lambda h, w, part=part: _paint(rng, np.asarray(part.rgb, np.float32), h, w))
+                   None if part.z1 > 2.0 else
+                   (lambda h, w, part=part: _paint(rng, np.asarray(part.rgb, np.float32), h, w)))
 
 
 def _add_person(mb: _MeshBuilder, p: Person, index: int) -> None:
