@@ -16,7 +16,7 @@ import cv2
 import numpy as np
 
 from .layout import Furniture
-from .paint import fbm
+from .paint import fbm, rect_poly
 
 __all__ = ["KINDS", "Part", "furniture_parts", "footprint_radius"]
 
@@ -47,13 +47,16 @@ class Part:
     faces: dict[int, np.ndarray] = field(default_factory=dict)
 
 
+#: edges of a :func:`_box` (of :func:`satloc_env.world.paint.rect_poly`'s corners): its front (facing ``yaw``)
+#: and its back
+_FRONT, _BACK = 3, 1
+
+
 def _box(center, yaw: float, length: float, width: float, dx: float = 0.0, dy: float = 0.0) -> np.ndarray:
     """Corners (4, 2) of a ``length`` (along ``yaw``) x ``width`` rectangle whose centre is ``dx`` ahead and
-    ``dy`` to the left of ``center``; edges: right side, front, left side, rear."""
+    ``dy`` to the left of ``center`` (:func:`rect_poly`; edge :data:`_FRONT` faces ``yaw``)."""
     c, s = math.cos(yaw), math.sin(yaw)
-    local = np.array([[-length / 2, -width / 2], [length / 2, -width / 2],
-                      [length / 2, width / 2], [-length / 2, width / 2]]) + [dx, dy]
-    return local @ np.array([[c, s], [-s, c]]) + np.asarray(center, np.float64)
+    return rect_poly(center[0] + c * dx - s * dy, center[1] + s * dx + c * dy, length, width, yaw)
 
 
 def _disc(center, r: float, n: int = 8) -> np.ndarray:
@@ -172,7 +175,7 @@ def furniture_parts(f: Furniture) -> list[Part]:
             plate = _box(c, yaw, 0.04, wd, dx=0.05)
             side = int(rng.integers(64, 96))
             parts.append(Part(plate, z - hd, z, (150, 152, 150), 0.01,
-                              {1: _sign_face(rng, max(8, int(side * hd / wd)), side)}))
+                              {_FRONT: _sign_face(rng, max(8, int(side * hd / wd)), side)}))
             z -= hd + 0.08
     elif kind == 3:                                     # litter bin
         col = _jitter(rng, _pick(rng, ((40, 90, 50), (60, 62, 66), (30, 30, 32), (30, 70, 140), (210, 120, 30))))
@@ -206,7 +209,7 @@ def furniture_parts(f: Furniture) -> list[Part]:
         parts.append(Part(_disc(c, 0.08, 6), 0.0, h, metal))
         head = c + fwd * 0.2
         parts.append(Part(_box(head, yaw, 0.25, 0.32), h - 1.0, h, (30, 30, 30), 0.01,
-                          {1: _signal_face(rng, 96, 32)}))
+                          {_FRONT: _signal_face(rng, 96, 32)}))
     elif kind == 8:                                     # bus shelter: back glass, a poster panel, a roof, a bench
         ln, dp, h = float(rng.uniform(2.8, 3.6)), float(rng.uniform(1.3, 1.6)), float(rng.uniform(2.3, 2.6))
         frame = _jitter(rng, _pick(rng, _METAL), 6)
@@ -214,7 +217,7 @@ def furniture_parts(f: Furniture) -> list[Part]:
         parts.append(Part(_box(back, yaw, 0.06, ln), 0.1, h, (120, 140, 150), 0.05))
         end = back + left * (ln / 2) + fwd * dp / 2
         parts.append(Part(_box(end, yaw + math.pi / 2, 0.08, dp), 0.1, h, frame, 0.01,
-                          {1: _poster(rng, 220, 128), 3: _poster(rng, 220, 128)}))
+                          {_FRONT: _poster(rng, 220, 128), _BACK: _poster(rng, 220, 128)}))
         for s in (-1, 1):
             parts.append(Part(_disc(back + left * s * ln / 2, 0.05, 4), 0.0, h, frame))
         parts.append(Part(_box(c, yaw, dp + 0.2, ln + 0.2), h, h + 0.12, frame))

@@ -337,9 +337,16 @@ class SceneSpec:
         if self.ground_beyond is not None:
             return self.ground_beyond
         if self.generator.get("type") == "grid":
-            variety = self.generator.get("variety") or 0.0
-            return "mirror" if isinstance(variety, (int, float)) and variety > 0 else "neutral"
+            return "mirror" if self._grid_variety > 0 else "neutral"
         return "mirror"
+
+    @property
+    def _grid_variety(self) -> float:
+        """A grid generator's ``variety`` (0 for other generators, or where it is not a number yet: checked
+        later, naming the field)."""
+        variety = self.generator.get("variety") or 0.0
+        ok = self.generator.get("type") == "grid" and isinstance(variety, (int, float))
+        return float(variety) if ok else 0.0
 
     @property
     def casts_shadows(self) -> bool:
@@ -348,8 +355,7 @@ class SceneSpec:
         ``variety`` only (the tables' worlds rest on none; an image scene's ground is imagery with its own)."""
         if self.ground_shadows is not None:
             return bool(self.ground_shadows)
-        variety = self.generator.get("variety") or 0.0
-        return self.generator.get("type") == "grid" and isinstance(variety, (int, float)) and variety > 0
+        return self._grid_variety > 0
 
     def build_world(self, layout):
         """The renderable world of ``layout`` (this scene's or a changed copy) with this spec's ground beyond
