@@ -464,17 +464,22 @@ def test_scene_with_a_geotiff_road_mask_prints_no_tiff_warnings(tmp_path, ground
 
 def test_the_command_prints_a_warning_as_one_line(tmp_path, ground):
     """``satloc scene`` over a dark image: the warning is one ``satloc: warning:`` line naming the file, not
-    Python's form (the internal file and line, then the source line)."""
+    Python's form (the internal file and line, then the source line); said again when the scene is read back
+    from the disk cache (the second run), not only when it is built."""
+    import os
     import subprocess
     import sys
 
     tr, rgb = ground
     write_raster(tmp_path / "dark.tif", (_bands(rgb) // 8).astype(np.uint8), tr, photometric="RGB")
     path = _scene_yaml(tmp_path, "dark.tif")
-    r = subprocess.run([sys.executable, "-m", "satloc_env.cli", "scene", path], capture_output=True, text=True,
-                       timeout=300)
-    assert r.returncode == 0, r.stderr
-    lines = [ln for ln in r.stderr.splitlines() if ln.strip()]
-    assert len(lines) == 1, r.stderr
-    assert re.fullmatch(r"satloc: warning: .*dark\.tif: is mostly dark after conversion to 8 bits .*", lines[0])
-    assert "SatlocWarning" not in r.stderr and ".py:" not in r.stderr
+    env = {**os.environ, "SATLOC_CACHE": str(tmp_path / "cache"), "SATLOC_SCENE_CACHE": "1"}
+    for run in ("built", "from the cache"):
+        r = subprocess.run([sys.executable, "-m", "satloc_env.cli", "scene", path], capture_output=True, text=True,
+                           timeout=300, env=env)
+        assert r.returncode == 0, r.stderr
+        lines = [ln for ln in r.stderr.splitlines() if ln.strip()]
+        assert len(lines) == 1, (run, r.stderr)
+        assert re.fullmatch(r"satloc: warning: .*dark\.tif: is mostly dark after conversion to 8 bits .*", lines[0])
+        assert "SatlocWarning" not in r.stderr and ".py:" not in r.stderr
+    assert len(list((tmp_path / "cache" / "scenes").glob("eleven-*/scene.json"))) == 1

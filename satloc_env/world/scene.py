@@ -98,6 +98,7 @@ import dataclasses
 import functools
 import math
 import os
+import warnings
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any, Literal
@@ -106,7 +107,7 @@ import numpy as np
 import yaml
 
 from satloc.config import from_dict, to_dict
-from satloc.errors import ConfigError, FormatError
+from satloc.errors import ConfigError, FormatError, SatlocWarning
 from satloc.labels import CLASS_ID, DRIVABLE, NUM_CLASSES
 from satloc.persist import (
     ArraySpec,
@@ -582,6 +583,9 @@ class Scene:
     #: the disk cache folder this scene was read from or saved to (:func:`scene_cache_path`), where its world is
     #: kept too; None: not cached
     cache_dir = None
+    #: the :class:`~satloc.errors.SatlocWarning` messages building it gave (about its files: a dark image, roads
+    #: left out, ...); kept in ``scene.json`` so that a scene read back from the disk cache says them again
+    build_warnings: tuple[str, ...] = ()
 
     @functools.cached_property
     def world(self):
@@ -659,6 +663,8 @@ class Scene:
             meta["spec"] = to_dict(self.spec)
             if self.tour is not None:
                 meta["tour"] = dict(self.tour)
+            if self.build_warnings:
+                meta["build_warnings"] = list(self.build_warnings)
             write_json(d / "scene.json", meta)
             self.satmap.save(d / "tile")
 
@@ -759,6 +765,10 @@ class Scene:
             raise FormatError(str(e)) from e
         tour = meta.get("tour")
         scene.tour = dict(tour) if isinstance(tour, dict) else None
+        said = meta.get("build_warnings", [])
+        if not (isinstance(said, list) and all(isinstance(w, str) for w in said)):
+            raise FormatError(f"{sj}: build_warnings: expected a list of strings")
+        scene.build_warnings = tuple(said)
         return scene
 
 
@@ -1167,10 +1177,16 @@ def _cached_scene(path: str, aliasing: float | None, satellite_gap: float | None
         try:
             scene = Scene.load(cached)
             scene.cache_dir = cached
-            return scene
         except (FormatError, ConfigError, OSError):
             damaged = True   # built again below, and saved over it
-    scene = build_scene(spec, base, aliasing, where=path, satellite_gap=satellite_gap)
+        else:
+            for message in scene.build_warnings:   # what building it said, said again
+                warnings.warn(message, SatlocWarning, stacklevel=3)
+            return scene
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always", SatlocWarning)
+        scene = build_scene(spec, base, aliasing, where=path, satellite_gap=satellite_gap)
+    scene.build_warnings = tuple(dict.fromkeys(str(w.message) for w in caught if issubclass(w.category, SatlocWarning)))
     if cached is not None and "road_graph" not in scene.__dict__ and scene.footprints is None:
         try:
             if damaged or not (cached / "scene.json").is_file():   # another process may have saved it meanwhile
@@ -1178,6 +1194,8 @@ def _cached_scene(path: str, aliasing: float | None, satellite_gap: float | None
             scene.cache_dir = cached
         except OSError:   # a read-only cache, or another process saved it first: the scene is used all the same
             pass
+    for w in caught:   # through the caller's filters now (an error filter raises here, after the build)
+        warnings.warn_explicit(w.message, w.category, w.filename, w.lineno, source=w.source)
     return scene
 
 
