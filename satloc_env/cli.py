@@ -14,6 +14,7 @@ import numpy as np
 
 from satloc.device import HELP as DEVICE_HELP
 from satloc.errors import ConfigError, SatlocError, SatlocWarning
+from satloc_env.world.meshes import LOD_M
 
 
 def _save_rgb(path: Path, img: np.ndarray) -> None:
@@ -284,12 +285,26 @@ def cmd_record(args) -> int:
     return 0
 
 
+def _detail_m(text: str) -> float | None:
+    """``--detail-m``: metres (a number >= 0) or ``none``."""
+    if text.strip().lower() == "none":
+        return None
+    try:
+        v = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected metres or 'none', got {text!r}") from None
+    if not v >= 0 or v == float("inf"):
+        raise argparse.ArgumentTypeError(f"expected a finite number >= 0 or 'none', got {text!r}")
+    return v
+
+
 def cmd_bench(args) -> int:
     if args.what == "env":
         from satloc_env.experiments.bench import bench_env
 
         for n in args.num_envs:
-            print(json.dumps(bench_env(args.resolution, args.steps, args.scene or "city", num_envs=n)), flush=True)
+            print(json.dumps(bench_env(args.resolution, args.steps, args.scene or "city", num_envs=n,
+                                       detail_m=args.detail_m)), flush=True)
     elif args.what == "startup":
         from satloc_env.experiments.bench import bench_startup
 
@@ -658,6 +673,9 @@ def build_parser() -> argparse.ArgumentParser:
     b.add_argument("--scene", default=None, help="env: city; localize: loop (the longest route); vo: residential; "
                                                  "active: the active map (active_grid); crossview, startup: city")
     b.add_argument("--episodes", type=int, default=20, help="active: episodes per agent")
+    b.add_argument("--detail-m", type=_detail_m, default=LOD_M, metavar="M|none",
+                   help=f"env: metres within which objects keep their full detail (default {LOD_M:g}; none: "
+                        "everywhere; the environment's detail_m)")
     b.add_argument("--ways", type=int, nargs="+", default=[1000, 10000],
                    help="osm: sizes of the synthetic OpenStreetMap extracts loaded (ways)")
     b.add_argument("--sizes-km", type=float, nargs="+", default=[0.25, 1.0, 4.0], help="localize: database sizes")

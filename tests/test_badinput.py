@@ -258,6 +258,8 @@ def test_satloc_v0_config_values_checked_at_make(scenes):
         (dict(dt=0.0), "dt: expected a finite number > 0"),
         (dict(dt=float("nan")), "dt: expected a finite number > 0"),
         (dict(zfar_m=float("inf")), "zfar_m: expected a finite number >= 1"),
+        (dict(detail_m=-1.0), "detail_m: expected a finite number >= 0"),
+        (dict(detail_m=float("nan")), "detail_m: expected a finite number >= 0"),
         (dict(anisotropy=0), "anisotropy: expected an integer >= 1"),
         (dict(max_steps=-5), "max_steps: expected an integer >= 1"),
         (dict(speed_mps=-1.0), r"speed_mps: expected a finite number in \[0, 20\]"),

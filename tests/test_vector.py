@@ -155,24 +155,26 @@ def test_errors():
 
 
 def test_view_volume_culling_changes_no_pixel(monkeypatch):
-    """Chunks wholly outside a camera's view volume are skipped (satloc_env.render.stereo._box_in_view); the images
-    are the same as when every chunk within reach is drawn."""
+    """Chunks and cells wholly outside a camera's view volume are skipped (satloc_env.render.stereo._box_in_view);
+    the images are the same as when every chunk and cell within reach is drawn."""
     import satloc_env.render.stereo as render
 
-    def box(xs, ys, zs):   # corners in the camera frame (the camera at the origin: map_from_cam = identity)
-        return np.array([[[x, y, z, 1.0] for x in xs for y in ys for z in zs]])
+    def box(xs, ys, zs):   # min and max rows in the camera frame (the camera at the origin: map_from_cam = identity)
+        return np.array([[[xs[0], ys[0], zs[0]], [xs[1], ys[1], zs[1]]]], np.float64)
 
     cam = _camera()
     for xs, ys, zs, seen in (((-1, 1), (-1, 1), (10, 12), True),      # ahead
                              ((-1, 1), (-1, 1), (-9, -2), False),     # behind
                              ((50, 60), (-1, 1), (5, 6), False),      # far to the right of the image
                              ((-60, 50), (-1, 1), (5, 6), True),      # wider than the view: spans it
-                             ((-1, 1), (20, 30), (5, 6), False)):     # below the image (y down)
+                             ((-1, 1), (20, 30), (5, 6), False),      # below the image (y down)
+                             ((-1, 1), (-1, 1), (-5, 0.05), False),   # behind the near plane
+                             ((-1, 1), (-1, 1), (-5, 0.2), True)):    # reaching past it
         assert render._box_in_view(box(xs, ys, zs), np.eye(4), cam, 0.1).tolist() == [seen], (xs, ys, zs)
     runs = []
     for cull in (True, False):
         if not cull:
-            monkeypatch.setattr(render, "_box_in_view", lambda corners, *a, **k: np.ones(len(corners), bool))
+            monkeypatch.setattr(render, "_box_in_view", lambda boxes, *a, **k: np.ones(len(boxes), bool))
         env = SatLocVectorEnv(2, scene="residential", localizer=None, depth=True, labels=True, occlusion=0.5,
                               random_start=True)
         try:

@@ -34,6 +34,7 @@ from satloc.satmap import SatelliteMap
 from satloc.sequence import Frame
 from satloc.tracking.track import compose_motion
 from satloc_env.render.sensor import Sensor
+from satloc_env.world.meshes import LOD_M
 from satloc_env.world.scene import Scene, load_scene
 
 from .occluders import Appearance, sample_occluders
@@ -89,6 +90,9 @@ class EnvConfig:
                                             # level, fixed mount (the bird's-eye homography exact)
     anisotropy: int = 1                     # >1: anisotropic texture filtering (sharper far ground, ~4x slower on llvmpipe)
     zfar_m: float = 150.0
+    detail_m: float | None = LOD_M          # street furniture and trees of their own species keep their full detail
+                                            # within this many metres of the car; beyond, furniture is left out and
+                                            # trees are drawn coarse (faster); None: full detail at any distance
     localizer: str | None = "cross"         # None/"none": off; "cross": no database, the satellite map alone
                                             # from a GPS-like prior (satloc_env.envs.cross_localizer); "auto": the
                                             # paper's method, a cached build of the scene's database pass
@@ -116,6 +120,8 @@ class EnvConfig:
         _check_finite(self, "speed_mps", lo=0.0, hi=limits.max_speed_mps)
         _check_finite(self, "dt", lo=0.0, lo_open=True)
         _check_finite(self, "zfar_m", lo=1.0)
+        if self.detail_m is not None:
+            _check_finite(self, "detail_m", lo=0.0)
         _check_noise(self.odometry_noise)
         for k in ("sensor", "attitude"):
             _check_finite(self, k, lo=0.0, hi=1.0)
@@ -874,7 +880,7 @@ class SatLocEnv(SharedSpecMixin, gym.Env):
             self._renderer = self._batch.slot(world)
         else:
             self._renderer = StereoRenderer(world, self.camera, anisotropy=self.config.anisotropy,
-                                            zfar=self.config.zfar_m)
+                                            zfar=self.config.zfar_m, detail_m=self.config.detail_m)
 
     # --- gym API ----------------------------------------------------------------------------------
     def reset(self, *, seed: int | None = None, options: dict | None = None):

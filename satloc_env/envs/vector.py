@@ -78,7 +78,8 @@ class SatLocVectorEnv(VectorEnv):
                               "and each car gets its own")
         self.envs = [SatLocEnv(render_mode=render_mode, **config) for _ in range(self.num_envs)]
         first = self.envs[0]
-        self._batch = BatchStereoRenderer(first.camera, anisotropy=first.config.anisotropy, zfar=first.config.zfar_m)
+        self._batch = BatchStereoRenderer(first.camera, anisotropy=first.config.anisotropy, zfar=first.config.zfar_m,
+                                          detail_m=first.config.detail_m)
         for env in self.envs:
             env._batch = self._batch
         self.render_mode = render_mode

@@ -12,6 +12,7 @@ import numpy as np
 from satloc.errors import ConfigError
 from satloc.geometry import StereoCamera
 from satloc_env.envs.drive import SatLocEnv
+from satloc_env.world.meshes import LOD_M
 
 
 def _rss_mb() -> float:
@@ -20,17 +21,18 @@ def _rss_mb() -> float:
 
 
 def bench_env(resolution: str = "half", steps: int = 2000, scene: str = "city", warmup: int = 20,
-              num_envs: int = 1) -> dict:
+              num_envs: int = 1, detail_m: float | None = LOD_M) -> dict:
     """Stereo colour + depth steps per second driven by the autopilot, memory over the run, and which GL driver
     rendered (``gl_renderer``: e.g. llvmpipe for Mesa's software rasterizer, the GPU's name on a vendor's
     driver). ``num_envs`` > 1: the batched vector environment (:class:`satloc_env.envs.vector.SatLocVectorEnv`) with
     that many cars; ``steps`` and ``steps_per_s`` then count the steps of all cars together (``steps`` is
     rounded up to a multiple of ``num_envs``). ``peak_rss_mb``: the largest resident size sampled during this
     run (after the warm-up steps, every 16 step calls and at the end), not the process's lifetime peak, so that
-    runs of several ``num_envs`` in one process each report their own."""
+    runs of several ``num_envs`` in one process each report their own. ``detail_m``: the environment's setting
+    (the distance within which objects keep their full detail; None: everywhere)."""
     if num_envs < 1:
         raise ConfigError(f"num_envs: expected an integer >= 1, got {num_envs}")
-    kw = dict(scene=scene, resolution=resolution, depth=True, localizer=None)   # rendering only
+    kw = dict(scene=scene, resolution=resolution, depth=True, localizer=None, detail_m=detail_m)   # rendering only
     if num_envs == 1:
         env = SatLocEnv(**kw)
         reset = env.reset
@@ -77,7 +79,7 @@ def bench_env(resolution: str = "half", steps: int = 2000, scene: str = "city", 
     total = calls * num_envs
     return {
         "bench": "env", "resolution": resolution, "width": cam.width, "height": cam.height, "scene": scene,
-        "num_envs": num_envs, "gl_renderer": gl["renderer"], "gl_version": gl["version"],
+        "num_envs": num_envs, "detail_m": detail_m, "gl_renderer": gl["renderer"], "gl_version": gl["version"],
         "steps": total, "episodes": episodes, "steps_per_s": round(total / dt, 1),
         "ms_per_step": round(1000 * dt / total, 2), "rss_start_mb": round(rss_start, 1),
         "rss_end_mb": round(rss_end, 1), "peak_rss_mb": round(peak, 1),

@@ -52,6 +52,7 @@ block). A process that forked before its first render is unaffected.
 from __future__ import annotations
 
 import atexit
+import ctypes
 import importlib
 import importlib.util
 import os
@@ -333,7 +334,8 @@ class _MultiViewRenderer(pyrender.Renderer):
                 skip = group.hidden[j] if group.hidden else None
                 mine = [d for d in draws if id(d[-1]) not in skip] if skip else draws
                 GL.glViewport(0, (n - 1 - j) * h, w, h)     # view j in the j-th band from the top
-                self._draw(mine, np.linalg.inv(scene.get_pose(cam)), cam.camera.get_projection_matrix(width=w, height=h))
+                self._draw(mine, np.linalg.inv(scene.get_pose(cam)), cam.camera.get_projection_matrix(width=w, height=h),
+                           group.ranges[j] if group.ranges else None)
                 cameras.append(cam)
                 rows.append((gi, (bands - n + j) * h))
             GL.glFlush()
@@ -373,12 +375,13 @@ class _MultiViewRenderer(pyrender.Renderer):
         draws.sort(key=lambda d: d[:3])
         return draws
 
-    def _draw(self, draws: list[tuple], view: np.ndarray, proj: np.ndarray) -> None:
+    def _draw(self, draws: list[tuple], view: np.ndarray, proj: np.ndarray, ranges: dict | None = None) -> None:
         """Issue the draw calls of ``draws`` (see :meth:`_draw_list`) with view matrix ``view`` and projection
         ``proj``, setting only the uniforms and bindings that change. Uniform locations are looked up once per
-        program (pyrender's ``set_uniform`` queries GL for the location at every call)."""
+        program (pyrender's ``set_uniform`` queries GL for the location at every call). ``ranges``: per node id,
+        the (first triangle, triangles) runs of its one primitive to draw (see :class:`ViewGroup`)."""
         bound, model, factor = None, None, None
-        for _, _, _, program, prim, pose, _ in draws:
+        for _, _, _, program, prim, pose, node in draws:
             if program is not bound:
                 program._bind()
                 loc = self._uniforms(program)
@@ -394,7 +397,13 @@ class _MultiViewRenderer(pyrender.Renderer):
                 GL.glUniform4fv(loc["material.base_color_factor"], 1, np.asarray(factor, np.float32))
             prim.material.baseColorTexture._bind()
             prim._bind()
-            GL.glDrawElementsInstanced(prim.mode, prim.indices.size, GL.GL_UNSIGNED_INT, None, 1)
+            runs = ranges.get(id(node)) if ranges else None
+            if runs is None:
+                GL.glDrawElementsInstanced(prim.mode, prim.indices.size, GL.GL_UNSIGNED_INT, None, 1)
+            elif runs:   # one call for all runs: uint32 indices, 3 per triangle
+                counts = (ctypes.c_int32 * len(runs))(*(3 * c for _, c in runs))
+                starts = (ctypes.c_void_p * len(runs))(*(12 * f for f, _ in runs))
+                GL.glMultiDrawElements(prim.mode, counts, GL.GL_UNSIGNED_INT, starts, len(runs))
 
     def _uniforms(self, program) -> dict[str, int]:
         locs = self._uniform_locs.get(program)
@@ -467,12 +476,15 @@ class ViewGroup(NamedTuple):
     """Views drawn with the same meshes (see :meth:`_MultiViewRenderer.render_groups`): ``cameras``, camera
     nodes of the scene, ``meshes``, the mesh nodes to draw in them (in the order sorted from the first camera),
     ``bg_color``, their background (RGBA in [0, 1]; None: the one of the call), and ``hidden``, per camera the
-    ids of nodes it leaves out (wholly outside its view: the image is the same without them)."""
+    ids of nodes it leaves out (wholly outside its view: the image is the same without them), and ``ranges``,
+    per camera a dict from node id to the (first triangle, triangles) runs of the node's one primitive to draw
+    (the rest wholly outside that view); a node not in it is drawn whole."""
 
     cameras: tuple
     meshes: Sequence
     bg_color: Sequence[float] | None = None
     hidden: tuple | None = None     # per camera: ids of nodes of ``meshes`` it skips (they cannot be in its view)
+    ranges: tuple | None = None     # per camera: {node id: [(first triangle, count), ...]}
 
 
 #: the renderers not yet deleted; :func:`_delete_live_renderers` frees them at interpreter exit

@@ -19,7 +19,7 @@ import numpy as np
 from satloc.errors import ConfigError
 from satloc.geometry import Pose2, StereoCamera
 from satloc_env.world.layout import Car, Obstacle, Person
-from satloc_env.world.meshes import TexturedMesh, World, build_occluders
+from satloc_env.world.meshes import FAR, INSIDE, LOD_M, NEAR, TexturedMesh, World, build_occluders
 
 __all__ = ["BatchStereoRenderer", "StereoRenderer", "StereoSlot"]
 
@@ -40,9 +40,13 @@ class BatchStereoRenderer:
     last of them leaves it. Filtering and depth range as in :class:`StereoRenderer`."""
 
     def __init__(self, camera: StereoCamera, *, anisotropy: int = 1, lod_bias: float = -0.5, mipmaps: bool = True,
-                 znear: float = 0.1, zfar: float = 150.0):
+                 znear: float = 0.1, zfar: float = 150.0, detail_m: float | None = LOD_M):
         if not 0 < znear < zfar:
             raise ConfigError(f"renderer: need 0 < znear < zfar, got znear={znear}, zfar={zfar}")
+        if detail_m is not None and not (math.isfinite(detail_m) and detail_m >= 0):
+            raise ConfigError(f"renderer: detail_m must be a finite number >= 0 or None, got {detail_m}")
+        #: metres from the vehicle within which objects keep their full detail (world.meshes.LOD_M); None: all
+        self.detail_m = math.inf if detail_m is None else float(detail_m)
         if anisotropy < 1:
             raise ConfigError(f"renderer: anisotropy must be >= 1, got {anisotropy}")
         self.camera = camera
@@ -157,9 +161,9 @@ class BatchStereoRenderer:
                 nodes.append(tuple(self._scene.add(mesh, name=f"chunk{i:05d}/{kind}{tag}")
                                    for mesh, kind in zip(pair, ("color", "labels"))))
             rects = np.array([np.r_[c.bounds[0, :2], c.bounds[1, :2]] for c in world.chunks])
-            corners = np.array([[[b[i, 0], b[j, 1], b[k, 2], 1.0] for i in (0, 1) for j in (0, 1) for k in (0, 1)]
-                                for b in (c.bounds for c in world.chunks)])
-            entry = self._worlds[id(world)] = _WorldNodes(world, nodes, rects, corners, set())
+            corners = np.array([c.bounds for c in world.chunks], np.float64)
+            entry = self._worlds[id(world)] = _WorldNodes(world, nodes, rects, corners, set(),
+                                                          _Cells.of(world.chunks))
         return entry
 
     def _release_world(self, world: World, slot: "StereoSlot") -> None:
@@ -184,28 +188,108 @@ def body_tilt(pitch: float, roll: float) -> np.ndarray:
     return ry @ rx
 
 
+class _Cells(NamedTuple):
+    """The cells (:attr:`TexturedMesh.cell_faces`) of all chunks of a world that have several, in one flat list."""
+
+    chunk: np.ndarray      # (C,) the chunk each cell belongs to
+    first: np.ndarray      # (C,) its first face in its chunk's mesh
+    count: np.ndarray      # (C,) its faces
+    ground: np.ndarray     # (C,) whether it is its chunk's ground (the last cell: drawn whenever the chunk is)
+    boxes: np.ndarray      # (C, 2, 3) its box
+    squares: np.ndarray    # (C, 4) x0, y0, x1, y1 of the square of ground whose distance chooses its detail
+    bands: np.ndarray      # (C,) its level-of-detail band (meshes.ALWAYS, NEAR, FAR)
+    mirror: np.ndarray     # (C,) whether its chunk is a reflection beyond the layout's edge (always far)
+
+    @staticmethod
+    def of(chunks: Sequence[TexturedMesh]) -> "_Cells":
+        parts = []
+        for i, c in enumerate(chunks):
+            if c.cell_faces is None or len(c.cell_faces) < 3:
+                continue   # one cell: the chunk drawn whole
+            f = np.asarray(c.cell_faces, np.int64)
+            k = len(f) - 1
+            parts.append((np.full(k, i), f[:-1], np.diff(f), np.arange(k) == k - 1,
+                          np.asarray(c.cell_bounds, np.float64), np.asarray(c.cell_squares, np.float64),
+                          np.asarray(c.cell_bands, np.int8), np.full(k, c.mirror)))
+        if not parts:
+            z = np.zeros(0)
+            return _Cells(z.astype(np.int64), z.astype(np.int64), z.astype(np.int64), z.astype(bool),
+                          np.zeros((0, 2, 3)), np.zeros((0, 4)), z.astype(np.int8),
+                          z.astype(bool))
+        chunk, first, count, ground, boxes, squares, bands, mirror = (np.concatenate(a) for a in zip(*parts))
+        return _Cells(chunk, first, count, ground, boxes, squares, bands, mirror)
+
+    def runs(self, drawn: np.ndarray, in_view: tuple, views: Sequence[np.ndarray], pose: Pose2, reach: float,
+             camera: StereoCamera, znear: float, detail_m: float) -> tuple:
+        """Per view, {chunk: (first face, faces) of each of its cells to draw} for the chunks of ``drawn``
+        (those in that view, ``in_view[view]``): a cell is drawn when its box is within ``reach`` of the pose
+        and meets the view volume (a cell that does neither puts no fragment in the image) and its band suits
+        its square's distance to the vehicle (a reflection beyond the layout's edge, a backdrop, always has
+        its far detail and no INSIDE band); nearest box first (the depth test then rejects what it hides
+        before it is shaded), the ground last."""
+        idx = np.flatnonzero(drawn[self.chunk])
+        if not len(idx):
+            return ({}, {})
+        b = self.boxes[idx]
+        rect = np.concatenate([b[:, 0, :2], b[:, 1, :2]], axis=1)
+        lod = _near(self.squares[idx], pose, detail_m)
+        band = self.bands[idx]
+        ok = _near(rect, pose, reach) & np.where(band == NEAR, lod, np.where(band == FAR, ~lod, True))
+        ok &= ~(self.mirror[idx] & (band == INSIDE) & ~lod)
+        out = []
+        for side, m in enumerate(views):
+            keep = in_view[side][self.chunk[idx]] & (self.ground[idx] | (
+                ok & _box_in_view(b, m, camera, znear)))
+            k = idx[keep]
+            eye = m[:3, 3]
+            gap = np.linalg.norm(np.clip(eye, self.boxes[k, 0], self.boxes[k, 1]) - eye, axis=1)
+            order = k[np.lexsort((gap, self.ground[k], self.chunk[k]))]
+            chunks = self.chunk[order]
+            cut = np.flatnonzero(np.diff(chunks)) + 1
+            pairs = np.stack([self.first[order], self.count[order]], axis=1).tolist()
+            per = {}
+            for a, z in zip(np.r_[0, cut], np.r_[cut, len(order)]):
+                if z > a:
+                    per[int(chunks[a])] = [tuple(q) for q in pairs[a:z] if q[1] > 0]
+            out.append(per)
+        return tuple(out)
+
+
 class _WorldNodes(NamedTuple):
     world: World
     nodes: list            # (colour node, label node) per chunk
     rects: np.ndarray      # (chunks, 4) x0, y0, x1, y1
-    corners: np.ndarray    # (chunks, 8, 4) homogeneous corners of the chunks' bounding boxes
+    corners: np.ndarray    # (chunks, 2, 3) the chunks' bounding boxes (min row, max row)
     users: set             # indices of the slots that render this world
+    cells: _Cells          # the cells of the chunks that have several (the others are drawn whole)
 
 
-def _box_in_view(corners: np.ndarray, map_from_cam: np.ndarray, camera: StereoCamera, znear: float,
+def _near(rects: np.ndarray, pose: Pose2, reach: float) -> np.ndarray:
+    """(n,) whether each rectangle (x0, y0, x1, y1) comes within ``reach`` of the pose's position."""
+    dx = np.maximum(np.maximum(rects[:, 0] - pose.x, pose.x - rects[:, 2]), 0.0)
+    dy = np.maximum(np.maximum(rects[:, 1] - pose.y, pose.y - rects[:, 3]), 0.0)
+    return np.hypot(dx, dy) <= reach
+
+
+def _box_in_view(boxes: np.ndarray, map_from_cam: np.ndarray, camera: StereoCamera, znear: float,
                  margin_px: float = 4.0) -> np.ndarray:
-    """(chunks,) False for the boxes (``corners``, (chunks, 8, 4) map frame) wholly on the outer side of one
-    plane of the camera's view volume (in front of the near plane, or beyond an image edge widened by
-    ``margin_px``): such a chunk puts no fragment in the image, so skipping it changes no pixel. A conservative
-    test: a box that misses the volume across a corner may still be kept."""
-    cam = corners @ np.linalg.inv(map_from_cam).T          # (chunks, 8, 4), OpenCV camera frame
-    x, y, z = cam[..., 0], cam[..., 1], cam[..., 2]
-    # pixel u = fx x / z + cx + 0.5 in [0, width] (GL window coordinates, see the camera nodes), likewise v
+    """(n,) False for the axis-aligned boxes (``boxes``, (n, 2, 3) min and max rows, map frame) wholly on the
+    outer side of one plane of the camera's view volume (in front of the near plane, or beyond an image edge
+    widened by ``margin_px``): such a box puts no fragment in the image, so skipping it changes no pixel. A
+    conservative test: a box that misses the volume across a corner may still be kept.
+
+    Each plane is a linear function f of the point, f >= 0 on the volume's side; its largest value over a box
+    is f(centre) + |grad f| . half-extent, so a box is wholly outside when that is negative."""
+    # pixel u = fx x / z + cx + 0.5 in [0, width] (GL window coordinates, see the camera nodes), likewise v;
+    # the planes in camera coordinates (x, y, z, 1), then in map coordinates
     u0, u1 = camera.cx + 0.5 + margin_px, camera.cx + 0.5 - camera.width - margin_px
     v0, v1 = camera.cy + 0.5 + margin_px, camera.cy + 0.5 - camera.height - margin_px
-    outside = ((z < znear).all(1) | (camera.fx * x + u0 * z < 0).all(1) | (camera.fx * x + u1 * z > 0).all(1)
-               | (camera.fy * y + v0 * z < 0).all(1) | (camera.fy * y + v1 * z > 0).all(1))
-    return ~outside
+    planes = np.array([[0.0, 0.0, 1.0, -znear], [camera.fx, 0.0, u0, 0.0], [-camera.fx, 0.0, -u1, 0.0],
+                       [0.0, camera.fy, v0, 0.0], [0.0, -camera.fy, -v1, 0.0]]) @ np.linalg.inv(map_from_cam)
+    b = np.asarray(boxes, np.float64)
+    centre, half = (b[:, 0] + b[:, 1]) / 2, (b[:, 1] - b[:, 0]) / 2
+    top = centre @ planes[:, :3].T + planes[:, 3] + half @ np.abs(planes[:, :3]).T     # (n, 5)
+    return ~(top < 0).any(axis=1)
 
 
 class StereoSlot:
@@ -224,6 +308,7 @@ class StereoSlot:
         self._cameras: tuple = ()
         self._visible = np.zeros(len(world.chunks), dtype=bool)   # the chunks within reach of the cameras
         self._in_view: tuple = (self._visible, self._visible)     # per camera: within reach and in its view
+        self._runs: tuple = ({}, {})     # per camera: {chunk index: face runs of its cells within reach and view}
         if batch._scene is not None:
             self._attach()
 
@@ -275,12 +360,12 @@ class StereoSlot:
         for side, node in zip(_SIDES, self._cameras):
             scene.set_pose(node, self._map_from_camera(pose, side, tilt) @ _CV_TO_GL)
         entry = self.batch._world_nodes(self.world)
-        r = entry.rects
-        dx = np.maximum(np.maximum(r[:, 0] - pose.x, pose.x - r[:, 2]), 0.0)
-        dy = np.maximum(np.maximum(r[:, 1] - pose.y, pose.y - r[:, 3]), 0.0)
-        self._visible = np.hypot(dx, dy) <= self.batch.reach
-        self._in_view = tuple(self._visible & _box_in_view(entry.corners, self._map_from_camera(pose, side, tilt),
-                                                           self.camera, self.batch.znear) for side in _SIDES)
+        reach, znear = self.batch.reach, self.batch.znear
+        self._visible = _near(entry.rects, pose, reach)
+        views = [self._map_from_camera(pose, side, tilt) for side in _SIDES]
+        self._in_view = tuple(self._visible & _box_in_view(entry.corners, m, self.camera, znear) for m in views)
+        self._runs = entry.cells.runs(self._in_view[0] | self._in_view[1], self._in_view, views, pose, reach,
+                                      self.camera, znear, self.batch.detail_m)
 
     def _draw_group(self, label_pass: bool, bg_color=None):
         """The slot's two views as a ``ViewGroup``: its chunks within reach, colour (or label) meshes, and its
@@ -295,7 +380,8 @@ class StereoSlot:
             nodes.append(self._occluder_nodes[k])
         hidden = tuple(frozenset(id(pair[k]) for pair, vis, mine in zip(pairs, seen, in_view) if vis and not mine)
                        for in_view in self._in_view)
-        return ViewGroup(self._cameras, nodes, bg_color, hidden)
+        ranges = tuple({id(pairs[i][k]): r for i, r in runs.items()} for runs in self._runs)
+        return ViewGroup(self._cameras, nodes, bg_color, hidden, ranges)
 
     @property
     def gl_info(self) -> dict[str, str]:
@@ -333,12 +419,21 @@ class StereoRenderer:
     the GL specification leaves open (used to compare renders across drivers). ``znear`` / ``zfar`` (metres)
     bound the rendered depth range. The renderer owns a GL context from the first :meth:`render` until
     :meth:`close`; it may render again after ``close``. It is a :class:`BatchStereoRenderer` of one slot.
+
+    Each view draws only the chunks, and within them the cells (the objects on one square of
+    :data:`~satloc_env.world.meshes.CELL_M`), whose boxes are within reach and meet its view volume: the image
+    is the same as drawing them all. ``detail_m`` (default :data:`~satloc_env.world.meshes.LOD_M`) is the
+    distance from the vehicle within which street furniture and trees of a species of their own keep their
+    full detail; beyond it, furniture is left out and those trees are drawn coarse, and the parked cars of
+    the reflections beyond the layout's edge are left out (None: full detail everywhere, the image of a
+    renderer without levels of detail). Worlds at variety 0 have none of these objects and draw the same
+    either way.
     """
 
     def __init__(self, world: World, camera: StereoCamera, *, anisotropy: int = 1, lod_bias: float = -0.5,
-                 mipmaps: bool = True, znear: float = 0.1, zfar: float = 150.0):
+                 mipmaps: bool = True, znear: float = 0.1, zfar: float = 150.0, detail_m: float | None = LOD_M):
         self._batch = BatchStereoRenderer(camera, anisotropy=anisotropy, lod_bias=lod_bias, mipmaps=mipmaps,
-                                          znear=znear, zfar=zfar)
+                                          znear=znear, zfar=zfar, detail_m=detail_m)
         self._slot = self._batch.slot(world)
         self.world = world
         self.camera = camera

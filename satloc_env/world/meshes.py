@@ -39,6 +39,7 @@ the image's first row. Texture widths are multiples of 4 (GL's default row align
 """
 from __future__ import annotations
 
+import dataclasses
 import math
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
@@ -83,6 +84,17 @@ class TexturedMesh:
     labels: np.ndarray     #: (H, W) uint8 class ids
     repeat: bool = False   #: the texture repeats beyond [0, 1] (the padding's); else clamped to its edge
     mirror: bool = False   #: a reflection of a chunk beyond the layout's edge, sharing that chunk's texture arrays
+    #: (K + 1,) int64: the faces are grouped in K cells, cell k's are ``faces[cell_faces[k]:cell_faces[k + 1]]``
+    #: (the objects standing on one square of :data:`CELL_M` of the ground; the ground itself the last cell);
+    #: None: one cell. The renderer draws only the cells whose boxes meet a camera's view.
+    cell_faces: np.ndarray | None = None
+    #: (K, 2, 3) float32: each cell's axis-aligned bounds (min row, max row); None with ``cell_faces``
+    cell_bounds: np.ndarray | None = None
+    #: (K, 4) float32: x0, y0, x1, y1 of the square of ground whose objects each cell holds (the level of detail
+    #: is chosen by the vehicle's distance to it); None with ``cell_faces``
+    cell_squares: np.ndarray | None = None
+    #: (K,) int8: each cell's level-of-detail band (:data:`ALWAYS`, :data:`NEAR`, :data:`FAR`, :data:`INSIDE`)
+    cell_bands: np.ndarray | None = None
 
     @property
     def bounds(self) -> np.ndarray:
@@ -116,6 +128,9 @@ def save_world(world: World, path) -> None:
     for k, c in enumerate(world.chunks):
         for name in ("positions", "uvs", "shade", "faces"):
             arrays[f"c{k}_{name}"] = getattr(c, name)
+        if c.cell_faces is not None:
+            for name in ("cell_faces", "cell_bounds", "cell_squares", "cell_bands"):
+                arrays[f"c{k}_{name}"] = getattr(c, name)
         t = textures.setdefault(id(c.texture), len(textures))
         if t == len(textures) - 1 and f"t{t}_texture" not in arrays:
             arrays[f"t{t}_texture"], arrays[f"t{t}_labels"] = c.texture, c.labels
@@ -144,12 +159,28 @@ def load_world(path) -> World:
             t = int(tex_of[k])
             if t not in shared:
                 shared[t] = (a[f"t{t}_texture"], a[f"t{t}_labels"])
-            chunks.append(TexturedMesh(a[f"c{k}_positions"], a[f"c{k}_uvs"], a[f"c{k}_shade"], a[f"c{k}_faces"],
-                                       shared[t][0], shared[t][1], bool(flags[k, 0]), bool(flags[k, 1])))
+            chunk = TexturedMesh(a[f"c{k}_positions"], a[f"c{k}_uvs"], a[f"c{k}_shade"], a[f"c{k}_faces"],
+                                 shared[t][0], shared[t][1], bool(flags[k, 0]), bool(flags[k, 1]))
+            if f"c{k}_cell_faces" in a:
+                (chunk.cell_faces, chunk.cell_bounds, chunk.cell_squares, chunk.cell_bands) = _checked_cells(
+                    *(a[f"c{k}_{name}"] for name in ("cell_faces", "cell_bounds", "cell_squares", "cell_bands")),
+                    len(chunk.faces))
+            chunks.append(chunk)
         return World(float(m["width_m"]), float(m["height_m"]), float(m["chunk_m"]), chunks,
                      np.asarray(a["sun_direction"], np.float64), tuple(int(v) for v in m["sky_rgb"]))
     except (KeyError, IndexError, TypeError, ValueError) as e:
         raise FormatError(f"{path}: not a complete world ({e})") from None
+
+
+def _checked_cells(offsets, bounds, squares, bands, faces: int) -> tuple[np.ndarray, ...]:
+    """A chunk's cells as saved, or ValueError (read as a damaged file)."""
+    offsets, bounds, squares, bands = (np.asarray(x) for x in (offsets, bounds, squares, bands))
+    k = len(offsets) - 1
+    if (offsets.ndim != 1 or k < 1 or bounds.shape != (k, 2, 3) or squares.shape != (k, 4) or bands.shape != (k,)
+            or offsets[0] != 0 or offsets[-1] != faces or (np.diff(offsets) < 0).any()
+            or not np.isin(bands, (ALWAYS, NEAR, FAR, INSIDE)).all()):
+        raise ValueError("cell_faces, cell_bounds, cell_squares and cell_bands do not partition the chunk's faces")
+    return offsets.astype(np.int64), bounds.astype(np.float32), squares.astype(np.float32), bands.astype(np.int8)
 
 
 def sun_direction(azimuth: float, elevation: float) -> np.ndarray:
@@ -186,31 +217,93 @@ def build_world(layout: Layout, chunk_m: float = 204.8, pad_m: float = 0.0, beyo
         j = min(max(int(y / mpp // cpx), 0), ny - 1)
         return j * nx + i
 
-    members: list[list[Callable[[_MeshBuilder], None]]] = [[] for _ in range(nx * ny)]
+    def cell_of(x: float, y: float) -> tuple[int, int]:   # the square of CELL_M a centre stands on
+        return int(math.floor(x / CELL_M)), int(math.floor(y / CELL_M))
+
+    members: list[list[tuple[int, Callable[[_MeshBuilder], None]]]] = [[] for _ in range(nx * ny)]
     for k, b in enumerate(layout.buildings):
         c = np.asarray(b.footprint, dtype=np.float64).mean(axis=0)
-        members[chunk_of(*c)].append(lambda mb, b=b, k=k: _add_building(mb, b, k, layout))
+        members[chunk_of(*c)].append((cell_of(*c), lambda mb, b=b, k=k: _add_building(mb, b, k, layout)))
     for k, t in enumerate(layout.trees):
-        members[chunk_of(*t.center)].append(lambda mb, t=t, k=k: _add_tree(mb, t, k))
+        members[chunk_of(*t.center)].append((cell_of(*t.center), lambda mb, t=t, k=k: _add_tree(mb, t, k)))
     for k, c in enumerate(layout.cars):
-        members[chunk_of(*c.center)].append(lambda mb, c=c, k=k: _add_car(mb, c, ("parked", k)))
+        members[chunk_of(*c.center)].append((cell_of(*c.center),
+                                             lambda mb, c=c, k=k: _add_car(mb, c, ("parked", k))))
     for k, f in enumerate(layout.furniture):
-        members[chunk_of(*f.center)].append(lambda mb, f=f, k=k: _add_furniture(mb, f, k))
+        members[chunk_of(*f.center)].append((cell_of(*f.center),
+                                             lambda mb, f=f, k=k: _add_furniture(mb, f, k)))
 
     chunks, extents = [], []
     for j in range(ny):
         for i in range(nx):
             ground = _ground_region(layout, i * cpx, j * cpx, cpx)
             mb = _MeshBuilder(sun, atlas_width=ground.texture.shape[1])
-            for add in members[j * nx + i]:
+            square_of_face = []
+            for cell, add in members[j * nx + i]:
+                before = mb.face_count
                 add(mb)
-            chunks.append(mb.build(ground))
+                square_of_face.append(np.tile(np.asarray(cell, np.int64), (mb.face_count - before, 1)))
+            band = np.concatenate(mb.bands + [np.zeros(0, np.int8)])
+            chunks.append(_in_cells(mb.build(ground), np.concatenate(square_of_face + [np.zeros((0, 2), np.int64)]),
+                                    band))
             extents.append((ground.corners[0, 0], ground.corners[2, 0], ground.corners[0, 1], ground.corners[2, 1]))
     if pad_m > 0 and beyond == "neutral":
         chunks.append(_pad_mesh(layout, cols * mpp, rows * mpp, float(pad_m)))
     elif pad_m > 0:
         chunks += _mirrored(chunks, extents, cols * mpp, rows * mpp, float(pad_m))
     return World(float(layout.width_m), float(layout.height_m), cpx * mpp, chunks, sun)
+
+
+#: side (metres) of the squares of ground whose objects make one cell of a chunk's faces (see
+#: :attr:`TexturedMesh.cell_faces`): the renderer skips the cells outside a camera's view, so a small cell
+#: draws fewer hidden triangles, at one draw call per visible cell
+CELL_M = 25.6
+#: level-of-detail bands of a cell's triangles: drawn at any distance, only while the cell's square is within
+#: :data:`LOD_M` of the vehicle, only beyond it (the distance from the vehicle's position to the square, the
+#: same for both cameras of the pair, so the two views always show the same geometry), and at any distance in
+#: the layout itself but only within LOD_M in its reflections beyond its edge (the parked cars of the backdrop).
+ALWAYS, NEAR, FAR, INSIDE = 0, 1, 2, 3
+#: metres from the vehicle to a square of :data:`CELL_M` beyond which its objects' NEAR triangles give way to
+#: their FAR ones: street furniture is left out and species trees are drawn coarse (at 60 m a 12 cm post is
+#: 0.7 px wide in a 620-pixel KITTI frame, a 3 m crown 18 px); the renderer's default ``detail_m``
+LOD_M = 60.0
+
+
+def _in_cells(mesh: TexturedMesh, square_of_face: np.ndarray, band_of_face: np.ndarray) -> TexturedMesh:
+    """``mesh`` (objects' faces in the order added, then the ground's) with its faces grouped by cell, a cell
+    being the faces of one band of the objects standing on one square: a stable sort by (square, band), the
+    ground's faces last as a cell of their own."""
+    n_obj = len(square_of_face)
+    keys = np.c_[square_of_face, band_of_face.astype(np.int64)]
+    order = np.lexsort(keys.T[::-1]) if n_obj else np.zeros(0, np.int64)
+    faces = np.concatenate([mesh.faces[:n_obj][order], mesh.faces[n_obj:]])
+    ks = keys[order]
+    starts = np.flatnonzero(np.r_[True, (ks[1:] != ks[:-1]).any(axis=1)]) if n_obj else np.zeros(0, np.int64)
+    offsets = np.r_[starts, n_obj, len(faces)].astype(np.int64)
+    bounds, squares, bands = [], [], []
+    for a, b in zip(offsets[:-1], offsets[1:]):
+        p = mesh.positions[faces[a:b].ravel()]
+        bounds.append(np.stack([p.min(axis=0), p.max(axis=0)]) if len(p) else np.zeros((2, 3), np.float32))
+        if a < n_obj:
+            (qx, qy, band) = ks[a]
+            squares.append([qx * CELL_M, qy * CELL_M, (qx + 1) * CELL_M, (qy + 1) * CELL_M])
+            bands.append(band)
+        else:   # the ground
+            squares.append([p[:, 0].min(), p[:, 1].min(), p[:, 0].max(), p[:, 1].max()])
+            bands.append(ALWAYS)
+    # Vertices renumbered in the order the faces first use them: each cell's vertices one block (a driver
+    # that shades an indexed draw's whole index range then shades only the cell's own)
+    used, first = np.unique(faces.ravel(), return_index=True)
+    vorder = np.r_[used[np.argsort(first)], np.setdiff1d(np.arange(len(mesh.positions)), used)]
+    renum = np.empty(len(vorder), np.int64)
+    renum[vorder] = np.arange(len(vorder))
+    faces = renum[faces].astype(mesh.faces.dtype)
+    mesh = dataclasses.replace(mesh, positions=mesh.positions[vorder], uvs=mesh.uvs[vorder],
+                               shade=mesh.shade[vorder])
+    return dataclasses.replace(mesh, faces=np.ascontiguousarray(faces), cell_faces=offsets,
+                               cell_bounds=np.asarray(bounds, np.float32),
+                               cell_squares=np.asarray(squares, np.float32),
+                               cell_bands=np.asarray(bands, np.int8))
 
 
 def _images(lo: float, hi: float, size: float, pad: float) -> list[tuple[float, float]]:
@@ -242,8 +335,18 @@ def _mirrored(chunks: list[TexturedMesh], extents: list[tuple[float, float, floa
                 pos[:, 0] = ax + sx * pos[:, 0]
                 pos[:, 1] = ay + sy * pos[:, 1]
                 faces = mesh.faces if sx * sy > 0 else np.ascontiguousarray(mesh.faces[:, ::-1])
+                bounds = squares = None
+                if mesh.cell_bounds is not None:   # the boxes reflected: a min becomes a max where the sign is -1
+                    bounds = mesh.cell_bounds.astype(np.float64)
+                    squares = mesh.cell_squares.astype(np.float64).reshape(-1, 2, 2)
+                    for axis, sign, off in ((0, sx, ax), (1, sy, ay)):
+                        for box in (bounds, squares):
+                            ends = off + sign * box[:, :, axis]
+                            box[:, 0, axis], box[:, 1, axis] = ends.min(axis=1), ends.max(axis=1)
+                    bounds, squares = bounds.astype(np.float32), squares.reshape(-1, 4).astype(np.float32)
                 out.append(TexturedMesh(pos.astype(np.float32), mesh.uvs, mesh.shade, faces, mesh.texture,
-                                        mesh.labels, repeat=mesh.repeat, mirror=True))
+                                        mesh.labels, repeat=mesh.repeat, mirror=True, cell_faces=mesh.cell_faces,
+                                        cell_bounds=bounds, cell_squares=squares, cell_bands=mesh.cell_bands))
     return out
 
 
@@ -348,6 +451,9 @@ class _MeshBuilder:
         self._shade: list[np.ndarray] = []
         self._faces: list[np.ndarray] = []
         self._n = 0
+        self.face_count = 0   #: triangles added so far
+        self.band = ALWAYS    #: the level-of-detail band of the triangles added next (ALWAYS, NEAR or FAR)
+        self.bands: list[np.ndarray] = []   #: per call that added triangles, their band
 
     def add_patch(self, rgb: np.ndarray, label: int) -> int:
         """Register a texture patch (H, W, 3) whose texels all have class ``label``; returns its id."""
@@ -388,6 +494,8 @@ class _MeshBuilder:
         self._shade.append(shade)
         self._faces.append(np.asarray(faces) + self._n)
         self._n += len(pos)
+        self.face_count += len(self._faces[-1])
+        self.bands.append(np.full(len(self._faces[-1]), self.band, np.int8))
 
     def build(self, ground: _Ground | None) -> TexturedMesh:
         """Pack the atlas below ``ground``'s region (if any) and emit the mesh; the ground quad's triangles
@@ -679,13 +787,16 @@ def _add_tree(mb: _MeshBuilder, t: Tree, index: int) -> None:
     hc = max(zt - zb, 0.1)
     trunk_r = 0.08 + 0.05 * r
     trunk = np.array(_ring(t.center, 0.0, trunk_r, 6)[:, :2])
+    species = SPECIES.get(int(t.species))          # a species of its own (satloc_env.world.variety), else None
+    if species is not None:
+        mb.band = NEAR                             # this detail near the camera, the coarse tree below beyond
     _add_prism(mb, trunk, 0.0, zb + 0.3 * hc, _BARK_M, CLASS_ID["tree"],
                lambda walls, h: _bark_texture(rng, h, _round_px(sum(ln for _, ln in walls), _BARK_M)), None)
     n = 10
     profile = [(0.0, 0.0), (0.12, 0.75), (0.4, 1.0), (0.72, 0.85), (0.92, 0.45), (1.0, 0.0)]
-    species = SPECIES.get(int(t.species))          # a species of its own (satloc_env.world.variety), else None
     if species is not None:
         n, profile = 8, species["profile"]
+    bark = len(mb._patches) - 1                    # the trunk's walls made one patch (a short strip)
     phase = rng.uniform(0, 2 * math.pi)
     rings = [_ring(t.center, zb + f * hc, r * k * rng.uniform(0.85, 1.1, n), n, phase) for f, k in profile]
     rows, cols = _round_px(hc * 1.6, _FOLIAGE_M), _patch_cols(mb, 2 * math.pi * r, _FOLIAGE_M)
@@ -693,7 +804,18 @@ def _add_tree(mb: _MeshBuilder, t: Tree, index: int) -> None:
         leaves = _foliage_texture(rng, rows, cols, t.shade)
     else:
         leaves = leaf_texture(rng, rows, cols, species["leaf"][int(t.shade) % len(species["leaf"])])
-    _add_loft(mb, rings, mb.add_patch(leaves, CLASS_ID["tree"]))
+    crown = mb.add_patch(leaves, CLASS_ID["tree"])
+    _add_loft(mb, rings, crown)
+    if species is not None:
+        # Beyond LOD_M: the same textures on a square trunk and a five-sided crown through the profile's base,
+        # widest ring and top two rings (30 + 8 triangles against 80 + 12).
+        mb.band = FAR
+        _add_loft(mb, [_ring(t.center, 0.0, trunk_r, 4, phase), _ring(t.center, zb + 0.3 * hc, trunk_r, 4, phase)],
+                  bark)
+        widest = max(range(len(profile)), key=lambda i: profile[i][1])
+        keep = sorted({0, widest, len(profile) - 2, len(profile) - 1})
+        _add_loft(mb, [_ring(t.center, zb + profile[i][0] * hc, r * profile[i][1], 5, phase) for i in keep], crown)
+        mb.band = ALWAYS
 
 
 def _add_car(mb: _MeshBuilder, c: Car, key: tuple) -> None:
@@ -705,6 +827,7 @@ def _add_car(mb: _MeshBuilder, c: Car, key: tuple) -> None:
         shape, roof_dx = {"cab": 0.52, "dx": 0.06, "roof": 0.7, "body": 0.55}, 0.09
     else:                                      # a body of its own (satloc_env.world.variety): the roof set back as
         roof_dx = shape["dx"] + 0.1 * (1 - shape["roof"])     # much as the windscreen slopes
+        mb.band = INSIDE                       # in the reflections beyond the layout's edge only near the car
     z_body = shape["body"] * height
     body = _rect(c.center, c.yaw, length, width)
     _add_prism(mb, body, 0.12, z_body, _CAR_M, CLASS_ID["car"],
@@ -719,17 +842,20 @@ def _add_car(mb: _MeshBuilder, c: Car, key: tuple) -> None:
                               _patch_cols(mb, 2 * (cab_len + cab_w), _CAR_M), [cab_len, cab_w, cab_len, cab_w])
     top = _paint(rng, paint, _round_px(cab_w, _CAR_M), _patch_cols(mb, cab_len, _CAR_M))
     _add_loft(mb, rings, mb.add_patch(side, CLASS_ID["car"]), mb.add_patch(top, CLASS_ID["car"]))
+    mb.band = ALWAYS
 
 
 def _add_furniture(mb: _MeshBuilder, f: Furniture, index: int) -> None:
     """Street furniture (:mod:`satloc_env.world.furniture`): its parts as prisms, class ``obstacle``; no top
     on a part above 2 m (the camera, 1.65 m up, never sees it)."""
     rng = _rng("furniture", index)
+    mb.band = NEAR      # beyond LOD_M a post or a bin is a pixel or two wide: not drawn
     for part in furniture_parts(f):
         _add_prism(mb, part.footprint, part.z0, part.z1, part.texel, CLASS_ID["obstacle"],
                    lambda walls, h, part=part: part_paint(rng, part, walls, h),
                    None if part.z1 > 2.0 else
                    (lambda h, w, part=part: _paint(rng, np.asarray(part.rgb, np.float32), h, w)))
+    mb.band = ALWAYS
 
 
 def _add_person(mb: _MeshBuilder, p: Person, index: int) -> None:
