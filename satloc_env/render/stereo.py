@@ -161,9 +161,8 @@ class BatchStereoRenderer:
                 nodes.append(tuple(self._scene.add(mesh, name=f"chunk{i:05d}/{kind}{tag}")
                                    for mesh, kind in zip(pair, ("color", "labels"))))
             rects = np.array([np.r_[c.bounds[0, :2], c.bounds[1, :2]] for c in world.chunks])
-            corners = np.array([c.bounds for c in world.chunks], np.float64)
-            entry = self._worlds[id(world)] = _WorldNodes(world, nodes, rects, corners, set(),
-                                                          _Cells.of(world.chunks))
+            boxes = np.array([c.bounds for c in world.chunks], np.float64)
+            entry = self._worlds[id(world)] = _WorldNodes(world, nodes, rects, boxes, set(), _Cells.of(world.chunks))
         return entry
 
     def _release_world(self, world: World, slot: "StereoSlot") -> None:
@@ -180,8 +179,8 @@ class BatchStereoRenderer:
 
 def body_tilt(pitch: float, roll: float) -> np.ndarray:
     """4x4 rotation of the vehicle's body about its origin (x forward, y left, z up): ``pitch`` radians nose
-    down (positive when braking), then ``roll`` radians left side up (positive in a right turn's... a left
-    turn's outward lean: the body rolls away from the turn's centre)."""
+    down (positive when braking), then ``roll`` radians about the forward axis (positive: the left side up,
+    as the body leans out of a right turn)."""
     cp, sp, cr, sr = math.cos(pitch), math.sin(pitch), math.cos(roll), math.sin(roll)
     ry = np.array([[cp, 0, sp, 0], [0, 1, 0, 0], [-sp, 0, cp, 0], [0, 0, 0, 1]])
     rx = np.array([[1, 0, 0, 0], [0, cr, -sr, 0], [0, sr, cr, 0], [0, 0, 0, 1]])
@@ -196,9 +195,10 @@ class _Cells(NamedTuple):
     count: np.ndarray      # (C,) its faces
     ground: np.ndarray     # (C,) whether it is its chunk's ground (the last cell: drawn whenever the chunk is)
     boxes: np.ndarray      # (C, 2, 3) its box
+    rects: np.ndarray      # (C, 4) x0, y0, x1, y1 of its box
     squares: np.ndarray    # (C, 4) x0, y0, x1, y1 of the square of ground whose distance chooses its detail
-    bands: np.ndarray      # (C,) its level-of-detail band (meshes.ALWAYS, NEAR, FAR)
-    mirror: np.ndarray     # (C,) whether its chunk is a reflection beyond the layout's edge (always far)
+    bands: np.ndarray      # (C,) its level-of-detail band (meshes.ALWAYS, NEAR, FAR, INSIDE)
+    mirror: np.ndarray     # (C,) whether its chunk is a reflection beyond the layout's edge
 
     @staticmethod
     def of(chunks: Sequence[TexturedMesh]) -> "_Cells":
@@ -213,29 +213,28 @@ class _Cells(NamedTuple):
                           np.asarray(c.cell_bands, np.int8), np.full(k, c.mirror)))
         if not parts:
             z = np.zeros(0)
-            return _Cells(z.astype(np.int64), z.astype(np.int64), z.astype(np.int64), z.astype(bool),
-                          np.zeros((0, 2, 3)), np.zeros((0, 4)), z.astype(np.int8),
-                          z.astype(bool))
+            parts = [(z.astype(np.int64), z.astype(np.int64), z.astype(np.int64), z.astype(bool),
+                      np.zeros((0, 2, 3)), np.zeros((0, 4)), z.astype(np.int8), z.astype(bool))]
         chunk, first, count, ground, boxes, squares, bands, mirror = (np.concatenate(a) for a in zip(*parts))
-        return _Cells(chunk, first, count, ground, boxes, squares, bands, mirror)
+        rects = np.concatenate([boxes[:, 0, :2], boxes[:, 1, :2]], axis=1)
+        return _Cells(chunk, first, count, ground, boxes, rects, squares, bands, mirror)
 
     def runs(self, drawn: np.ndarray, in_view: tuple, views: Sequence[np.ndarray], pose: Pose2, reach: float,
              camera: StereoCamera, znear: float, detail_m: float) -> tuple:
         """Per view, {chunk: (first face, faces) of each of its cells to draw} for the chunks of ``drawn``
         (those in that view, ``in_view[view]``): a cell is drawn when its box is within ``reach`` of the pose
         and meets the view volume (a cell that does neither puts no fragment in the image) and its band suits
-        its square's distance to the vehicle (a reflection beyond the layout's edge, a backdrop, always has
-        its far detail and no INSIDE band); nearest box first (the depth test then rejects what it hides
+        its square's distance to the vehicle (within ``detail_m``: NEAR, not FAR; INSIDE everywhere but in the
+        reflections beyond the layout's edge); nearest box first (the depth test then rejects what it hides
         before it is shaded), the ground last."""
         idx = np.flatnonzero(drawn[self.chunk])
         if not len(idx):
             return ({}, {})
         b = self.boxes[idx]
-        rect = np.concatenate([b[:, 0, :2], b[:, 1, :2]], axis=1)
         lod = _near(self.squares[idx], pose, detail_m)
         band = self.bands[idx]
-        ok = _near(rect, pose, reach) & np.where(band == NEAR, lod, np.where(band == FAR, ~lod, True))
-        ok &= ~(self.mirror[idx] & (band == INSIDE) & ~lod)
+        detail = np.select([band == NEAR, band == FAR, band == INSIDE], [lod, ~lod, lod | ~self.mirror[idx]], True)
+        ok = _near(self.rects[idx], pose, reach) & detail
         out = []
         for side, m in enumerate(views):
             keep = in_view[side][self.chunk[idx]] & (self.ground[idx] | (
@@ -247,11 +246,8 @@ class _Cells(NamedTuple):
             chunks = self.chunk[order]
             cut = np.flatnonzero(np.diff(chunks)) + 1
             pairs = np.stack([self.first[order], self.count[order]], axis=1).tolist()
-            per = {}
-            for a, z in zip(np.r_[0, cut], np.r_[cut, len(order)]):
-                if z > a:
-                    per[int(chunks[a])] = [tuple(q) for q in pairs[a:z] if q[1] > 0]
-            out.append(per)
+            out.append({int(chunks[a]): [tuple(q) for q in pairs[a:z] if q[1] > 0]
+                        for a, z in zip(np.r_[0, cut], np.r_[cut, len(order)]) if z > a})
         return tuple(out)
 
 
@@ -259,7 +255,7 @@ class _WorldNodes(NamedTuple):
     world: World
     nodes: list            # (colour node, label node) per chunk
     rects: np.ndarray      # (chunks, 4) x0, y0, x1, y1
-    corners: np.ndarray    # (chunks, 2, 3) the chunks' bounding boxes (min row, max row)
+    boxes: np.ndarray      # (chunks, 2, 3) the chunks' bounding boxes (min row, max row)
     users: set             # indices of the slots that render this world
     cells: _Cells          # the cells of the chunks that have several (the others are drawn whole)
 
@@ -363,7 +359,7 @@ class StereoSlot:
         reach, znear = self.batch.reach, self.batch.znear
         self._visible = _near(entry.rects, pose, reach)
         views = [self._map_from_camera(pose, side, tilt) for side in _SIDES]
-        self._in_view = tuple(self._visible & _box_in_view(entry.corners, m, self.camera, znear) for m in views)
+        self._in_view = tuple(self._visible & _box_in_view(entry.boxes, m, self.camera, znear) for m in views)
         self._runs = entry.cells.runs(self._in_view[0] | self._in_view[1], self._in_view, views, pose, reach,
                                       self.camera, znear, self.batch.detail_m)
 

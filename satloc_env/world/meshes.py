@@ -220,7 +220,7 @@ def build_world(layout: Layout, chunk_m: float = 204.8, pad_m: float = 0.0, beyo
     def cell_of(x: float, y: float) -> tuple[int, int]:   # the square of CELL_M a centre stands on
         return int(math.floor(x / CELL_M)), int(math.floor(y / CELL_M))
 
-    members: list[list[tuple[int, Callable[[_MeshBuilder], None]]]] = [[] for _ in range(nx * ny)]
+    members: list[list[tuple[tuple[int, int], Callable[[_MeshBuilder], None]]]] = [[] for _ in range(nx * ny)]
     for k, b in enumerate(layout.buildings):
         c = np.asarray(b.footprint, dtype=np.float64).mean(axis=0)
         members[chunk_of(*c)].append((cell_of(*c), lambda mb, b=b, k=k: _add_building(mb, b, k, layout)))
@@ -238,14 +238,10 @@ def build_world(layout: Layout, chunk_m: float = 204.8, pad_m: float = 0.0, beyo
         for i in range(nx):
             ground = _ground_region(layout, i * cpx, j * cpx, cpx)
             mb = _MeshBuilder(sun, atlas_width=ground.texture.shape[1])
-            square_of_face = []
-            for cell, add in members[j * nx + i]:
-                before = mb.face_count
+            for square, add in members[j * nx + i]:
+                mb.square = square
                 add(mb)
-                square_of_face.append(np.tile(np.asarray(cell, np.int64), (mb.face_count - before, 1)))
-            band = np.concatenate(mb.bands + [np.zeros(0, np.int8)])
-            chunks.append(_in_cells(mb.build(ground), np.concatenate(square_of_face + [np.zeros((0, 2), np.int64)]),
-                                    band))
+            chunks.append(_in_cells(mb.build(ground), mb.cell_keys()))
             extents.append((ground.corners[0, 0], ground.corners[2, 0], ground.corners[0, 1], ground.corners[2, 1]))
     if pad_m > 0 and beyond == "neutral":
         chunks.append(_pad_mesh(layout, cols * mpp, rows * mpp, float(pad_m)))
@@ -269,12 +265,11 @@ ALWAYS, NEAR, FAR, INSIDE = 0, 1, 2, 3
 LOD_M = 60.0
 
 
-def _in_cells(mesh: TexturedMesh, square_of_face: np.ndarray, band_of_face: np.ndarray) -> TexturedMesh:
+def _in_cells(mesh: TexturedMesh, keys: np.ndarray) -> TexturedMesh:
     """``mesh`` (objects' faces in the order added, then the ground's) with its faces grouped by cell, a cell
-    being the faces of one band of the objects standing on one square: a stable sort by (square, band), the
-    ground's faces last as a cell of their own."""
-    n_obj = len(square_of_face)
-    keys = np.c_[square_of_face, band_of_face.astype(np.int64)]
+    being the faces of one band of the objects standing on one square (``keys``: per object face, the square's
+    column and row and the band): a stable sort by key, the ground's faces last as a cell of their own."""
+    n_obj = len(keys)
     order = np.lexsort(keys.T[::-1]) if n_obj else np.zeros(0, np.int64)
     faces = np.concatenate([mesh.faces[:n_obj][order], mesh.faces[n_obj:]])
     ks = keys[order]
@@ -451,9 +446,11 @@ class _MeshBuilder:
         self._shade: list[np.ndarray] = []
         self._faces: list[np.ndarray] = []
         self._n = 0
-        self.face_count = 0   #: triangles added so far
-        self.band = ALWAYS    #: the level-of-detail band of the triangles added next (ALWAYS, NEAR or FAR)
-        self.bands: list[np.ndarray] = []   #: per call that added triangles, their band
+        #: the square of CELL_M (column, row) and the level-of-detail band (ALWAYS, NEAR, FAR, INSIDE) of the
+        #: triangles added next
+        self.square: tuple[int, int] = (0, 0)
+        self.band = ALWAYS
+        self._keys: list[np.ndarray] = []   # per call that added triangles: (square column, row, band) per face
 
     def add_patch(self, rgb: np.ndarray, label: int) -> int:
         """Register a texture patch (H, W, 3) whose texels all have class ``label``; returns its id."""
@@ -494,8 +491,11 @@ class _MeshBuilder:
         self._shade.append(shade)
         self._faces.append(np.asarray(faces) + self._n)
         self._n += len(pos)
-        self.face_count += len(self._faces[-1])
-        self.bands.append(np.full(len(self._faces[-1]), self.band, np.int8))
+        self._keys.append(np.tile(np.array([*self.square, self.band], np.int64), (len(self._faces[-1]), 1)))
+
+    def cell_keys(self) -> np.ndarray:
+        """(faces added, 3) int64: each face's square (column, row) and band, in the order added."""
+        return np.concatenate(self._keys + [np.zeros((0, 3), np.int64)])
 
     def build(self, ground: _Ground | None) -> TexturedMesh:
         """Pack the atlas below ``ground``'s region (if any) and emit the mesh; the ground quad's triangles
