@@ -146,3 +146,30 @@ def test_detail_m_none_draws_every_object_at_every_distance(tmp_path):
     assert furniture[0.0] < furniture[LOD_M] < furniture[None]
     with pytest.raises(Exception, match="detail_m must be a finite number >= 0 or None"):
         StereoRenderer(s.world, StereoCamera.preset("half"), detail_m=-1.0)
+
+
+def test_a_copied_block_looks_the_same_to_the_camera(tmp_path):
+    """At aliasing 1 every block is a copy of one: the camera, facing the same spot of two blocks, sees the
+    same picture down to the window panes (the copies' objects draw their textures from the original's)."""
+    import math
+
+    from satloc.geometry import Pose2
+    from satloc_env.render.stereo import StereoRenderer
+
+    diffs = {}
+    for aliasing in (0.0, 1.0):
+        p = tmp_path / f"a{aliasing}.yaml"
+        p.write_text(yaml.safe_dump({**SMALL, "knobs": {"aliasing": aliasing}}))
+        s = load_scene(p)
+        r = StereoRenderer(s.world, StereoCamera.kitti_half())
+        a, b = (r.render(Pose2(x, 70.0, math.pi / 2), depth=False)["left"].astype(int) for x in (40.0, 100.0))
+        diffs[aliasing] = np.abs(a - b).mean()
+    assert diffs[1.0] < 0.5 and diffs[0.0] > 20, diffs
+    # a saved scene keeps whose looks its objects copy
+    from satloc_env.world.scene import Scene
+
+    s.save(tmp_path / "saved")
+    r = Scene.load(tmp_path / "saved")
+    for what in ("buildings", "trees", "cars", "furniture"):
+        looks = [o.look for o in getattr(s.layout, what)]
+        assert [o.look for o in getattr(r.layout, what)] == looks and any(k is not None for k in looks)

@@ -192,6 +192,41 @@ def test_variety_aliased_blocks_copy_their_looks():
     for i, s in copies:
         assert looks(i) == looks(s)
     assert sum(len(looks(i)[0]) for i, _ in copies) > 0 and sum(len(looks(i)[2]) for i, _ in copies) > 0
+    # every copied object names the original it copies its textures from: the same object, a whole number of
+    # pitches away, itself an original
+    named = 0
+    for objs, where in ((lay.buildings, lambda o: o.footprint.mean(0)), (lay.trees, lambda o: np.array(o.center)),
+                        (lay.cars, lambda o: np.array(o.center)), (lay.furniture, lambda o: np.array(o.center))):
+        for o in objs:
+            if o.look is None:
+                continue
+            named += 1
+            orig = objs[o.look]
+            assert orig.look is None and type(orig) is type(o)
+            shift = (where(o) - where(orig)) / 60
+            assert np.allclose(shift, np.round(shift), atol=1e-9) and np.abs(shift).sum() > 0
+    assert named > 0
+    again, _ = generate_grid(GridParams(blocks=(3, 3), pitch_m=60, margin_m=10, variety=1.0), 5, 0.0, 0.2)
+    assert all(o.look is None for objs in (again.buildings, again.trees, again.cars) for o in objs)
+
+
+def test_aliasing_copies_the_margins_too():
+    """At aliasing 1 an edge road passes the same open land at every block, as it passes the same block."""
+    p = GridParams(blocks=(3, 2), pitch_m=40, margin_m=10)
+    n, m = int(40 / 0.2), int(10 / 0.2)
+
+    def south(lay, i):
+        return lay.ground_rgb[-m:, m + i * n: m + (i + 1) * n]
+
+    def west(lay, j):
+        H = lay.ground_rgb.shape[0]
+        return lay.ground_rgb[H - m - (j + 1) * n: H - m - j * n, :m]
+
+    one, _ = generate_grid(p, 5, 1.0, 0.2)
+    assert np.array_equal(south(one, 0), south(one, 1)) and np.array_equal(south(one, 1), south(one, 2))
+    assert np.array_equal(west(one, 0), west(one, 1))
+    zero, _ = generate_grid(p, 5, 0.0, 0.2)
+    assert not np.array_equal(south(zero, 0), south(zero, 1)) and not np.array_equal(west(zero, 0), west(zero, 1))
 
 
 def test_variety_round_trips_and_builds_its_world(tmp_path):
@@ -240,3 +275,47 @@ def test_variety_round_trips_and_builds_its_world(tmp_path):
     d["generator"]["variety"] = 1.5
     with pytest.raises(ConfigError, match=r"generator\.variety: expected a number from 0 to 1"):
         load_scene(write(tmp_path, d, "bad.yaml"))
+
+
+def test_variety_plants_hedges_shrubs_and_planters():
+    """Residential front yards get hedges (2 m segments of one seed, none across a driveway) and shrubs, city
+    sidewalks planters; their foliage is labelled tree in the world and on the tile; none at variety 0."""
+    from satloc_env.world.furniture import furniture_parts
+    from satloc_env.world.tile import paint_tile
+
+    res, _ = generate_grid(GridParams(style="residential", blocks=(2, 2), pitch_m=60, margin_m=10, variety=1.0),
+                           4, 0.0, 0.2)
+    kinds = [f.kind for f in res.furniture]
+    assert kinds.count(9) >= 4 and kinds.count(10) >= 4
+    hedges = [f for f in res.furniture if f.kind == 9]
+    assert len({f.seed for f in hedges}) < len(hedges)          # a hedge's segments share their look
+    for f in hedges:
+        (part,) = furniture_parts(f)
+        assert part.leaves and 0.9 <= part.z1 <= 1.8
+    gh = res.ground_labels.shape[0]                               # in the yard's grass: not on the sidewalk,
+    under = [res.ground_labels[int(gh - f.center[1] / 0.2), int(f.center[0] / 0.2)] for f in hedges]
+    assert all(u == CLASS_ID["grass"] for u in under)             # nor across a driveway
+    img, labels = paint_tile(res, 0.2, 1)
+    h = labels.shape[0]
+    on = [labels[int(h - f.center[1] / 0.2), int(f.center[0] / 0.2)] for f in hedges]
+    assert np.mean(np.array(on) == CLASS_ID["tree"]) > 0.9
+    city, _ = generate_grid(GridParams(blocks=(2, 2), pitch_m=60, margin_m=10, variety=1.0), 4, 0.0, 0.2)
+    assert any(f.kind == 11 for f in city.furniture)
+    plain, _ = generate_grid(GridParams(style="residential", blocks=(2, 2), pitch_m=60, margin_m=10), 4, 0.0, 0.2)
+    assert not plain.furniture
+
+
+def test_variety_paves_the_sidewalks():
+    """The ground's finest detail: at variety 1 the sidewalk (slab joints, kerb stones, grain) and the grass
+    (blades and tufts) vary from texel to texel several times as much as at variety 0."""
+    import cv2
+
+    def fine(lay, cls):
+        g = lay.ground_rgb.astype(np.float32).mean(-1)
+        inside = cv2.erode((lay.ground_labels == CLASS_ID[cls]).astype(np.uint8), np.ones((5, 5), np.uint8)) > 0
+        return float(np.abs(cv2.Laplacian(g, cv2.CV_32F))[inside].mean())
+
+    a, _ = generate_grid(GridParams(blocks=(2, 2), pitch_m=60, margin_m=10), 4, 0.0, 0.1)
+    b, _ = generate_grid(GridParams(blocks=(2, 2), pitch_m=60, margin_m=10, variety=1.0), 4, 0.0, 0.1)
+    for cls in ("sidewalk", "grass"):
+        assert fine(b, cls) > 2 * fine(a, cls), cls

@@ -1,4 +1,5 @@
-"""Street furniture: lamp posts, traffic signs and lights, bins, benches, bollards, hydrants and bus shelters.
+"""Street furniture: lamp posts, traffic signs and lights, bins, benches, bollards, hydrants and bus shelters, and
+the small greenery of streets and yards: hedges, shrubs and planters.
 
 A generated grid with ``variety`` > 0 (:mod:`satloc_env.world.generator`) lines its sidewalks with them, each a
 :class:`~satloc_env.world.layout.Furniture` (a kind, a position, the direction it faces and a seed of its own).
@@ -17,15 +18,19 @@ import numpy as np
 
 from .layout import Furniture
 from .paint import fbm, rect_poly
+from .variety import leaf_texture
 
-__all__ = ["KINDS", "Part", "furniture_parts", "footprint_radius"]
+__all__ = ["KINDS", "HEDGE_SEGMENT_M", "Part", "furniture_parts", "footprint_radius", "is_leafy"]
 
 #: furniture kinds by their code in :attr:`Furniture.kind`
 KINDS = {1: "lamp post", 2: "traffic sign", 3: "litter bin", 4: "bench", 5: "bollards", 6: "hydrant",
-         7: "traffic light", 8: "bus shelter"}
+         7: "traffic light", 8: "bus shelter", 9: "hedge", 10: "shrub", 11: "planter"}
+
+#: a hedge is a row of these, each a piece of furniture (metres, along its ``yaw``)
+HEDGE_SEGMENT_M = 2.0
 
 #: how far (metres) the kind reaches from its centre on the ground: what placement keeps clear
-_REACH = {1: 0.3, 2: 0.3, 3: 0.4, 4: 1.1, 5: 2.6, 6: 0.3, 7: 0.3, 8: 1.9}
+_REACH = {1: 0.3, 2: 0.3, 3: 0.4, 4: 1.1, 5: 2.6, 6: 0.3, 7: 0.3, 8: 1.9, 9: 1.1, 10: 0.8, 11: 0.7}
 
 
 def footprint_radius(kind: int) -> float:
@@ -37,7 +42,8 @@ def footprint_radius(kind: int) -> float:
 class Part:
     """A vertical prism: ``footprint`` (N, 2, metres, map frame) from ``z0`` to ``z1``, painted ``rgb``
     (mottled), with ``faces`` mapping an edge index of the footprint (edge k runs from point k to k+1) to a
-    picture (H, W, 3 uint8) shown on it; ``texel`` metres per texel."""
+    picture (H, W, 3 uint8) shown on it; ``texel`` metres per texel. ``leaves``: foliage (a hedge, a shrub),
+    painted as leaves around ``rgb`` and labelled ``tree``; else ``obstacle``."""
 
     footprint: np.ndarray
     z0: float
@@ -45,6 +51,16 @@ class Part:
     rgb: tuple[int, int, int]
     texel: float = 0.04
     faces: dict[int, np.ndarray] = field(default_factory=dict)
+    leaves: bool = False
+
+
+def is_leafy(kind: int) -> bool:
+    """Whether furniture of ``kind`` is foliage only (a hedge or a shrub: seen from afar like a tree's crown)."""
+    return int(kind) in (9, 10)
+
+
+#: the greens of hedges and shrubs (RGB)
+_GREENS = ((58, 92, 40), (46, 80, 36), (72, 104, 46), (64, 86, 52), (84, 110, 56), (50, 72, 44))
 
 
 #: edges of a :func:`_box` (of :func:`satloc_env.world.paint.rect_poly`'s corners): its front (facing ``yaw``)
@@ -222,6 +238,19 @@ def furniture_parts(f: Furniture) -> list[Part]:
             parts.append(Part(_disc(back + left * s * ln / 2, 0.05, 4), 0.0, h, frame))
         parts.append(Part(_box(c, yaw, dp + 0.2, ln + 0.2), h, h + 0.12, frame))
         parts.append(Part(_box(back + fwd * 0.3, yaw, 0.4, ln * 0.7), 0.42, 0.48, (150, 152, 154)))
+    elif kind == 9:                                     # a hedge's segment (a hedge's segments share a seed)
+        h, d = float(rng.uniform(0.9, 1.8)), float(rng.uniform(0.6, 1.0))
+        parts.append(Part(_box(c, yaw, HEDGE_SEGMENT_M, d), 0.0, h, _jitter(rng, _pick(rng, _GREENS), 6), 0.04,
+                          leaves=True))
+    elif kind == 10:                                    # shrub: a bush on the ground
+        r, h = float(rng.uniform(0.4, 0.8)), float(rng.uniform(0.6, 1.5))
+        parts.append(Part(_disc(c, r, 7), 0.0, h, _jitter(rng, _pick(rng, _GREENS), 8), 0.04, leaves=True))
+    elif kind == 11:                                    # planter: a box of concrete or wood with a bush in it
+        ln, wd, h = float(rng.uniform(0.8, 1.3)), float(rng.uniform(0.5, 0.8)), float(rng.uniform(0.45, 0.7))
+        box = _jitter(rng, _pick(rng, ((150, 148, 142), (120, 118, 114), (110, 80, 54), (60, 62, 64))), 8)
+        parts.append(Part(_box(c, yaw + math.pi / 2, ln, wd), 0.0, h, box))
+        parts.append(Part(_disc(c, min(ln, wd) * 0.45, 6), h, h + float(rng.uniform(0.4, 0.9)),
+                          _jitter(rng, _pick(rng, _GREENS), 8), 0.04, leaves=True))
     else:
         raise ValueError(f"furniture kind {kind}: expected one of {sorted(KINDS)}")
     return parts
@@ -232,6 +261,8 @@ def part_paint(rng: np.random.Generator, part: Part, walls: list[tuple[int, floa
     its paint, mottled, with each edge in ``part.faces`` showing its picture."""
     cols = [max(1, int(round(ln / part.texel))) for _, ln in walls]
     w = sum(cols)
+    if part.leaves:
+        return leaf_texture(rng, h, w, part.rgb)
     base = np.asarray(part.rgb, np.float32)
     img = base * (1 + 0.07 * fbm(rng, h, w, (8, 1), (0.6, 0.4)))[..., None]
     x = 0

@@ -22,10 +22,10 @@ import numpy as np
 
 from satloc.labels import CLASS_ID as C
 
-from .furniture import footprint_radius
+from .furniture import HEDGE_SEGMENT_M, footprint_radius
 from .layout import Building, Car, Furniture, Layout, Tree
 from .paint import fill_poly, noise, tint, to_px
-from .variety import BODIES, SPECIES, car_body, car_colour, road_wear
+from .variety import BODIES, SPECIES, car_body, car_colour, ground_detail, road_wear
 
 LANE_W = 3.5            # metres, one driving lane
 MARK_W = 0.15           # lane marking width
@@ -99,6 +99,7 @@ class CellPainter:
         self.p, self.mpp = p, mpp
         self.rng = np.random.default_rng(seed)
         self.vrng = np.random.default_rng([seed, 4242])   # variety's own draws: the layout's stay as they were
+        self.seed = seed
         self.n = int(round(p.pitch_m / mpp))
         self.labels = np.full((self.n, self.n), C["sidewalk"], np.uint8)
         self.buildings: list[Building] = []
@@ -132,6 +133,7 @@ class CellPainter:
         rgb = np.zeros((self.n, self.n, 3), np.uint8)
         _paint_base(self.labels, rgb, self.rng, self.mpp)
         road_wear(self.labels, rgb, self.vrng, self.mpp, p.variety, C["road"], C["sidewalk"])
+        ground_detail(self.labels, rgb, np.random.default_rng([self.seed, 4243]), self.mpp, p.variety, C)
         self._parking_stripes(rgb)
         return rgb
 
@@ -170,6 +172,7 @@ class CellPainter:
     def _residential_block(self, i0: float, i1: float) -> None:
         r = self.rng
         self._parking_lots = []
+        self._fronts: list[tuple[float, float, int, float, float]] = []   # each lot: xa, xb, side, driveway, front
         self.rect(i0, i0, i1, i1, C["grass"])
         depth = min(24.0, (i1 - i0) / 2)
         # lots along the south and north edges, facing the street
@@ -190,6 +193,7 @@ class CellPainter:
                 dx = cx + hw / 2 + 0.5 if cx + hw / 2 + 3.5 < xb else cx - hw / 2 - 3.5
                 ys = (i0, y0 + 2) if side == 0 else (y1 - 2, i1)
                 self.rect(dx, ys[0], dx + 3.0, ys[1], C["soil"] if r.random() < 0.4 else C["sidewalk"])
+                self._fronts.append((xa, xb, side, dx, y_front))
                 if r.random() < 0.5:
                     self.cars.append(self._car(dx + 1.5, ys[0] + 3.5 if side == 0 else ys[1] - 3.5, math.pi / 2))
                 for _ in range(int(r.integers(0, 3))):  # yard trees behind the houses
@@ -289,6 +293,28 @@ class CellPainter:
                     trees = np.vstack([trees, (x, y)])
             t += v.uniform(6, 9)
         self._street_furniture(hr)
+        self._yards(i0, i1)
+
+    def _yards(self, i0: float, i1: float) -> None:
+        """``variety``: a residential block's front yards: a hedge along the sidewalk (its segments of one seed,
+        a gap at the driveway) for some, shrubs between the hedge and the house for most (variety's draws)."""
+        v, amount = self.vrng, self.p.variety
+        for xa, xb, side, dx, y_front in getattr(self, "_fronts", []):
+            seed = int(v.integers(0, 2**31 - 1))
+            if v.random() < amount * 0.55:
+                y = i0 + 0.6 if side == 0 else i1 - 0.6
+                half = HEDGE_SEGMENT_M / 2
+                x = xa + 0.5 + half
+                while x + half <= xb - 0.5:
+                    if x + half < dx - 0.5 or x - half > dx + 3.5:       # not across the driveway
+                        self.furniture.append(Furniture((float(x), float(y)), 0.0, 9, seed))
+                    x += HEDGE_SEGMENT_M
+            lo, hi = (i0 + 2.0, y_front - 1.2) if side == 0 else (y_front + 1.2, i1 - 2.0)
+            for _ in range(int(v.poisson(amount * 1.6))):
+                x = float(v.uniform(xa + 1.0, xb - 1.0))
+                if hi > lo and not dx - 1.0 < x < dx + 4.0:
+                    self.furniture.append(Furniture((x, float(v.uniform(lo, hi))), 0.0, 10,
+                                                    int(v.integers(0, 2**31 - 1))))
 
     def _street_furniture(self, hr: float) -> None:
         """``variety``: the sidewalks' furniture (:mod:`satloc_env.world.furniture`): lamp posts of one style per
@@ -326,7 +352,8 @@ class CellPainter:
                 t += v.uniform(22, 30)
             for kind, n, d, facing in ((2, 2.5, 0.35, "along"), (3, 1.5, 0.5, "road"), (6, 0.6, 0.4, "road"),
                                        (4, 0.7 if city else 0.3, sw - 0.5, "road"), (5, 0.4 if city else 0.1, 0.35,
-                                                                                      "road")):
+                                                                                      "road"),
+                                       (11, 1.2 if city else 0.2, sw - 0.6, "road")):
                 for _ in range(int(v.poisson(amount * n))):
                     place(side, v.uniform(lo, hi), d, kind, seed(), facing)
 
@@ -422,8 +449,10 @@ def generate_grid(p: GridParams, seed: int, aliasing: float, mpp: float) -> tupl
         labels[int(round((H - y - hr) / mpp)):int(round((H - y + hr) / mpp)), :] = C["road"]
     rgb = np.zeros((Hp, Wp, 3), np.uint8)
     _paint_base(labels, rgb, np.random.default_rng([seed, 3]), mpp)
-    cache: dict[int, CellPainter] = {}
-    buildings, trees, cars, furniture = [], [], [], []
+    ground_detail(labels, rgb, np.random.default_rng([seed, 6]), mpp, p.variety, C)   # the margins' (the cells
+    cache: dict[int, CellPainter] = {}                                                 # paint their own)
+    first: dict[int, tuple[int, ...]] = {}     # where a source cell's objects first went in the four lists
+    objects: tuple[list, ...] = ([], [], [], [])    # buildings, trees, cars, furniture
     for j in range(ny):
         for i in range(nx):
             k = src[j * nx + i]
@@ -437,8 +466,33 @@ def generate_grid(p: GridParams, seed: int, aliasing: float, mpp: float) -> tupl
             labels[r0:r0 + n, c0:c0 + n] = cp.labels
             rgb[r0:r0 + n, c0:c0 + n] = cp.rgb
             dx, dy = p.margin_m + i * p.pitch_m, p.margin_m + j * p.pitch_m
-            buildings += [_shift(b, dx, dy) for b in cp.buildings]
-            trees += [_shift(t, dx, dy) for t in cp.trees]
-            cars += [_shift(c, dx, dy) for c in cp.cars]
-            furniture += [_shift(f, dx, dy) for f in cp.furniture]
+            starts = first.setdefault(k, tuple(len(o) for o in objects))
+            for out, own, s0 in zip(objects, (cp.buildings, cp.trees, cp.cars, cp.furniture), starts):
+                copy = s0 != len(out)      # a copy of a cell placed before: its objects take those looks
+                out += [dataclasses.replace(_shift(o, dx, dy), look=s0 + m if copy else None)
+                        for m, o in enumerate(own)]
+    _alias_margins(labels, rgb, p, seed, aliasing, mp, n)
+    buildings, trees, cars, furniture = objects
     return Layout(W, H, mpp, rgb, labels, buildings, trees, cars, furniture=furniture), src
+
+
+def _alias_margins(labels: np.ndarray, rgb: np.ndarray, p: GridParams, seed: int, aliasing: float, mp: int,
+                   n: int) -> None:
+    """Alias the open land around the grid as the cells are: each side's margin is cut into one stretch per
+    cell along it, and ``round(aliasing * n)`` stretches of a side are copies of others (labels and texture),
+    so that at ``aliasing`` 1 an edge road runs past the same land at every block, as it runs past the same
+    block (the corners stay their own)."""
+    nx, ny = p.blocks
+    H, W = labels.shape
+    rng = np.random.default_rng([seed, 5])
+    sides = (  # (stretches, the rows and columns of stretch i)
+        (nx, lambda i: (slice(H - mp, H), slice(mp + i * n, mp + (i + 1) * n))),   # south
+        (nx, lambda i: (slice(0, mp), slice(mp + i * n, mp + (i + 1) * n))),       # north
+        (ny, lambda j: (slice(H - mp - (j + 1) * n, H - mp - j * n), slice(0, mp))),   # west
+        (ny, lambda j: (slice(H - mp - (j + 1) * n, H - mp - j * n), slice(W - mp, W))),   # east
+    )
+    for count, where in sides:
+        src = alias_sources(count, aliasing, rng)
+        for i in np.flatnonzero(src != np.arange(count)):
+            labels[where(i)] = labels[where(src[i])]
+            rgb[where(i)] = rgb[where(src[i])]

@@ -4,6 +4,12 @@ world the ground camera sees are made from this one description.
 Map frame: x east, y north, metres; the scene covers ``[0, width_m] x [0, height_m]``. Rasters are stored
 north-up: row 0 is the northern edge (y = height_m), column 0 the western edge (x = 0). A raster of
 resolution ``mpp`` metres per pixel has pixel (u, v) centred at ``((u + 0.5) * mpp, height_m - (v + 0.5) * mpp)``.
+
+An object's ``look``: the 3-D world (:mod:`satloc_env.world.meshes`) draws an object's textures and small shape
+jitter from its index in the layout's list, so two objects with equal parameters still differ in their details;
+``look`` names the index to draw them from instead (None: its own). A generated grid's aliased cells
+(:func:`satloc_env.world.generator.alias_sources`) set it on every object they copy, so that a copied block is
+a copy down to its window panes and leaves.
 """
 from __future__ import annotations
 
@@ -23,6 +29,7 @@ class Building:
     roof: str = "flat"         # "flat", or "gabled" (a ridge along a rectangular footprint's long axis)
     style_seed: int | None = None   # a facade of its own drawn from this seed (satloc_env.world.variety); None: the
                                     # ``facade`` style
+    look: int | None = None    # the index whose textures it copies (see above)
 
 
 @dataclass
@@ -33,6 +40,7 @@ class Tree:
     canopy_top: float          # metres
     shade: int = 0             # foliage colour variant
     species: int = 0           # satloc_env.world.variety.SPECIES (0: the one tree of variety 0)
+    look: int | None = None    # the index whose textures it copies (see above)
 
 
 @dataclass
@@ -44,6 +52,7 @@ class Car:
     height: float = 1.5
     rgb: tuple[int, int, int] = (150, 30, 30)
     body: int = 0              # satloc_env.world.variety.BODIES (0: the one car of variety 0)
+    look: int | None = None    # the index whose textures it copies (see above)
 
 
 @dataclass
@@ -54,6 +63,7 @@ class Furniture:
     yaw: float
     kind: int
     seed: int = 0
+    look: int | None = None    # the index whose textures it copies (see above)
 
 
 @dataclass

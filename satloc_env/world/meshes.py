@@ -221,17 +221,18 @@ def build_world(layout: Layout, chunk_m: float = 204.8, pad_m: float = 0.0, beyo
         return int(math.floor(x / CELL_M)), int(math.floor(y / CELL_M))
 
     members: list[list[tuple[tuple[int, int], Callable[[_MeshBuilder], None]]]] = [[] for _ in range(nx * ny)]
+    look = lambda k, o: k if o.look is None else int(o.look)  # noqa: E731  (layout's note on looks)
     for k, b in enumerate(layout.buildings):
         c = np.asarray(b.footprint, dtype=np.float64).mean(axis=0)
-        members[chunk_of(*c)].append((cell_of(*c), lambda mb, b=b, k=k: _add_building(mb, b, k, layout)))
+        members[chunk_of(*c)].append((cell_of(*c), lambda mb, b=b, k=look(k, b): _add_building(mb, b, k, layout)))
     for k, t in enumerate(layout.trees):
-        members[chunk_of(*t.center)].append((cell_of(*t.center), lambda mb, t=t, k=k: _add_tree(mb, t, k)))
+        members[chunk_of(*t.center)].append((cell_of(*t.center), lambda mb, t=t, k=look(k, t): _add_tree(mb, t, k)))
     for k, c in enumerate(layout.cars):
         members[chunk_of(*c.center)].append((cell_of(*c.center),
-                                             lambda mb, c=c, k=k: _add_car(mb, c, ("parked", k))))
+                                             lambda mb, c=c, k=look(k, c): _add_car(mb, c, ("parked", k))))
     for k, f in enumerate(layout.furniture):
         members[chunk_of(*f.center)].append((cell_of(*f.center),
-                                             lambda mb, f=f, k=k: _add_furniture(mb, f, k)))
+                                             lambda mb, f=f, k=look(k, f): _add_furniture(mb, f, k)))
 
     chunks, extents = [], []
     for j in range(ny):
@@ -482,7 +483,11 @@ class _MeshBuilder:
         shade = _AMBIENT + (1 - _AMBIENT) * np.maximum(cos, 0.0)
         k = len(q)
         faces = (np.arange(k)[:, None, None] * 4 + np.array([[0, 1, 2], [0, 2, 3]])).reshape(-1, 3)
-        self._append(q.reshape(-1, 3), np.asarray(st).reshape(-1, 2), faces, patch, np.repeat(shade, 4))
+        # a quad on a ring collapsed to a point (a crown's tip) is one triangle: its other one has no area and
+        # would only cost the rasterizer its setup
+        p = q.reshape(-1, 3)
+        area = np.linalg.norm(np.cross(p[faces[:, 1]] - p[faces[:, 0]], p[faces[:, 2]] - p[faces[:, 0]]), axis=1)
+        self._append(p, np.asarray(st).reshape(-1, 2), faces[area > 1e-12], patch, np.repeat(shade, 4))
 
     def _append(self, pos, st, faces, patch, shade) -> None:
         self._pos.append(pos)
@@ -849,12 +854,14 @@ def _add_furniture(mb: _MeshBuilder, f: Furniture, index: int) -> None:
     """Street furniture (:mod:`satloc_env.world.furniture`): its parts as prisms, class ``obstacle``; no top
     on a part above 2 m (the camera, 1.65 m up, never sees it)."""
     rng = _rng("furniture", index)
-    mb.band = NEAR      # beyond LOD_M a post or a bin is a pixel or two wide: not drawn
+    # beyond LOD_M a post or a bin is a pixel or two wide: not drawn; a hedge, metres long, is drawn
+    mb.band = ALWAYS if f.kind == 9 else NEAR
     for part in furniture_parts(f):
-        _add_prism(mb, part.footprint, part.z0, part.z1, part.texel, CLASS_ID["obstacle"],
-                   lambda walls, h, part=part: part_paint(rng, part, walls, h),
-                   None if part.z1 > 2.0 else
-                   (lambda h, w, part=part: _paint(rng, np.asarray(part.rgb, np.float32), h, w)))
+        top = None if part.z1 > 2.0 else (lambda h, w, part=part: _paint(rng, np.asarray(part.rgb, np.float32), h, w))
+        if part.leaves:
+            top = lambda h, w, part=part: leaf_texture(rng, h, w, part.rgb)  # noqa: E731
+        _add_prism(mb, part.footprint, part.z0, part.z1, part.texel, CLASS_ID["tree" if part.leaves else "obstacle"],
+                   lambda walls, h, part=part: part_paint(rng, part, walls, h), top)
     mb.band = ALWAYS
 
 

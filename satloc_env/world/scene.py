@@ -656,6 +656,10 @@ class Scene:
                 "furniture": np.array([[*f.center, f.yaw, f.kind, f.seed] for f in lay.furniture],
                                       np.float64).reshape(-1, 5),
             }
+            # the index each object copies its look from (-1: its own; satloc_env.world.layout)
+            for key, objs in (("bld_look", b), ("tree_look", lay.trees), ("car_look", lay.cars),
+                              ("furn_look", lay.furniture)):
+                arrays[key] = np.array([-1 if o.look is None else o.look for o in objs], np.int64)
             save_npz(d / "layout.npz", "scene_layout", arrays, {
                 "width_m": lay.width_m, "height_m": lay.height_m, "ground_mpp": lay.ground_mpp,
                 "sun_azimuth": lay.sun_azimuth, "sun_elevation": lay.sun_elevation})
@@ -736,19 +740,28 @@ class Scene:
 
         styles, species, bodies = extra("bld_style", len(bp), -1), extra("tree_species", len(tr), 0), \
             extra("car_body", len(ca), 0)
+        looks = {}
+        for key, n in (("bld_look", len(bp)), ("tree_look", len(tr)), ("car_look", len(ca)),
+                       ("furn_look", 0 if a.get("furniture") is None else len(a["furniture"]))):
+            v = extra(key, n, -1)
+            if len(v) and not ((v >= -1) & (v < n)).all():
+                raise FormatError(f"{lz}: array {key!r}: every look must be -1 (its own) or an index below {n}")
+            looks[key] = [None if x < 0 else int(x) for x in v]
         buildings = [Building(v, float(q[0]), int(q[1]), tuple(int(c) for c in q[2:5]), bool(rg), float(z),
-                              "gabled" if gb else "flat", None if s < 0 else int(s))
-                     for v, q, rg, z, gb, s in zip(verts_split, bp, roof_ground, base, gabled, styles)]
-        trees = [Tree((t[0], t[1]), t[2], t[3], t[4], int(t[5]), int(sp)) for t, sp in zip(tr, species)]
-        cars = [Car((c[0], c[1]), c[2], c[3], c[4], c[5], tuple(int(v) for v in c[6:9]), int(bd))
-                for c, bd in zip(ca, bodies)]
+                              "gabled" if gb else "flat", None if s < 0 else int(s), lk)
+                     for v, q, rg, z, gb, s, lk in zip(verts_split, bp, roof_ground, base, gabled, styles,
+                                                       looks["bld_look"])]
+        trees = [Tree((t[0], t[1]), t[2], t[3], t[4], int(t[5]), int(sp), lk)
+                 for t, sp, lk in zip(tr, species, looks["tree_look"])]
+        cars = [Car((c[0], c[1]), c[2], c[3], c[4], c[5], tuple(int(v) for v in c[6:9]), int(bd), lk)
+                for c, bd, lk in zip(ca, bodies, looks["car_look"])]
         fu = a.get("furniture")
         fu = np.zeros((0, 5)) if fu is None else fu
         if len(fu) and not (np.isin(fu[:, 3], list(FURNITURE_KINDS)).all() and (fu[:, 4] >= 0).all()
                             and (fu[:, 4] == np.round(fu[:, 4])).all()):
             raise FormatError(f"{lz}: array 'furniture': every kind must be one of {sorted(FURNITURE_KINDS)} and "
                               f"every seed a non-negative integer")
-        furniture = [Furniture((f[0], f[1]), f[2], int(f[3]), int(f[4])) for f in fu]
+        furniture = [Furniture((f[0], f[1]), f[2], int(f[3]), int(f[4]), lk) for f, lk in zip(fu, looks["furn_look"])]
         lay = Layout(w_m, h_m, mpp, a["ground_rgb"], a["ground_labels"], buildings, trees, cars, az, el, furniture)
         tile = d / "tile"
         sm = SatelliteMap.load(tile)

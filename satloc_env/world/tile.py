@@ -124,6 +124,8 @@ def paint_tile(lay: Layout, mpp: float, seed: int, lean: tuple[float, float] = (
         labels[y0:y1, x0:x1][sel] = C["tree"]
     for p in sorted(parts, key=lambda q: q.z1):
         fill_poly(img, _poly_px(lay, p.footprint + lean_v * p.z1, mpp), tuple(float(v) for v in p.rgb))
+        if p.leaves:    # hedges and shrubs: vegetation from above
+            fill_poly(labels, _poly_px(lay, p.footprint + lean_v * p.z1, mpp), C["tree"])
     # cars: body, darker windscreen and rear window
     for car in lay.cars:
         body = rect_poly(car.center[0], car.center[1], car.length, car.width, car.yaw)

@@ -13,7 +13,9 @@ tints on one tree shape, one car shape in eight colours):
   leaves and twigs);
 * **parked cars** (:data:`BODIES`, :func:`car_colour`): saloons, hatchbacks, estates, SUVs and vans in the
   colours real car parks have (mostly white, grey, black and silver);
-* **the road surface** (:func:`road_wear`): patches, cracks, manhole covers, drain grates and oil stains.
+* **the road surface** (:func:`road_wear`): patches, cracks, manhole covers, drain grates and oil stains;
+* **the ground's finest detail** (:func:`ground_detail`): the grain of grass, soil and asphalt, paving slabs and
+  kerb stones.
 
 Each object's look comes from its own seed (``Building.style_seed``, ``Tree.species`` and its index, ``Car.body``),
 so an aliased cell (a copy of another, :func:`satloc_env.world.generator.alias_sources`) copies its objects'
@@ -29,7 +31,7 @@ import numpy as np
 from .paint import fbm as _fbm
 
 __all__ = ["FacadeParams", "facade_params", "facade_texture", "SPECIES", "leaf_texture", "BODIES", "car_colour",
-           "road_wear", "SHOP_WORDS"]
+           "road_wear", "ground_detail", "SHOP_WORDS"]
 
 
 # --- buildings -------------------------------------------------------------------------------------------------
@@ -417,3 +419,42 @@ def road_wear(labels: np.ndarray, rgb: np.ndarray, rng: np.random.Generator, mpp
             cy, cx = int(rng.integers(0, h)), int(rng.integers(0, w))
             cv2.circle(stains, (cx, cy), px(rng.uniform(0.1, 0.4)), float(rng.uniform(-0.2, -0.08)), -1)
         rgb[sw] = np.clip(rgb[sw].astype(np.float32) * (1 + stains[sw])[:, None], 0, 255).astype(np.uint8)
+
+
+#: ground_detail's texel grain per class name: the brightness spread of single texels (a relative change)
+_GRAIN = {"road": 0.07, "parking": 0.07, "sidewalk": 0.06, "grass": 0.24, "soil": 0.16}
+
+
+def ground_detail(labels: np.ndarray, rgb: np.ndarray, rng: np.random.Generator, mpp: float, amount: float,
+                  classes: dict[str, int]) -> None:
+    """Paint the ground's finest detail onto ``rgb`` (in place), at the scale of single texels, as the ground
+    camera sees it within a few metres: grain (blades and tufts of grass, clods, the asphalt's aggregate), the
+    sidewalk's paving slabs (0.6 m, axis-aligned, each its own tone, with dark joints) and a kerb of lighter
+    stones (1 m, with joints) along its edge with the road. ``classes``: the class ids by name (``road``,
+    ``parking``, ``sidewalk``, ``grass``, ``soil``). ``amount`` in [0, 1] scales it all.
+
+    This detail lies below the 0.6 m a satellite capture keeps (:mod:`satloc_env.world.capture`), so it is the
+    ground camera's alone."""
+    if amount <= 0:
+        return
+    h, w = labels.shape
+    gain = np.zeros((h, w), np.float32)
+    grain = rng.standard_normal((h, w)).astype(np.float32)
+    for name, spread in _GRAIN.items():
+        m = labels == classes[name]
+        gain[m] = spread * grain[m]
+    sw = labels == classes["sidewalk"]
+    if sw.any():
+        slab = max(2, int(round(0.6 / mpp)))
+        ys, xs = np.arange(h)[:, None], np.arange(w)[None, :]
+        tone = rng.normal(0, 0.05, ((h + slab - 1) // slab, (w + slab - 1) // slab)).astype(np.float32)
+        paving = np.repeat(np.repeat(tone, slab, 0), slab, 1)[:h, :w]
+        paving -= 0.16 * (((ys % slab) == 0) | ((xs % slab) == 0))
+        road = (labels == classes["road"]).astype(np.uint8)
+        kerb = sw & (cv2.dilate(road, np.ones((3, 3), np.uint8), iterations=2) > 0)
+        stone = max(2, int(round(1.0 / mpp)))     # the kerb's stones; a joint crosses a kerb of either direction
+        paving[kerb] = np.where(((ys + xs) % stone == 0), -0.12, 0.14)[kerb]
+        gain[sw] += paving[sw]
+    out = rgb.astype(np.float32) * (1 + amount * gain)[..., None]
+    np.clip(out, 0, 255, out=out)
+    rgb[...] = out.astype(np.uint8)
