@@ -161,12 +161,15 @@ def test_variety_gives_objects_their_own_looks_and_moves_nothing():
     # street furniture on the sidewalks: none at variety 0, most kinds at 1, off the tree trunks
     assert lay0.furniture == [] and {f.kind for f in lay1.furniture} >= {1, 2, 3}
     sidewalk = lay1.ground_labels == CLASS_ID["sidewalk"]
-    rc = np.round(lay1.world_to_raster(np.array([f.center for f in lay1.furniture]))).astype(int)
+    street = [f for f in lay1.furniture if f.kind <= 8]          # not the greenery of yards, parks and margins
+    rc = np.round(lay1.world_to_raster(np.array([f.center for f in street]))).astype(int)
     assert sidewalk[rc[:, 1], rc[:, 0]].mean() > 0.9
     trunks = np.array([t.center for t in lay1.trees])
     assert all(np.hypot(*(trunks - f.center).T).min() > 0.5 for f in lay1.furniture)
-    # the worn road: the same labels, other pixels on the road
-    assert np.array_equal(lay0.ground_labels, lay1.ground_labels)
+    # the worn road: the same labels (but the paths variety lays across the parks' grass), other pixels on the road
+    changed = lay0.ground_labels != lay1.ground_labels
+    assert (lay0.ground_labels[changed] == CLASS_ID["grass"]).all()
+    assert (lay1.ground_labels[changed] == CLASS_ID["sidewalk"]).all()
     road = lay0.ground_labels == CLASS_ID["road"]
     assert not np.array_equal(lay0.ground_rgb[road], lay1.ground_rgb[road])
     # deterministic per seed
@@ -227,6 +230,18 @@ def test_aliasing_copies_the_margins_too():
     assert np.array_equal(west(one, 0), west(one, 1))
     zero, _ = generate_grid(p, 5, 0.0, 0.2)
     assert not np.array_equal(south(zero, 0), south(zero, 1)) and not np.array_equal(west(zero, 0), west(zero, 1))
+    # with variety the margins' trees and shrubs are copied too, looks and all
+    q = GridParams(blocks=(3, 2), pitch_m=40, margin_m=20, variety=1.0)
+    lay, _ = generate_grid(q, 5, 1.0, 0.2)
+
+    def south_trees(i):
+        x0 = 20 + i * 40
+        return sorted((round(t.center[0] - x0, 6), round(t.center[1], 6), t.species, t.canopy_radius)
+                      for t in lay.trees if x0 <= t.center[0] < x0 + 40 and t.center[1] < 14)
+
+    assert south_trees(0) and south_trees(0) == south_trees(1) == south_trees(2)
+    copied = [t for t in lay.trees if t.center[1] < 14 and t.look is not None]
+    assert copied and all(lay.trees[t.look].look is None for t in copied)
 
 
 def test_variety_round_trips_and_builds_its_world(tmp_path):

@@ -150,6 +150,7 @@ class CellPainter:
         r = self.rng
         xs, ys = self._lots(i0, i1, 18, 32), self._lots(i0, i1, 18, 32)
         self._parking_lots: list[tuple[float, float, float, float]] = []
+        self._parks: list[tuple[float, float, float, float]] = []
         for xa, xb in zip(xs[:-1], xs[1:]):
             for ya, yb in zip(ys[:-1], ys[1:]):
                 kind = r.choice(["building", "parking", "park"], p=[0.72, 0.16, 0.12])
@@ -166,6 +167,7 @@ class CellPainter:
                     self._fill_parking(xa + 1, ya + 1, xb - 1, yb - 1)
                 else:
                     self.rect(xa + 0.5, ya + 0.5, xb - 0.5, yb - 0.5, C["grass"])
+                    self._parks.append((xa + 0.5, ya + 0.5, xb - 0.5, yb - 0.5))
                     for _ in range(int(r.integers(2, 6))):
                         self._tree(r.uniform(xa + 3, xb - 3), r.uniform(ya + 3, yb - 3))
 
@@ -257,11 +259,7 @@ class CellPainter:
         tree = Tree((float(x), float(y)), rad, bottom, bottom + float(r.uniform(2.5, 6.0)), int(r.integers(0, 4)))
         v = self.vrng
         if own or (self.p.variety > 0 and v.random() < self.p.variety):
-            sp = int(v.choice(list(SPECIES), p=[0.45, 0.15, 0.15, 0.25]))
-            s = SPECIES[sp]
-            bottom = float(v.uniform(*s["bottom"]))
-            tree = Tree(tree.center, float(v.uniform(*s["radius"])), bottom, bottom + float(v.uniform(*s["crown"])),
-                        int(v.integers(0, len(s["leaf"]))), sp)
+            tree = _own_tree(v, *tree.center)
         self.trees.append(tree)
 
     def _more_street_objects(self, hr, i0, i1) -> None:
@@ -294,6 +292,57 @@ class CellPainter:
             t += v.uniform(6, 9)
         self._street_furniture(hr)
         self._yards(i0, i1)
+        self._furnish_parks()
+
+    def _furnish_parks(self) -> None:
+        """``variety``: a city block's pocket parks as parks are: a paved path across, benches beside it, more
+        trees of their own species, shrubs, and a hedge along some edges (a gap for the path) (variety's draws)."""
+        v, amount = self.vrng, self.p.variety
+        for x0, y0, x1, y1 in getattr(self, "_parks", []):
+            along_x = v.random() < 0.5                       # the path: 2 m wide, across the long way or not
+            c = float(v.uniform(y0 + 4, y1 - 4) if along_x else v.uniform(x0 + 4, x1 - 4))
+            if along_x:
+                self.rect(x0, c - 1.0, x1, c + 1.0, C["sidewalk"])
+            else:
+                self.rect(c - 1.0, y0, c + 1.0, y1, C["sidewalk"])
+            taken = [t.center for t in self.trees]
+
+            def free(x: float, y: float, gap: float) -> bool:
+                return abs((y if along_x else x) - c) > 1.6 and all(math.dist((x, y), q) > gap for q in taken)
+
+            for _ in range(int(v.poisson(amount * 3))):
+                x, y = float(v.uniform(x0 + 2.5, x1 - 2.5)), float(v.uniform(y0 + 2.5, y1 - 2.5))
+                if free(x, y, 4.0):
+                    self._tree(x, y, own=True)
+                    taken.append((x, y))
+            for _ in range(int(v.poisson(amount * 2))):      # benches facing the path
+                t = float(v.uniform(x0 + 2, x1 - 2) if along_x else v.uniform(y0 + 2, y1 - 2))
+                side = 1.0 if v.random() < 0.5 else -1.0
+                x, y = (t, c + side * 1.6) if along_x else (c + side * 1.6, t)
+                yaw = (-math.pi / 2 if side > 0 else math.pi / 2) if along_x else (math.pi if side > 0 else 0.0)
+                if all(math.dist((x, y), q) > 1.5 for q in taken):
+                    self.furniture.append(Furniture((x, y), yaw, 4, int(v.integers(0, 2**31 - 1))))
+                    taken.append((x, y))
+            for _ in range(int(v.poisson(amount * 4))):
+                x, y = float(v.uniform(x0 + 1, x1 - 1)), float(v.uniform(y0 + 1, y1 - 1))
+                if free(x, y, 1.5):
+                    self.furniture.append(Furniture((x, y), 0.0, 10, int(v.integers(0, 2**31 - 1))))
+                    taken.append((x, y))
+            seed = int(v.integers(0, 2**31 - 1))
+            half = HEDGE_SEGMENT_M / 2
+            for edge in range(4):                            # hedges along some edges, inside the park
+                if v.random() >= amount * 0.4:
+                    continue
+                horizontal = edge < 2
+                lo, hi = (x0, x1) if horizontal else (y0, y1)
+                fixed = (y0 + 0.6, y1 - 0.6, x0 + 0.6, x1 - 0.6)[edge]
+                t = lo + 0.5 + half
+                while t + half <= hi - 0.5:
+                    x, y = (t, fixed) if horizontal else (fixed, t)
+                    crosses = horizontal != along_x and abs(t - c) < 1.0 + half + 0.5
+                    if not crosses and all(math.dist((x, y), q) > 1.2 for q in taken):
+                        self.furniture.append(Furniture((x, y), 0.0 if horizontal else math.pi / 2, 9, seed))
+                    t += HEDGE_SEGMENT_M
 
     def _yards(self, i0: float, i1: float) -> None:
         """``variety``: a residential block's front yards: a hedge along the sidewalk (its segments of one seed,
@@ -409,6 +458,15 @@ class CellPainter:
                 self.rect(*_ordered(cx + sx * u, cy + sy * (hr + 0.8), cx + sx * (u + 0.5), cy + sy * (hr + 3.8)), m)
 
 
+def _own_tree(v: np.random.Generator, x: float, y: float) -> Tree:
+    """A tree of a species of its own (:data:`SPECIES`, as often as streets have them) and its size."""
+    sp = int(v.choice(list(SPECIES), p=[0.45, 0.15, 0.15, 0.25]))
+    s = SPECIES[sp]
+    bottom = float(v.uniform(*s["bottom"]))
+    return Tree((float(x), float(y)), float(v.uniform(*s["radius"])), bottom, bottom + float(v.uniform(*s["crown"])),
+                int(v.integers(0, len(s["leaf"]))), sp)
+
+
 def _roof_rgb(r: np.random.Generator, lo: int, hi: int) -> tuple[int, int, int]:
     """A greyish roof colour with a slight warm or cool tint."""
     g = r.uniform(lo, hi)
@@ -471,28 +529,59 @@ def generate_grid(p: GridParams, seed: int, aliasing: float, mpp: float) -> tupl
                 copy = s0 != len(out)      # a copy of a cell placed before: its objects take those looks
                 out += [dataclasses.replace(_shift(o, dx, dy), look=s0 + m if copy else None)
                         for m, o in enumerate(own)]
-    _alias_margins(labels, rgb, p, seed, aliasing, mp, n)
+    _alias_margins(labels, rgb, p, seed, aliasing, mp, n, mpp, objects)
     buildings, trees, cars, furniture = objects
     return Layout(W, H, mpp, rgb, labels, buildings, trees, cars, furniture=furniture), src
 
 
 def _alias_margins(labels: np.ndarray, rgb: np.ndarray, p: GridParams, seed: int, aliasing: float, mp: int,
-                   n: int) -> None:
+                   n: int, mpp: float, objects: tuple[list, ...]) -> None:
     """Alias the open land around the grid as the cells are: each side's margin is cut into one stretch per
     cell along it, and ``round(aliasing * n)`` stretches of a side are copies of others (labels and texture),
     so that at ``aliasing`` 1 an edge road runs past the same land at every block, as it runs past the same
-    block (the corners stay their own)."""
+    block (the corners stay their own). With ``variety``, each stretch's land gets trees and shrubs of its
+    own (a copy: its source's, with their looks), appended to ``objects`` (buildings, trees, cars, furniture)."""
     nx, ny = p.blocks
     H, W = labels.shape
+    P, M, hr = p.pitch_m, p.margin_m, p.road_width_m / 2
+    Hm, Wm = H * mpp, W * mpp
     rng = np.random.default_rng([seed, 5])
-    sides = (  # (stretches, the rows and columns of stretch i)
-        (nx, lambda i: (slice(H - mp, H), slice(mp + i * n, mp + (i + 1) * n))),   # south
-        (nx, lambda i: (slice(0, mp), slice(mp + i * n, mp + (i + 1) * n))),       # north
-        (ny, lambda j: (slice(H - mp - (j + 1) * n, H - mp - j * n), slice(0, mp))),   # west
-        (ny, lambda j: (slice(H - mp - (j + 1) * n, H - mp - j * n), slice(W - mp, W))),   # east
+    sides = (  # (stretches, the rows and columns of stretch i, its land's x0, y0, x1, y1 in metres, roads out)
+        (nx, lambda i: (slice(H - mp, H), slice(mp + i * n, mp + (i + 1) * n)),
+         lambda i: (M + i * P + hr, 0.0, M + (i + 1) * P - hr, M - hr)),                           # south
+        (nx, lambda i: (slice(0, mp), slice(mp + i * n, mp + (i + 1) * n)),
+         lambda i: (M + i * P + hr, Hm - M + hr, M + (i + 1) * P - hr, Hm)),                        # north
+        (ny, lambda j: (slice(H - mp - (j + 1) * n, H - mp - j * n), slice(0, mp)),
+         lambda j: (0.0, M + j * P + hr, M - hr, M + (j + 1) * P - hr)),                           # west
+        (ny, lambda j: (slice(H - mp - (j + 1) * n, H - mp - j * n), slice(W - mp, W)),
+         lambda j: (Wm - M + hr, M + j * P + hr, Wm, M + (j + 1) * P - hr)),                        # east
     )
-    for count, where in sides:
+    trees, furniture = objects[1], objects[3]
+    for k, (count, where, land) in enumerate(sides):
         src = alias_sources(count, aliasing, rng)
         for i in np.flatnonzero(src != np.arange(count)):
             labels[where(i)] = labels[where(src[i])]
             rgb[where(i)] = rgb[where(src[i])]
+        if p.variety <= 0:
+            continue
+        first: dict[int, tuple[int, int]] = {}
+        for i in range(count):
+            s = int(src[i])
+            t0, f0 = first.setdefault(s, (len(trees), len(furniture)))
+            copy = t0 != len(trees) or f0 != len(furniture)
+            v = np.random.default_rng([seed, 7, k, s])      # the stretch's own draws: a copy makes the same
+            x0, y0, x1, y1 = land(i)     # the same draws in stretch i's frame: a copy's objects, shifted
+            placed: list[tuple[float, float]] = []
+            if min(x1 - x0, y1 - y0) >= 6.0:                      # a tree every 16 m of margin or so
+                for _ in range(int(v.poisson(p.variety * P / 16))):
+                    tr = _own_tree(v, float(v.uniform(x0 + 3, x1 - 3)), float(v.uniform(y0 + 3, y1 - 3)))
+                    trees.append(dataclasses.replace(tr, look=t0 + len(placed) if copy else None))
+                    placed.append(tr.center)
+            if min(x1 - x0, y1 - y0) >= 2.0:
+                m = 0
+                for _ in range(int(v.poisson(p.variety * P / 10))):
+                    xy = (float(v.uniform(x0 + 1, x1 - 1)), float(v.uniform(y0 + 1, y1 - 1)))
+                    seed_f = int(v.integers(0, 2**31 - 1))
+                    if all(math.dist(xy, q) > 1.2 for q in placed):
+                        furniture.append(Furniture(xy, 0.0, 10, seed_f, f0 + m if copy else None))
+                        m += 1
