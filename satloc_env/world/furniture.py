@@ -20,7 +20,7 @@ from .layout import Furniture
 from .paint import fbm, rect_poly
 from .variety import leaf_texture
 
-__all__ = ["KINDS", "HEDGE_SEGMENT_M", "Part", "furniture_parts", "footprint_radius", "is_leafy"]
+__all__ = ["KINDS", "HEDGE_SEGMENT_M", "Part", "furniture_parts", "footprint_radius"]
 
 #: furniture kinds by their code in :attr:`Furniture.kind`
 KINDS = {1: "lamp post", 2: "traffic sign", 3: "litter bin", 4: "bench", 5: "bollards", 6: "hydrant",
@@ -52,11 +52,6 @@ class Part:
     texel: float = 0.04
     faces: dict[int, np.ndarray] = field(default_factory=dict)
     leaves: bool = False
-
-
-def is_leafy(kind: int) -> bool:
-    """Whether furniture of ``kind`` is foliage only (a hedge or a shrub: seen from afar like a tree's crown)."""
-    return int(kind) in (9, 10)
 
 
 #: the greens of hedges and shrubs (RGB)

@@ -329,20 +329,28 @@ class CellPainter:
                     self.furniture.append(Furniture((x, y), 0.0, 10, int(v.integers(0, 2**31 - 1))))
                     taken.append((x, y))
             seed = int(v.integers(0, 2**31 - 1))
-            half = HEDGE_SEGMENT_M / 2
             for edge in range(4):                            # hedges along some edges, inside the park
                 if v.random() >= amount * 0.4:
                     continue
                 horizontal = edge < 2
                 lo, hi = (x0, x1) if horizontal else (y0, y1)
                 fixed = (y0 + 0.6, y1 - 0.6, x0 + 0.6, x1 - 0.6)[edge]
-                t = lo + 0.5 + half
-                while t + half <= hi - 0.5:
-                    x, y = (t, fixed) if horizontal else (fixed, t)
-                    crosses = horizontal != along_x and abs(t - c) < 1.0 + half + 0.5
-                    if not crosses and all(math.dist((x, y), q) > 1.2 for q in taken):
-                        self.furniture.append(Furniture((x, y), 0.0 if horizontal else math.pi / 2, 9, seed))
-                    t += HEDGE_SEGMENT_M
+                crosses = horizontal != along_x              # the path crosses this edge at t = c
+                self._hedge(lo, hi, fixed, horizontal, seed, lambda t, x, y: not (
+                    crosses and abs(t - c) < 1.0 + HEDGE_SEGMENT_M / 2 + 0.5)
+                    and all(math.dist((x, y), q) > 1.2 for q in taken))
+
+    def _hedge(self, lo: float, hi: float, at: float, horizontal: bool, seed: int, keep) -> None:
+        """A hedge of :data:`HEDGE_SEGMENT_M` segments (one ``seed``: one look) from ``lo`` to ``hi`` (0.5 m in
+        from each end) along x at y = ``at`` (``horizontal``) or along y at x = ``at``, each segment where
+        ``keep(t, x, y)`` (its centre's coordinate along the hedge, and its centre) allows."""
+        half = HEDGE_SEGMENT_M / 2
+        t = lo + 0.5 + half
+        while t + half <= hi - 0.5:
+            x, y = (t, at) if horizontal else (at, t)
+            if keep(t, x, y):
+                self.furniture.append(Furniture((float(x), float(y)), 0.0 if horizontal else math.pi / 2, 9, seed))
+            t += HEDGE_SEGMENT_M
 
     def _yards(self, i0: float, i1: float) -> None:
         """``variety``: a residential block's front yards: a hedge along the sidewalk (its segments of one seed,
@@ -350,14 +358,10 @@ class CellPainter:
         v, amount = self.vrng, self.p.variety
         for xa, xb, side, dx, y_front in getattr(self, "_fronts", []):
             seed = int(v.integers(0, 2**31 - 1))
-            if v.random() < amount * 0.55:
-                y = i0 + 0.6 if side == 0 else i1 - 0.6
+            if v.random() < amount * 0.55:                     # not across the driveway
                 half = HEDGE_SEGMENT_M / 2
-                x = xa + 0.5 + half
-                while x + half <= xb - 0.5:
-                    if x + half < dx - 0.5 or x - half > dx + 3.5:       # not across the driveway
-                        self.furniture.append(Furniture((float(x), float(y)), 0.0, 9, seed))
-                    x += HEDGE_SEGMENT_M
+                self._hedge(xa, xb, i0 + 0.6 if side == 0 else i1 - 0.6, True, seed,
+                            lambda t, x, y: t + half < dx - 0.5 or t - half > dx + 3.5)
             lo, hi = (i0 + 2.0, y_front - 1.2) if side == 0 else (y_front + 1.2, i1 - 2.0)
             for _ in range(int(v.poisson(amount * 1.6))):
                 x = float(v.uniform(xa + 1.0, xb - 1.0))
