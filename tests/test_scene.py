@@ -334,3 +334,28 @@ def test_variety_paves_the_sidewalks():
     b, _ = generate_grid(GridParams(blocks=(2, 2), pitch_m=60, margin_m=10, variety=1.0), 4, 0.0, 0.1)
     for cls in ("sidewalk", "grass"):
         assert fine(b, cls) > 2 * fine(a, cls), cls
+
+
+def test_variety_wears_the_markings():
+    """At variety 1 every stripe and dash of paint is worn by its own amount, so two crossings of the same
+    design differ; the labels stay markings, the draw is deterministic, and variety 0 paints them as new."""
+    import cv2
+
+    def pieces(lay):
+        m = (lay.ground_labels == CLASS_ID["lane_marking"]).astype(np.uint8)
+        n, comp = cv2.connectedComponents(m, connectivity=4)
+        g = lay.ground_rgb.astype(np.float32).mean(-1)
+        sizes = np.bincount(comp.ravel(), minlength=n)
+        means = np.bincount(comp.ravel(), weights=g.ravel(), minlength=n) / np.maximum(sizes, 1)
+        return means[1:][sizes[1:] >= 20], m
+
+    a, _ = generate_grid(GridParams(blocks=(2, 2), pitch_m=60, margin_m=10), 4, 0.0, 0.1)
+    b, _ = generate_grid(GridParams(blocks=(2, 2), pitch_m=60, margin_m=10, variety=1.0), 4, 0.0, 0.1)
+    again, _ = generate_grid(GridParams(blocks=(2, 2), pitch_m=60, margin_m=10, variety=1.0), 4, 0.0, 0.1)
+    new, mask_a = pieces(a)
+    worn, mask_b = pieces(b)
+    assert np.array_equal(mask_a, mask_b)                      # the same paint, where it was
+    assert len(worn) > 50
+    assert new.std() < 4 and worn.std() > 3 * new.std()      # each piece its own age
+    assert worn.mean() < new.mean() - 15                      # worn towards the asphalt
+    assert np.array_equal(again.ground_rgb, b.ground_rgb)

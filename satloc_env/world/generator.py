@@ -25,7 +25,7 @@ from satloc.labels import CLASS_ID as C
 from .furniture import HEDGE_SEGMENT_M, footprint_radius
 from .layout import Building, Car, Furniture, Layout, Tree
 from .paint import fill_poly, noise, tint, to_px
-from .variety import BODIES, SPECIES, car_body, car_colour, ground_detail, road_wear
+from .variety import BODIES, SPECIES, car_body, car_colour, ground_detail, marking_wear, road_wear
 
 LANE_W = 3.5            # metres, one driving lane
 MARK_W = 0.15           # lane marking width
@@ -133,6 +133,8 @@ class CellPainter:
         rgb = np.zeros((self.n, self.n, 3), np.uint8)
         _paint_base(self.labels, rgb, self.rng, self.mpp)
         road_wear(self.labels, rgb, self.vrng, self.mpp, p.variety, C["road"], C["sidewalk"])
+        marking_wear(self.labels, rgb, np.random.default_rng([self.seed, 4244]), self.mpp, p.variety,
+                     C["lane_marking"], C["road"])
         ground_detail(self.labels, rgb, np.random.default_rng([self.seed, 4243]), self.mpp, p.variety, C)
         self._parking_stripes(rgb)
         return rgb

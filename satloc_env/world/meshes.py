@@ -835,8 +835,9 @@ def _add_car(mb: _MeshBuilder, c: Car, key: tuple) -> None:
         mb.band = INSIDE                       # in the reflections beyond the layout's edge only near the car
     z_body = shape["body"] * height
     body = _rect(c.center, c.yaw, length, width)
+    own = c.body in BODIES
     _add_prism(mb, body, 0.12, z_body, _CAR_M, CLASS_ID["car"],
-               lambda walls, h: _car_body_texture(rng, paint, walls, h, z_body - 0.12),
+               lambda walls, h: _car_body_texture(rng, paint, walls, h, z_body - 0.12, own),
                lambda h, w: _paint(rng, paint, h, w))
     cab_len, cab_w = shape["cab"] * length, 0.88 * width
     lower = _rect(c.center, c.yaw, cab_len, cab_w, dx=-shape["dx"] * length)
@@ -1005,13 +1006,18 @@ def _foliage_texture(rng: np.random.Generator, h: int, w: int, shade: int) -> np
 
 
 def _car_body_texture(rng: np.random.Generator, paint: np.ndarray, walls: list[tuple[int, float]], h: int,
-                      body_h: float) -> np.ndarray:
+                      body_h: float, own: bool = False) -> np.ndarray:
     """Car body walls (edges of :func:`_rect`: 0 right side, 1 front, 2 left side, 3 rear): paint, a dark
-    rocker band, wheels on the sides, head and tail lights."""
+    rocker band, wheels on the sides, head and tail lights. ``own`` (a body of its own, variety): what makes
+    one real car's flank unlike another's of the same colour, too: the lacquer's reflections (the sky bright
+    above the shoulder line, the street dark below it, blotches of reflected trees and buildings), door
+    seams and handles, dirt, and number plates front and rear."""
     texel = body_h / h
     cuts = np.round(np.concatenate([[0.0], np.cumsum([ln for _, ln in walls])]) / texel).astype(int)
     w = max(2, int(cuts[-1]))
     img = paint * (1 + 0.07 * _fbm(rng, h, w, (8, 1), (0.6, 0.4)))[..., None]
+    if own:
+        _car_body_detail(rng, img, walls, cuts, texel)
     img[int(0.78 * h):] *= 0.45                                   # rocker / bumper band
     rr, cc = np.mgrid[0:h, 0:w]
     wheel_r = 0.32 / texel
@@ -1029,6 +1035,41 @@ def _car_body_texture(rng: np.random.Generator, paint: np.ndarray, walls: list[t
             img[lamp_rows, a + 1:a + 1 + lw] = rgb
             img[lamp_rows, b - 1 - lw:b - 1] = rgb
     return _to_u8(img)
+
+
+def _car_body_detail(rng: np.random.Generator, img: np.ndarray, walls: list[tuple[int, float]], cuts: np.ndarray,
+                     texel: float) -> None:
+    """The detail of :func:`_car_body_texture` for a body of its own, painted into ``img`` (h, w, 3) float."""
+    h, w = img.shape[:2]
+    rows = (np.arange(h, dtype=np.float32) + 0.5) / h                # 0 at the shoulder line, 1 at the sill
+    shoulder = float(rng.uniform(0.2, 0.4))
+    light = np.where(rows < shoulder, 0.18 * (1 - rows / shoulder), -0.22 * (rows - shoulder) / (1 - shoulder))
+    light[np.abs(rows - shoulder) < 1.5 / h] += 0.3                  # the crease catches the sky
+    reflect = _fbm(rng, h, w, (max(2, int(0.9 / texel)), max(2, int(0.3 / texel))), (0.7, 0.3))
+    dirt = np.clip(_fbm(rng, h, w, (max(2, int(0.4 / texel)), 1), (0.7, 0.3)), 0, None) * rows[:, None] ** 2
+    img *= (1 + light[:, None] + 0.22 * reflect - float(rng.uniform(0.1, 0.5)) * dirt)[..., None]
+    seam = max(1, int(round(0.012 / texel)))
+    for (edge, length), a, b in zip(walls, cuts[:-1], cuts[1:]):
+        if edge in (0, 2):                                            # door seams and handles on the flanks
+            doors = 2 if length > 3.9 and rng.random() < 0.7 else 1
+            fronts = np.linspace(0.32, 0.72, doors + 1)
+            for f in fronts:
+                c = int(a + f * (b - a)) if edge == 0 else int(b - f * (b - a))
+                img[: int(0.8 * h), c:c + seam] *= 0.55
+            for f0, f1 in zip(fronts[:-1], fronts[1:]):
+                f = f0 + 0.7 * (f1 - f0)
+                c = int(a + f * (b - a)) if edge == 0 else int(b - f * (b - a))
+                r0 = int((shoulder + 0.08) * h)
+                img[r0:r0 + max(1, int(0.04 / texel)), c:c + max(2, int(0.18 / texel))] *= 0.6
+        else:                                                         # a number plate, white or yellow
+            pw, ph = int(0.52 / texel), max(2, int(0.11 / texel))
+            c0, r0 = (a + b - pw) // 2, int(0.5 * h)
+            if pw > 2 and c0 >= a:
+                img[r0:r0 + ph, c0:c0 + pw] = (235, 235, 230) if rng.random() < 0.8 else (240, 200, 40)
+                chars = rng.random(max(1, pw // 3)) < 0.6
+                for k, on in enumerate(chars):
+                    if on and ph > 2:
+                        img[r0 + 1:r0 + ph - 1, c0 + 1 + 3 * k:c0 + 2 + 3 * k] = (30, 30, 35)
 
 
 def _car_cabin_texture(rng: np.random.Generator, paint: np.ndarray, h: int, w: int,

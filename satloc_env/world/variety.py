@@ -14,6 +14,8 @@ tints on one tree shape, one car shape in eight colours):
 * **parked cars** (:data:`BODIES`, :func:`car_colour`): saloons, hatchbacks, estates, SUVs and vans in the
   colours real car parks have (mostly white, grey, black and silver);
 * **the road surface** (:func:`road_wear`): patches, cracks, manhole covers, drain grates and oil stains;
+* **the markings' wear** (:func:`marking_wear`): each stripe and dash faded by its own amount, its paint worn
+  through in blotches and along the tyres' paths, and dirt;
 * **the ground's finest detail** (:func:`ground_detail`): the grain of grass, soil and asphalt, paving slabs and
   kerb stones.
 
@@ -31,7 +33,7 @@ import numpy as np
 from .paint import fbm as _fbm
 
 __all__ = ["FacadeParams", "facade_params", "facade_texture", "SPECIES", "leaf_texture", "BODIES", "car_colour",
-           "road_wear", "ground_detail", "SHOP_WORDS"]
+           "road_wear", "marking_wear", "ground_detail", "SHOP_WORDS"]
 
 
 # --- buildings -------------------------------------------------------------------------------------------------
@@ -421,8 +423,40 @@ def road_wear(labels: np.ndarray, rgb: np.ndarray, rng: np.random.Generator, mpp
         rgb[sw] = np.clip(rgb[sw].astype(np.float32) * (1 + stains[sw])[:, None], 0, 255).astype(np.uint8)
 
 
+def marking_wear(labels: np.ndarray, rgb: np.ndarray, rng: np.random.Generator, mpp: float, amount: float,
+                 marking: int, road: int) -> None:
+    """Wear the painted markings of ``rgb`` (in place), where ``labels`` is ``marking``, towards the asphalt
+    under them: every stripe and dash (a connected piece of paint) fades by its own amount (up to 60 % at
+    ``amount`` 1), the paint is worn through in blotches of 0.2-1 m and, more, in bands where tyres run
+    (along the road, about 1.8 m apart), and dirt greys what is left. Real crossings and lane lines are never
+    as new as each other, so two crossings of the same design look different up close; the class (the labels)
+    stays a marking. ``amount`` in [0, 1] scales it all."""
+    if amount <= 0:
+        return
+    m = labels == marking
+    if not m.any():
+        return
+    h, w = labels.shape
+    on_road = labels == road
+    asphalt = (np.median(rgb[on_road], axis=0) if on_road.any() else np.array([88.0, 88.0, 92.0])).astype(np.float32)
+    n, comp = cv2.connectedComponents(m.astype(np.uint8), connectivity=4)
+    fade = rng.uniform(0.0, 0.6, n).astype(np.float32)          # each piece of paint its own age
+    px = lambda metres: max(1, int(round(metres / mpp)))  # noqa: E731
+    blotch = _fbm(rng, h, w, (px(1.0), px(0.45), px(0.2)), (0.5, 0.3, 0.2))
+    # tyre tracks: bands along each road direction (the noise's phase drawn, so every cell has its own)
+    period = 1.8 / mpp
+    ys, xs = np.mgrid[0:h, 0:w].astype(np.float32)
+    tracks = np.maximum(np.cos(2 * np.pi * (xs / period + rng.random())),
+                        np.cos(2 * np.pi * (ys / period + rng.random())))
+    worn = fade[comp] + 1.2 * np.clip(blotch - 0.1, 0, None) + 0.3 * np.clip(tracks - 0.6, 0, None) / 0.4
+    worn = np.clip(amount * worn, 0, 0.9)[m][:, None]
+    dirt = 1 - 0.1 * amount * np.abs(_fbm(rng, h, w, (px(0.3),), (1.0,)))[m][:, None]
+    paint = rgb[m].astype(np.float32)
+    rgb[m] = np.clip((paint * (1 - worn) + asphalt * worn) * dirt, 0, 255).astype(np.uint8)
+
+
 #: ground_detail's texel grain per class name: the brightness spread of single texels (a relative change)
-_GRAIN = {"road": 0.07, "parking": 0.07, "sidewalk": 0.06, "grass": 0.24, "soil": 0.16}
+_GRAIN = {"road": 0.07, "lane_marking": 0.05, "parking": 0.07, "sidewalk": 0.06, "grass": 0.24, "soil": 0.16}
 
 
 def ground_detail(labels: np.ndarray, rgb: np.ndarray, rng: np.random.Generator, mpp: float, amount: float,
