@@ -333,7 +333,7 @@ class StereoSlot:
 
     def set_occluders(self, cars: Sequence[Car], persons: Sequence[Person], obstacles: Sequence[Obstacle]) -> None:
         """Replace the episode's extra objects (drawn as one mesh; all lists may be empty)."""
-        self._occluders = build_occluders(cars, persons, obstacles, self.world.sun_direction)
+        self._occluders = build_occluders(cars, persons, obstacles, self.world.sun_direction, self.world.terrain)
         if self.batch._scene is not None and not self.closed:
             self._attach_occluders()
 
@@ -345,6 +345,13 @@ class StereoSlot:
         return self.batch.render_many([(self, pose, tilt)], depth, labels)[0]
 
     def _map_from_camera(self, pose: Pose2, side: str, tilt: tuple[float, float] | None) -> np.ndarray:
+        terrain = self.world.terrain
+        if not terrain.flat:   # the car stands on the ground under its wheels, its own tilt on top
+            z, pitch, roll = terrain.tilt(pose.x, pose.y, pose.yaw)
+            body = pose.matrix3d()
+            body[2, 3] += z
+            tilt = (pitch, roll) if tilt is None else (pitch + tilt[0], roll + tilt[1])
+            return body @ body_tilt(*tilt) @ self.camera.vehicle_from_camera(side)
         if tilt is None:
             return self.camera.map_from_camera(pose, side)
         return pose.matrix3d() @ body_tilt(*tilt) @ self.camera.vehicle_from_camera(side)

@@ -53,6 +53,7 @@ from satloc.labels import CLASS_ID
 from .furniture import furniture_parts, part_paint
 from .layout import Building, Car, Furniture, Layout, Obstacle, Person, Tree
 from .paint import fbm as _fbm
+from .terrain import GROUND_STEP_M, Terrain
 from .variety import BODIES, SPECIES, facade_params, facade_texture, leaf_texture
 
 __all__ = ["TexturedMesh", "World", "build_world", "BEYOND", "build_occluders", "sun_direction", "SKY_RGB", "PAD"]
@@ -112,6 +113,7 @@ class World:
     chunks: list[TexturedMesh]
     sun_direction: np.ndarray   #: (3,) unit vector pointing towards the sun (map frame)
     sky_rgb: tuple[int, int, int] = SKY_RGB
+    terrain: Terrain = dataclasses.field(default_factory=Terrain)   #: the ground's heights (default: a plane)
 
 
 WORLD_FORMAT = "satloc-world"
@@ -141,7 +143,7 @@ def save_world(world: World, path) -> None:
     arrays["sun_direction"] = np.asarray(world.sun_direction, np.float64)
     save_npz(path, WORLD_FORMAT, arrays, {"width_m": float(world.width_m), "height_m": float(world.height_m),
                                           "chunk_m": float(world.chunk_m), "sky_rgb": [int(v) for v in world.sky_rgb],
-                                          "chunks": len(world.chunks)})
+                                          "chunks": len(world.chunks), "terrain": world.terrain.to_dict()})
 
 
 def load_world(path) -> World:
@@ -166,9 +168,10 @@ def load_world(path) -> World:
                     *(a[f"c{k}_{name}"] for name in ("cell_faces", "cell_bounds", "cell_squares", "cell_bands")),
                     len(chunk.faces))
             chunks.append(chunk)
+        terrain = Terrain(**m["terrain"]) if "terrain" in m else Terrain()
         return World(float(m["width_m"]), float(m["height_m"]), float(m["chunk_m"]), chunks,
-                     np.asarray(a["sun_direction"], np.float64), tuple(int(v) for v in m["sky_rgb"]))
-    except (KeyError, IndexError, TypeError, ValueError) as e:
+                     np.asarray(a["sun_direction"], np.float64), tuple(int(v) for v in m["sky_rgb"]), terrain)
+    except (KeyError, IndexError, TypeError, ValueError, ConfigError) as e:
         raise FormatError(f"{path}: not a complete world ({e})") from None
 
 
@@ -194,10 +197,13 @@ def sun_direction(azimuth: float, elevation: float) -> np.ndarray:
 BEYOND = ("mirror", "neutral")
 
 
-def build_world(layout: Layout, chunk_m: float = 204.8, pad_m: float = 0.0, beyond: str = "mirror") -> World:
+def build_world(layout: Layout, chunk_m: float = 204.8, pad_m: float = 0.0, beyond: str = "mirror",
+                terrain: Terrain | None = None) -> World:
     """Turn ``layout`` into chunked, textured geometry, with ``pad_m`` metres of world around it: the layout
     mirrored across its edges (``beyond="mirror"``) or neutral ground (``"neutral"``); see the module
-    docstring."""
+    docstring. Over a ``terrain`` that is not flat, the ground follows its heights and the objects stand on it
+    (:mod:`satloc_env.world.terrain`)."""
+    terrain = terrain or Terrain()
     if beyond not in BEYOND:
         raise ConfigError(f"build_world: beyond: expected one of {BEYOND}, got {beyond!r}")
     mpp = float(layout.ground_mpp)
@@ -224,7 +230,8 @@ def build_world(layout: Layout, chunk_m: float = 204.8, pad_m: float = 0.0, beyo
     look = lambda k, o: k if o.look is None else int(o.look)  # noqa: E731  (layout's note on looks)
     for k, b in enumerate(layout.buildings):
         c = np.asarray(b.footprint, dtype=np.float64).mean(axis=0)
-        members[chunk_of(*c)].append((cell_of(*c), lambda mb, b=b, k=look(k, b): _add_building(mb, b, k, layout)))
+        members[chunk_of(*c)].append((cell_of(*c),
+                                      lambda mb, b=b, k=look(k, b): _level(mb, _add_building, b, k, layout)))
     for k, t in enumerate(layout.trees):
         members[chunk_of(*t.center)].append((cell_of(*t.center), lambda mb, t=t, k=look(k, t): _add_tree(mb, t, k)))
     for k, c in enumerate(layout.cars):
@@ -237,18 +244,47 @@ def build_world(layout: Layout, chunk_m: float = 204.8, pad_m: float = 0.0, beyo
     chunks, extents = [], []
     for j in range(ny):
         for i in range(nx):
-            ground = _ground_region(layout, i * cpx, j * cpx, cpx)
+            ground = _ground_region(layout, i * cpx, j * cpx, cpx, terrain)
             mb = _MeshBuilder(sun, atlas_width=ground.texture.shape[1])
             for square, add in members[j * nx + i]:
-                mb.square = square
+                mb.square, mb.standing = square, "follow"
+                first = len(mb._pos)
                 add(mb)
+                if not terrain.flat:
+                    _stand_on(mb, first, terrain)
             chunks.append(_in_cells(mb.build(ground), mb.cell_keys()))
-            extents.append((ground.corners[0, 0], ground.corners[2, 0], ground.corners[0, 1], ground.corners[2, 1]))
+            extents.append(ground.extent)
     if pad_m > 0 and beyond == "neutral":
-        chunks.append(_pad_mesh(layout, cols * mpp, rows * mpp, float(pad_m)))
+        chunks.append(_pad_mesh(layout, cols * mpp, rows * mpp, float(pad_m), terrain))
     elif pad_m > 0:
         chunks += _mirrored(chunks, extents, cols * mpp, rows * mpp, float(pad_m))
-    return World(float(layout.width_m), float(layout.height_m), cpx * mpp, chunks, sun)
+    return World(float(layout.width_m), float(layout.height_m), cpx * mpp, chunks, sun, terrain=terrain)
+
+
+def _level(mb: "_MeshBuilder", add: Callable, *args) -> None:
+    """``add(mb, *args)``, marked to stand level on the terrain (:func:`_stand_on`)."""
+    add(mb, *args)
+    mb.standing = "level"
+
+
+def _stand_on(mb: "_MeshBuilder", first: int, terrain: Terrain) -> None:
+    """Lift what ``mb`` added from its ``first`` vertex block on onto ``terrain``: a building (its walls end
+    in vertices at z 0 on its footprint) level, on the lowest ground under its footprint; anything else vertex
+    by vertex by the ground under it."""
+    blocks = mb._pos[first:]
+    if not blocks:
+        return
+    p = np.concatenate(blocks)
+    h = terrain.height(p[:, 0], p[:, 1])
+    if mb.standing == "level":
+        base = np.abs(p[:, 2]) < 1e-9
+        h = np.full(len(p), float(h[base].min() if base.any() else h.min()))
+    at = 0
+    for k, b in enumerate(blocks):
+        q = np.array(b, dtype=np.float64, copy=True)
+        q[:, 2] += h[at:at + len(q)]
+        mb._pos[first + k] = q
+        at += len(q)
 
 
 #: side (metres) of the squares of ground whose objects make one cell of a chunk's faces (see
@@ -269,7 +305,8 @@ LOD_M = 60.0
 def _in_cells(mesh: TexturedMesh, keys: np.ndarray) -> TexturedMesh:
     """``mesh`` (objects' faces in the order added, then the ground's) with its faces grouped by cell, a cell
     being the faces of one band of the objects standing on one square (``keys``: per object face, the square's
-    column and row and the band): a stable sort by key, the ground's faces last as a cell of their own."""
+    column and row and the band): a stable sort by key, the ground's faces last as a cell of their own (a
+    terrain's ground grid too: split into cells, its draw ranges cost more than culling them saves)."""
     n_obj = len(keys)
     order = np.lexsort(keys.T[::-1]) if n_obj else np.zeros(0, np.int64)
     faces = np.concatenate([mesh.faces[:n_obj][order], mesh.faces[n_obj:]])
@@ -370,27 +407,31 @@ def pad_texture(layout: Layout, texels: int = _PAD_TEXELS) -> np.ndarray:
     return np.clip(np.round(tex), 0, 255).astype(np.uint8)
 
 
-def _pad_mesh(layout: Layout, w_m: float, h_m: float, pad_m: float) -> TexturedMesh:
-    """One flat mesh covering [-pad, w + pad] x [-pad, h + pad] outside [0, w] x [0, h] (eight quads) with
-    the repeated :func:`pad_texture` at the layout's ground resolution."""
+def _pad_mesh(layout: Layout, w_m: float, h_m: float, pad_m: float, terrain: Terrain | None = None) -> TexturedMesh:
+    """One mesh covering [-pad, w + pad] x [-pad, h + pad] outside [0, w] x [0, h] (eight quads; grids over a
+    ``terrain`` that is not flat, at the height of the layout's nearest edge, so it meets the layout's ground)
+    with the repeated :func:`pad_texture` at the layout's ground resolution."""
     tex = pad_texture(layout)
     labels = np.full(tex.shape[:2], CLASS_ID["void"], np.uint8)
     period = tex.shape[0] * float(layout.ground_mpp)
     xs = [(-pad_m, 0.0), (0.0, w_m), (w_m, w_m + pad_m)]
     ys = [(-pad_m, 0.0), (0.0, h_m), (h_m, h_m + pad_m)]
-    quads = [[[a, c, 0.0], [b, c, 0.0], [b, d, 0.0], [a, d, 0.0]]
+    edge = None if terrain is None or terrain.flat else (
+        lambda x, y: terrain.height(np.clip(x, 0.0, w_m), np.clip(y, 0.0, h_m)))
+    parts = [_grid_quad(a, b, c, d, terrain, edge)
              for i, (a, b) in enumerate(xs) for j, (c, d) in enumerate(ys) if (i, j) != (1, 1)]
-    pos = np.asarray(quads, np.float64).reshape(-1, 3)
+    starts = np.cumsum([0] + [len(p) for p, _ in parts[:-1]])
+    pos = np.concatenate([p for p, _ in parts])
+    faces = np.concatenate([f + k for (_, f), k in zip(parts, starts)])
     uv = pos[:, :2] / period                 # anchored to the map: the texture runs on across the quads
-    faces = (np.arange(len(quads))[:, None, None] * 4 + np.array([[0, 1, 2], [0, 2, 3]])).reshape(-1, 3)
     return TexturedMesh(pos.astype(np.float32), uv.astype(np.float32), np.ones(len(pos), np.float32),
                         faces.astype(np.uint32), tex, labels, repeat=True)
 
 
 def build_occluders(cars: Sequence[Car], persons: Sequence[Person], obstacles: Sequence[Obstacle],
-                    sun: np.ndarray) -> TexturedMesh | None:
-    """One textured mesh of an episode's extra objects (``sun``: see :func:`sun_direction`); None if there
-    are none."""
+                    sun: np.ndarray, terrain: Terrain | None = None) -> TexturedMesh | None:
+    """One textured mesh of an episode's extra objects (``sun``: see :func:`sun_direction`), standing on
+    ``terrain`` where it is not flat; None if there are none."""
     if not (cars or persons or obstacles):
         return None
     mb = _MeshBuilder(np.asarray(sun, dtype=np.float64), atlas_width=_OCCLUDER_ATLAS_W)
@@ -400,22 +441,27 @@ def build_occluders(cars: Sequence[Car], persons: Sequence[Person], obstacles: S
         _add_person(mb, p, k)
     for k, o in enumerate(obstacles):
         _add_obstacle(mb, o, k)
+    if terrain is not None and not terrain.flat:
+        _stand_on(mb, 0, terrain)
     return mb.build(None)
 
 
 # --- mesh assembly ----------------------------------------------------------------------------------------
 @dataclass
 class _Ground:
-    """A chunk's padded ground region and its quad."""
+    """A chunk's padded ground region and its surface (one quad, or a grid over a terrain)."""
 
     texture: np.ndarray   # (H, W, 3), W % 4 == 0
     labels: np.ndarray    # (H, W)
-    corners: np.ndarray   # (4, 3) quad corners, counter-clockwise from above
-    texel_rc: np.ndarray  # (4, 2) (column, row) of the corners in the region, texel-edge units
+    positions: np.ndarray  # (n, 3) the surface's vertices
+    texel_rc: np.ndarray  # (n, 2) (column, row) of the vertices in the region, texel-edge units
+    faces: np.ndarray     # (m, 3) its triangles, counter-clockwise from above
+    extent: tuple         # x0, x1, y0, y1
 
 
-def _ground_region(layout: Layout, c0: int, rb0: int, cpx: int) -> _Ground:
-    """Ground of the chunk whose lower-left texel is column ``c0``, row ``rb0`` counted from the south edge."""
+def _ground_region(layout: Layout, c0: int, rb0: int, cpx: int, terrain: Terrain | None = None) -> _Ground:
+    """Ground of the chunk whose lower-left texel is column ``c0``, row ``rb0`` counted from the south edge:
+    one quad, or over a ``terrain`` that is not flat a grid of about :data:`GROUND_STEP_M` on its heights."""
     mpp = float(layout.ground_mpp)
     rows, cols = layout.ground_labels.shape
     c1, rb1 = min(c0 + cpx, cols), min(rb0 + cpx, rows)
@@ -425,11 +471,32 @@ def _ground_region(layout: Layout, c0: int, rb0: int, cpx: int) -> _Ground:
     cc = np.clip(np.arange(c0 - PAD, c0 - PAD + width), 0, cols - 1)
     x0, x1 = c0 * mpp, c1 * mpp
     y0, y1 = layout.height_m - r1 * mpp, layout.height_m - r0 * mpp
-    corners = np.array([[x0, y0, 0.0], [x1, y0, 0.0], [x1, y1, 0.0], [x0, y1, 0.0]])
     u0, u1, t0, t1 = PAD, PAD + c1 - c0, PAD, PAD + r1 - r0
-    texel_rc = np.array([[u0, t1], [u1, t1], [u1, t0], [u0, t0]], dtype=np.float64)
+    pos, faces = _grid_quad(x0, x1, y0, y1, terrain)
+    texel_rc = np.stack([u0 + (pos[:, 0] - x0) / (x1 - x0) * (u1 - u0),
+                         t1 + (pos[:, 1] - y0) / (y1 - y0) * (t0 - t1)], axis=1)
     return _Ground(np.ascontiguousarray(layout.ground_rgb[rr][:, cc]),
-                   np.ascontiguousarray(layout.ground_labels[rr][:, cc]).astype(np.uint8), corners, texel_rc)
+                   np.ascontiguousarray(layout.ground_labels[rr][:, cc]).astype(np.uint8), pos, texel_rc, faces,
+                   (x0, x1, y0, y1))
+
+
+def _grid_quad(x0: float, x1: float, y0: float, y1: float, terrain: Terrain | None,
+               height=None) -> tuple[np.ndarray, np.ndarray]:
+    """Vertices (n, 3) and triangles (m, 3), counter-clockwise from above, of the rectangle [x0, x1] x [y0, y1]:
+    its four corners at z 0 (two triangles) where ``terrain`` is None or flat, else a grid of squares of about
+    :data:`GROUND_STEP_M` whose vertices lie on ``height(x, y)`` (default: the terrain's)."""
+    if terrain is None or terrain.flat:
+        return (np.array([[x0, y0, 0.0], [x1, y0, 0.0], [x1, y1, 0.0], [x0, y1, 0.0]]),
+                np.array([[0, 1, 2], [0, 2, 3]]))
+    nx = max(1, math.ceil((x1 - x0) / GROUND_STEP_M - 1e-9))
+    ny = max(1, math.ceil((y1 - y0) / GROUND_STEP_M - 1e-9))
+    gx, gy = np.meshgrid(np.linspace(x0, x1, nx + 1), np.linspace(y0, y1, ny + 1))   # (ny + 1, nx + 1)
+    gz = (height or terrain.height)(gx, gy)
+    pos = np.stack([gx.ravel(), gy.ravel(), gz.ravel()], axis=1)
+    a = (np.arange(ny)[:, None] * (nx + 1) + np.arange(nx)[None, :]).ravel()          # lower-left corners
+    b, c, d = a + 1, a + nx + 2, a + nx + 1
+    faces = np.concatenate([np.stack([a, b, c], 1), np.stack([a, c, d], 1)])
+    return pos, faces
 
 
 class _MeshBuilder:
@@ -451,6 +518,8 @@ class _MeshBuilder:
         #: triangles added next
         self.square: tuple[int, int] = (0, 0)
         self.band = ALWAYS
+        #: how the object added last stands on a terrain: "follow" (vertex by vertex) or "level" (buildings)
+        self.standing = "follow"
         self._keys: list[np.ndarray] = []   # per call that added triangles: (square column, row, band) per face
 
     def add_patch(self, rgb: np.ndarray, label: int) -> int:
@@ -520,9 +589,9 @@ class _MeshBuilder:
                 rgb, PAD, PAD, PAD, PAD, cv2.BORDER_REPLICATE)
             lab[r0:r0 + h + 2 * PAD, c0:c0 + w + 2 * PAD] = np.pad(labels, PAD, mode="edge")
 
-        pos = self._pos + ([ground.corners] if ground is not None else [])
-        faces = self._faces + ([np.array([[0, 1, 2], [0, 2, 3]]) + self._n] if ground is not None else [])
-        shade = self._shade + ([np.ones(4)] if ground is not None else [])
+        pos = self._pos + ([ground.positions] if ground is not None else [])
+        faces = self._faces + ([ground.faces + self._n] if ground is not None else [])
+        shade = self._shade + ([np.ones(len(ground.positions))] if ground is not None else [])
         if self._patches:
             sizes = np.array([lb.shape for _, lb in self._patches], dtype=np.float64)       # (P, 2): h, w
             origin = np.array(offsets, dtype=np.float64) + PAD + np.array([top, 0.0])      # (P, 2): row, col

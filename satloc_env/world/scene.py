@@ -23,6 +23,7 @@ A scene file (see ``scenes/*.yaml``)::
     ground_shadows: true           # the camera's ground shows the world's cast shadows (default: grids with variety)
     objects: {buildings: [...], trees: [...], cars: [...]}   # extra hand-placed objects
     lighting: {sun_azimuth_deg: 135, sun_elevation_deg: 50}
+    terrain: {relief_m: 1.5, wavelength_m: 250}   # gentle hills under the world (default: a plane)
     knobs: {aliasing: 0.0, occlusion: 0.0, appearance: 0.0, satellite_gap: 0.5}
 
 **Image scenes** (``generator: {type: image, ...}``) drape an image over the ground plane: the camera sees
@@ -275,6 +276,15 @@ class LightingSpec:
 
 
 @dataclass
+class TerrainSpec:
+    """The ground's heights (:class:`satloc_env.world.terrain.Terrain`, drawn from the scene's seed):
+    ``relief_m`` their standard deviation (0: a plane), ``wavelength_m`` about how far apart the hills are."""
+
+    relief_m: float = 0.0
+    wavelength_m: float = 250.0
+
+
+@dataclass
 class Knobs:
     """Scene difficulty knobs, each in [0, 1].
 
@@ -323,6 +333,7 @@ class SceneSpec:
     query_route: str = "main"
     objects: ObjectsSpec = field(default_factory=ObjectsSpec)
     lighting: LightingSpec = field(default_factory=LightingSpec)
+    terrain: TerrainSpec = field(default_factory=TerrainSpec)
     knobs: Knobs = field(default_factory=Knobs)
     road_graph: GraphParams = field(default_factory=GraphParams)
     ground_pad_m: float | None = None    # None: DEFAULT_GROUND_PAD_M
@@ -370,7 +381,14 @@ class SceneSpec:
 
             layout = dataclasses.replace(layout, ground_rgb=layout.ground_rgb.copy())
             cast_shadows(layout, SHADOW_DEPTH)
-        return build_world(layout, pad_m=pad, beyond=self.beyond_edge)
+        return build_world(layout, pad_m=pad, beyond=self.beyond_edge, terrain=self.ground_terrain)
+
+    @property
+    def ground_terrain(self):
+        """The :class:`~satloc_env.world.terrain.Terrain` of ``terrain`` and the scene's seed."""
+        from .terrain import Terrain
+
+        return Terrain(self.terrain.relief_m, self.terrain.wavelength_m, int(self.seed))
 
     @property
     def route_names(self) -> list[str]:
@@ -415,6 +433,10 @@ def check_spec(spec: SceneSpec, where: str) -> None:
          spec.ground_beyond)
     need(0 < spec.lighting.sun_elevation_deg <= 90, "lighting.sun_elevation_deg", "degrees in (0, 90]",
          spec.lighting.sun_elevation_deg)
+    try:
+        spec.ground_terrain
+    except ConfigError as e:
+        raise ConfigError(f"{where}: {e}") from None
     rgb_ok = lambda c: all(0 <= v <= 255 for v in c)  # noqa: E731
     for i, b in enumerate(spec.objects.buildings):
         f = f"objects.buildings[{i}]"
