@@ -62,6 +62,7 @@ def test_the_world_stands_on_the_terrain_and_the_camera_sees_it(tmp_path):
     s = load_scene(write(tmp_path, SMALL))
     terrain = s.world.terrain
     assert terrain == Terrain(1.5, 150.0, 3)
+    assert s.summary()["terrain"] == {"relief_m": 1.5, "wavelength_m": 150}
     ground = s.world.chunks[0]
     gpos = ground.positions[ground.faces[ground.cell_faces[-2]:].ravel()]       # the ground's own cell, the last
     assert len(np.unique(gpos[:, :2], axis=0)) > 4                              # a grid, not one quad

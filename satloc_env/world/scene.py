@@ -585,6 +585,8 @@ class Scene:
                "cars": len(self.layout.cars)}
         if self.layout.furniture:
             out["furniture"] = len(self.layout.furniture)
+        if self.spec.terrain.relief_m > 0:
+            out["terrain"] = {"relief_m": self.spec.terrain.relief_m, "wavelength_m": self.spec.terrain.wavelength_m}
         if self.satmap.radiometry is not None:
             out["radiometry"] = self.satmap.radiometry
         if self.footprints is not None:
