@@ -320,6 +320,42 @@ def test_variety_plants_hedges_shrubs_and_planters():
     assert not plain.furniture
 
 
+def test_variety_fences_and_walls_some_front_yards():
+    """Yards without a hedge get a fence (pickets on both faces) or a low garden wall (a coping on top) for
+    some: 2 m segments of one seed along the sidewalk, in the yard, class obstacle; the hedges stay as they
+    were (the fences draw from the yard's own seed)."""
+    from satloc_env.world.furniture import furniture_parts
+
+    p = GridParams(style="residential", blocks=(3, 3), pitch_m=60, margin_m=10, variety=1.0)
+    res, _ = generate_grid(p, 4, 0.0, 0.2)
+    rows = {k: [f for f in res.furniture if f.kind == k] for k in (9, 12, 13)}
+    assert len(rows[12]) >= 4 and len(rows[13]) >= 4
+    for f in rows[12] + rows[13]:
+        parts = furniture_parts(f)
+        assert not any(q.leaves for q in parts) and parts[0].z1 <= 1.3
+        assert len(parts[0].faces) == 2                       # both faces pictured
+    assert all(len(furniture_parts(f)) == 2 for f in rows[13])   # the wall's coping
+    gh = res.ground_labels.shape[0]
+    under = [res.ground_labels[int(gh - f.center[1] / 0.2), int(f.center[0] / 0.2)] for f in rows[12] + rows[13]]
+    assert all(u == CLASS_ID["grass"] for u in under)
+    import dataclasses
+
+    import satloc_env.world.generator as gen
+
+    class NoFences(gen.CellPainter):
+        def _hedge(self, *a, kind=9, **k):
+            if kind == 9:
+                super()._hedge(*a, **k)
+
+    orig = gen.CellPainter
+    gen.CellPainter = NoFences
+    try:
+        bare, _ = generate_grid(dataclasses.replace(p), 4, 0.0, 0.2)
+    finally:
+        gen.CellPainter = orig
+    assert [f for f in bare.furniture] == [f for f in res.furniture if f.kind not in (12, 13)]
+
+
 def test_variety_paves_the_sidewalks():
     """The ground's finest detail: at variety 1 the sidewalk (slab joints, kerb stones, grain) and the grass
     (blades and tufts) vary from texel to texel several times as much as at variety 0."""

@@ -20,17 +20,20 @@ from .layout import Furniture
 from .paint import fbm, rect_poly
 from .variety import leaf_texture
 
-__all__ = ["KINDS", "HEDGE_SEGMENT_M", "Part", "furniture_parts", "footprint_radius"]
+__all__ = ["KINDS", "ROWS", "HEDGE_SEGMENT_M", "Part", "furniture_parts", "footprint_radius"]
 
 #: furniture kinds by their code in :attr:`Furniture.kind`
 KINDS = {1: "lamp post", 2: "traffic sign", 3: "litter bin", 4: "bench", 5: "bollards", 6: "hydrant",
-         7: "traffic light", 8: "bus shelter", 9: "hedge", 10: "shrub", 11: "planter"}
+         7: "traffic light", 8: "bus shelter", 9: "hedge", 10: "shrub", 11: "planter", 12: "fence", 13: "garden wall"}
 
-#: a hedge is a row of these, each a piece of furniture (metres, along its ``yaw``)
+#: a hedge (a fence, a garden wall) is a row of these, each a piece of furniture (metres, along its ``yaw``)
 HEDGE_SEGMENT_M = 2.0
 
 #: how far (metres) the kind reaches from its centre on the ground: what placement keeps clear
-_REACH = {1: 0.3, 2: 0.3, 3: 0.4, 4: 1.1, 5: 2.6, 6: 0.3, 7: 0.3, 8: 1.9, 9: 1.1, 10: 0.8, 11: 0.7}
+_REACH = {1: 0.3, 2: 0.3, 3: 0.4, 4: 1.1, 5: 2.6, 6: 0.3, 7: 0.3, 8: 1.9, 9: 1.1, 10: 0.8, 11: 0.7, 12: 1.1,
+          13: 1.1}
+#: kinds whose pieces make rows metres long (a hedge, a fence, a wall): seen from afar, so drawn at any distance
+ROWS = (9, 12, 13)
 
 
 def footprint_radius(kind: int) -> float:
@@ -59,8 +62,8 @@ _GREENS = ((58, 92, 40), (46, 80, 36), (72, 104, 46), (64, 86, 52), (84, 110, 56
 
 
 #: edges of a :func:`_box` (of :func:`satloc_env.world.paint.rect_poly`'s corners): its front (facing ``yaw``)
-#: and its back
-_FRONT, _BACK = 3, 1
+#: and its back, and its two sides along ``yaw`` (a row's long faces)
+_FRONT, _BACK, _SIDE, _OTHER_SIDE = 3, 1, 0, 2
 
 
 def _box(center, yaw: float, length: float, width: float, dx: float = 0.0, dy: float = 0.0) -> np.ndarray:
@@ -246,9 +249,54 @@ def furniture_parts(f: Furniture) -> list[Part]:
         parts.append(Part(_box(c, yaw + math.pi / 2, ln, wd), 0.0, h, box))
         parts.append(Part(_disc(c, min(ln, wd) * 0.45, 6), h, h + float(rng.uniform(0.4, 0.9)),
                           _jitter(rng, _pick(rng, _GREENS), 8), 0.04, leaves=True))
+    elif kind == 12:                                    # a fence's segment: pickets or railings between posts
+        paint = _pick(rng, ((235, 232, 222), (120, 84, 52), (150, 120, 86), (40, 44, 42), (70, 90, 70)))
+        h = float(rng.uniform(0.8, 1.3))
+        face = _fence_face(rng, _jitter(rng, paint, 6), max(8, int(h / 0.02)), int(HEDGE_SEGMENT_M / 0.02))
+        parts.append(Part(_box(c, yaw, HEDGE_SEGMENT_M, 0.05), 0.0, h, _jitter(rng, paint, 6), 0.02,
+                          {_SIDE: face, _OTHER_SIDE: face}))
+    elif kind == 13:                                    # a garden wall's segment: brick, stone or rendered, a coping
+        body = _jitter(rng, _pick(rng, ((150, 80, 60), (130, 120, 105), (190, 184, 170), (110, 100, 90))), 10)
+        h, d = float(rng.uniform(0.5, 1.1)), float(rng.uniform(0.22, 0.35))
+        face = _wall_face(rng, body, max(8, int(h / 0.02)), int(HEDGE_SEGMENT_M / 0.02))
+        parts.append(Part(_box(c, yaw, HEDGE_SEGMENT_M, d), 0.0, h, body, 0.02, {_SIDE: face, _OTHER_SIDE: face}))
+        parts.append(Part(_box(c, yaw, HEDGE_SEGMENT_M, d + 0.06), h, h + 0.06, _jitter(rng, (150, 148, 142), 8)))
     else:
         raise ValueError(f"furniture kind {kind}: expected one of {sorted(KINDS)}")
     return parts
+
+
+def _fence_face(rng: np.random.Generator, paint, h: int, w: int) -> np.ndarray:
+    """A fence seen from the side: pickets (or railings) of ``paint`` with the dark garden between them, a
+    rail near the top and the bottom, weathering."""
+    img = np.empty((h, w, 3), np.float32)
+    img[:] = (46, 58, 40)                                           # what shows between the pickets
+    pitch = int(rng.integers(6, 12))                                # 12-24 cm
+    width = max(2, int(pitch * rng.uniform(0.4, 0.7)))
+    for x in range(int(rng.integers(pitch)), w, pitch):
+        img[int(rng.integers(0, 3)):, x:x + width] = paint
+    for r in (0.2, 0.8):
+        img[int(r * h):int(r * h) + 3] = paint
+    img *= (1 + 0.12 * fbm(rng, h, w, (max(2, h // 3), 2), (0.6, 0.4)))[..., None]
+    return np.clip(img, 0, 255).astype(np.uint8)
+
+
+def _wall_face(rng: np.random.Generator, body, h: int, w: int) -> np.ndarray:
+    """A garden wall's face: courses of bricks or stones (joints darker, each unit its own tone), or render
+    with stains."""
+    base = np.asarray(body, np.float32)
+    img = base * (1 + 0.1 * fbm(rng, h, w, (12, 3), (0.6, 0.4)))[..., None]
+    if rng.random() < 0.7:
+        ch, cw = (int(rng.integers(3, 5)), int(rng.integers(10, 13))) if rng.random() < 0.6 else \
+            (int(rng.integers(8, 14)), int(rng.integers(12, 22)))
+        for k, r0 in enumerate(range(0, h, ch)):
+            off = (cw // 2) * (k % 2)
+            for c0 in range(-off, w, cw):
+                img[r0:r0 + ch, max(0, c0):c0 + cw] *= float(rng.uniform(0.86, 1.12))
+            img[r0:r0 + 1] *= 0.7
+            for c0 in range(-off, w, cw):
+                img[r0:r0 + ch, max(0, c0):max(0, c0) + 1] *= 0.7
+    return np.clip(img, 0, 255).astype(np.uint8)
 
 
 def part_paint(rng: np.random.Generator, part: Part, walls: list[tuple[int, float]], h: int) -> np.ndarray:

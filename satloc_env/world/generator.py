@@ -342,28 +342,35 @@ class CellPainter:
                     crosses and abs(t - c) < 1.0 + HEDGE_SEGMENT_M / 2 + 0.5)
                     and all(math.dist((x, y), q) > 1.2 for q in taken))
 
-    def _hedge(self, lo: float, hi: float, at: float, horizontal: bool, seed: int, keep) -> None:
-        """A hedge of :data:`HEDGE_SEGMENT_M` segments (one ``seed``: one look) from ``lo`` to ``hi`` (0.5 m in
-        from each end) along x at y = ``at`` (``horizontal``) or along y at x = ``at``, each segment where
-        ``keep(t, x, y)`` (its centre's coordinate along the hedge, and its centre) allows."""
+    def _hedge(self, lo: float, hi: float, at: float, horizontal: bool, seed: int, keep, kind: int = 9) -> None:
+        """A hedge (or a fence, ``kind`` 12, or a garden wall, 13) of :data:`HEDGE_SEGMENT_M` segments (one
+        ``seed``: one look) from ``lo`` to ``hi`` (0.5 m in from each end) along x at y = ``at`` (``horizontal``)
+        or along y at x = ``at``, each segment where ``keep(t, x, y)`` (its centre's coordinate along the hedge,
+        and its centre) allows."""
         half = HEDGE_SEGMENT_M / 2
         t = lo + 0.5 + half
         while t + half <= hi - 0.5:
             x, y = (t, at) if horizontal else (at, t)
             if keep(t, x, y):
-                self.furniture.append(Furniture((float(x), float(y)), 0.0 if horizontal else math.pi / 2, 9, seed))
+                self.furniture.append(Furniture((float(x), float(y)), 0.0 if horizontal else math.pi / 2, kind, seed))
             t += HEDGE_SEGMENT_M
 
     def _yards(self, i0: float, i1: float) -> None:
         """``variety``: a residential block's front yards: a hedge along the sidewalk (its segments of one seed,
-        a gap at the driveway) for some, shrubs between the hedge and the house for most (variety's draws)."""
+        a gap at the driveway) for some, a fence or a low garden wall for some of the others, shrubs between it
+        and the house for most (variety's draws; the fences' from the yard's own seed)."""
         v, amount = self.vrng, self.p.variety
+        half = HEDGE_SEGMENT_M / 2
         for xa, xb, side, dx, y_front in getattr(self, "_fronts", []):
             seed = int(v.integers(0, 2**31 - 1))
-            if v.random() < amount * 0.55:                     # not across the driveway
-                half = HEDGE_SEGMENT_M / 2
-                self._hedge(xa, xb, i0 + 0.6 if side == 0 else i1 - 0.6, True, seed,
-                            lambda t, x, y: t + half < dx - 0.5 or t - half > dx + 3.5)
+            gap = lambda t, x, y, dx=dx: t + half < dx - 0.5 or t - half > dx + 3.5  # noqa: E731  (the driveway)
+            at = i0 + 0.6 if side == 0 else i1 - 0.6
+            if v.random() < amount * 0.55:
+                self._hedge(xa, xb, at, True, seed, gap)
+            else:
+                f = np.random.default_rng([seed, 12])
+                if f.random() < amount * 0.6:
+                    self._hedge(xa, xb, at, True, seed, gap, kind=12 if f.random() < 0.6 else 13)
             lo, hi = (i0 + 2.0, y_front - 1.2) if side == 0 else (y_front + 1.2, i1 - 2.0)
             for _ in range(int(v.poisson(amount * 1.6))):
                 x = float(v.uniform(xa + 1.0, xb - 1.0))

@@ -50,7 +50,7 @@ import numpy as np
 from satloc.errors import ConfigError
 from satloc.labels import CLASS_ID
 
-from .furniture import furniture_parts, part_paint
+from .furniture import ROWS, furniture_parts, part_paint
 from .layout import Building, Car, Furniture, Layout, Obstacle, Person, Tree
 from .paint import fbm as _fbm
 from .terrain import GROUND_STEP_M, Terrain
@@ -925,7 +925,7 @@ def _add_furniture(mb: _MeshBuilder, f: Furniture, index: int) -> None:
     on a part above 2 m (the camera, 1.65 m up, never sees it)."""
     rng = _rng("furniture", index)
     # beyond LOD_M a post or a bin is a pixel or two wide: not drawn; a hedge, metres long, is drawn
-    mb.band = ALWAYS if f.kind == 9 else NEAR
+    mb.band = ALWAYS if f.kind in ROWS else NEAR
     for part in furniture_parts(f):
         top = None if part.z1 > 2.0 else (lambda h, w, part=part: _paint(rng, np.asarray(part.rgb, np.float32), h, w))
         if part.leaves:
