@@ -395,3 +395,28 @@ def test_variety_wears_the_markings():
     assert new.std() < 4 and worn.std() > 3 * new.std()      # each piece its own age
     assert worn.mean() < new.mean() - 15                      # worn towards the asphalt
     assert np.array_equal(again.ground_rgb, b.ground_rgb)
+
+
+def test_variety_paints_balconies_and_fire_escapes():
+    """Half the houses and a third of the plaster, brick and concrete blocks downtown have balconies (whole
+    columns, floor above floor), a quarter of the brick ones downtown a fire escape; drawn from generators of
+    their own, so the rest of a facade is as it was, and the ground floor is untouched."""
+    import dataclasses
+
+    from satloc_env.world.variety import facade_params, facade_texture
+
+    houses = [facade_params(s, city=False) for s in range(300)]
+    blocks = [facade_params(s, city=True) for s in range(300)]
+    assert 0.35 < np.mean([f.balcony_p > 0 for f in houses]) < 0.65
+    assert not any(f.fire_escape for f in houses)
+    brick = [f for f in blocks if f.material == "brick"]
+    assert 0.1 < np.mean([f.fire_escape for f in brick]) < 0.4
+    assert not any(f.fire_escape or f.balcony_p > 0 for f in blocks if f.material == "glass")
+    for f in [next(f for f in houses if f.balcony_p > 0.5), next(f for f in brick if f.fire_escape)]:
+        texel, h = 0.1, 140
+        with_ = facade_texture(np.random.default_rng(1), f, [16.0, 8.0], h, texel)
+        bare = facade_texture(np.random.default_rng(1), dataclasses.replace(f, balcony_p=0.0, fire_escape=False),
+                              [16.0, 8.0], h, texel)
+        changed = np.abs(with_.astype(int) - bare.astype(int)).sum(-1) > 0
+        ground = h - int((f.floor_h + 0.2) / texel)       # rows below the first floor's slab shadow
+        assert changed.mean() > 0.01 and not changed[ground:].any()

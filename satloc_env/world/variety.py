@@ -83,6 +83,9 @@ class FacadeParams:
     drainpipes: bool
     string_course: bool
     seed: int
+    balcony_p: float = 0.0               # share of the upper floors' window columns with a balcony at each floor
+    railing: int = 0                     # the balconies' railing: 0 bars, 1 a solid panel, 2 glass
+    fire_escape: bool = False            # an iron fire escape down one end of long walls
 
 
 def _colour(rng: np.random.Generator, centre, spread) -> tuple[int, int, int]:
@@ -126,7 +129,18 @@ def facade_params(seed: int, city: bool = True) -> FacadeParams:
                         [int(rng.integers(5))], 16) if shop and rng.random() < 0.5 else None),
         sign=(_colour(rng, [(30, 30, 30), (200, 40, 40), (30, 70, 140), (240, 240, 230), (40, 110, 60)]
                       [int(rng.integers(5))], 10) if shop and rng.random() < 0.85 else None),
-        drainpipes=bool(rng.random() < 0.6), string_course=bool(rng.random() < 0.5), seed=int(seed))
+        drainpipes=bool(rng.random() < 0.6), string_course=bool(rng.random() < 0.5), seed=int(seed),
+        **_extras(seed, material, city))
+
+
+def _extras(seed: int, material: str, city: bool) -> dict:
+    """Balconies and fire escapes, from a generator of their own (every other part of a facade stays as it
+    was drawn without them): balconies on half the houses and a third of the plaster, brick and concrete
+    blocks downtown; a fire escape on a quarter of the brick ones downtown."""
+    rng = np.random.default_rng([int(seed), 1730])
+    has = rng.random() < (0.5 if not city else 0.33 if material in ("plaster", "brick", "concrete") else 0.0)
+    return {"balcony_p": float(rng.uniform(0.2, 0.8)) if has else 0.0, "railing": int(rng.integers(3)),
+            "fire_escape": bool(city and material == "brick" and rng.random() < 0.25)}
 
 
 def _wall(rng: np.random.Generator, f: FacadeParams, h: int, w: int, texel: float) -> np.ndarray:
@@ -288,6 +302,8 @@ def facade_texture(rng: np.random.Generator, f: FacadeParams, segs: list[float],
         if f.drainpipes and b - a > 6:
             pw = max(1, int(0.1 / texel))
             img[:, a + 2:a + 2 + pw] = np.asarray((70, 70, 72), np.float32)
+    if f.balcony_p > 0 or f.fire_escape:
+        _balconies(img, f, segs, cuts, rows, n_floors, texel)
     if f.string_course:
         for fl in range(1, n_floors):
             r0, _ = rows(fl * f.floor_h, fl * f.floor_h)
@@ -295,6 +311,61 @@ def facade_texture(rng: np.random.Generator, f: FacadeParams, segs: list[float],
     p0, p1 = rows(wall_h - 0.4, wall_h)
     img[p0:p1] = trim * (1 + 0.05 * rng.uniform(-1, 1, (p1 - p0, w, 1)).astype(np.float32))
     return np.clip(img + 0.5, 0, 255).astype(np.uint8)
+
+
+def _balconies(img: np.ndarray, f: FacadeParams, segs, cuts, rows, n_floors: int, texel: float) -> None:
+    """Paint balconies (a slab and its shadow, a railing of bars, a panel or glass in front of the window's
+    lower part; whole columns of them, floor above floor) and fire escapes (landings at every floor joined by
+    ladders, at one end of a long wall) onto ``img`` (float, the facade strip of :func:`facade_texture`)."""
+    rng = np.random.default_rng([int(f.seed), 1731])
+    h, w = img.shape[:2]
+    trim = np.asarray(f.trim, np.float32)
+    metal = np.asarray((38, 38, 40), np.float32)
+    for k, seg in enumerate(segs):
+        a, b = int(cuts[k]), int(cuts[k + 1])
+        n_win = int(seg // f.spacing)
+        if n_win == 0:
+            continue
+        centres = a + (np.arange(n_win) + 0.5) * (b - a) / n_win
+        half = f.win_w / texel / 2 + 0.4 / texel
+        columns = [cx for cx in centres if rng.random() < f.balcony_p]
+        for fl in range(1, n_floors):
+            z = fl * f.floor_h + 0.85
+            if z + f.win_h > h * texel - 0.4:
+                break
+            s0, s1 = rows(z - 0.15, z)
+            d0, d1 = rows(z - 0.6, z - 0.15)
+            g0, g1 = rows(z, z + 1.0)
+            for cx in columns:
+                c0, c1 = max(0, int(cx - half)), min(w, int(cx + half))
+                if d1 > d0:
+                    img[d0:d1, c0:c1] *= np.linspace(1.0, 0.55, d1 - d0, dtype=np.float32)[:, None, None]
+                img[s0:s1, c0:c1] = trim * 0.9
+                if g1 - g0 < 3:
+                    continue
+                if f.railing == 0:
+                    img[g0:g0 + 1, c0:c1] = metal
+                    img[g0:g1, c0:c1:max(2, int(0.12 / texel))] = metal
+                elif f.railing == 1:
+                    img[g0:g1, c0:c1] = trim * 0.8
+                    img[g0:g0 + 1, c0:c1] = trim * 0.6
+                else:
+                    img[g0:g1, c0:c1] = img[g0:g1, c0:c1] * 0.6 + np.asarray((120, 150, 160), np.float32) * 0.4
+                    img[g0:g0 + 1, c0:c1] = metal
+        if f.fire_escape and seg > 12 and n_win >= 3:
+            c0, c1 = a + int(0.3 / texel), min(b, a + int(2 * f.spacing / texel))
+            floors = [fl * f.floor_h + 0.8 for fl in range(1, n_floors) if fl * f.floor_h + 2.0 < h * texel]
+            for i, z in enumerate(floors):
+                p0, p1 = rows(z - 0.1, z)
+                img[p0:p1 + 1, c0:c1] = metal                                   # the landing
+                r0, _ = rows(z + 1.0, z + 1.0)
+                img[r0:r0 + 1, c0:c1] = metal                                   # its railing
+                img[r0:p0, c0:c1:max(2, int(0.3 / texel))] = metal
+                if i > 0:                                                       # a ladder down to the one below
+                    q0, _ = rows(floors[i - 1], floors[i - 1])
+                    x0, x1 = (c0 + 2, c1 - 3) if i % 2 else (c1 - 3, c0 + 2)
+                    for dx in (0, max(1, int(0.35 / texel))):
+                        cv2.line(img, (x0, p1), (x1 + dx * (1 if i % 2 else -1), q0), metal.tolist(), 1)
 
 
 # --- trees -------------------------------------------------------------------------------------------------------
