@@ -420,3 +420,36 @@ def test_variety_paints_balconies_and_fire_escapes():
         changed = np.abs(with_.astype(int) - bare.astype(int)).sum(-1) > 0
         ground = h - int((f.floor_h + 0.2) / texel)       # rows below the first floor's slab shadow
         assert changed.mean() > 0.01 and not changed[ground:].any()
+
+
+def test_variety_gives_houses_pitched_roofs():
+    """Most houses at variety 1 are gabled (a ridge along the long side, in the world's mesh), none at
+    variety 0 or downtown; the roofs draw from a generator of their own, so nothing else moves."""
+    import dataclasses
+
+    import satloc_env.world.generator as gen
+    from satloc_env.world.meshes import build_world
+
+    p = GridParams(style="residential", blocks=(2, 2), pitch_m=60, margin_m=10, variety=1.0)
+    res, _ = generate_grid(p, 4, 0.0, 0.2)
+    gabled = [b.roof == "gabled" for b in res.buildings]
+    assert 0.6 < np.mean(gabled) < 0.95
+    plain, _ = generate_grid(dataclasses.replace(p, variety=0.0), 4, 0.0, 0.2)
+    city, _ = generate_grid(dataclasses.replace(p, style="city"), 4, 0.0, 0.2)
+    assert not any(b.roof == "gabled" for b in plain.buildings + city.buildings)
+    orig = gen.CellPainter._roofed
+    gen.CellPainter._roofed = lambda self, b: b
+    try:
+        flat, _ = generate_grid(p, 4, 0.0, 0.2)
+    finally:
+        gen.CellPainter._roofed = orig
+    key = lambda b: (b.footprint.tobytes(), b.height, b.facade, b.roof_rgb, b.style_seed)  # noqa: E731
+    assert [key(b) for b in res.buildings] == [key(b) for b in flat.buildings]
+    assert res.trees == flat.trees and res.furniture == flat.furniture
+    assert [(c.center, c.body, c.rgb) for c in res.cars] == [(c.center, c.body, c.rgb) for c in flat.cars]
+    # a gabled house's mesh reaches its height only along the ridge
+    b = next(b for b in res.buildings if b.roof == "gabled")
+    w = build_world(dataclasses.replace(res, buildings=[b], trees=[], cars=[], furniture=[]))
+    pos = w.chunks[0].positions[w.chunks[0].faces[:w.chunks[0].cell_faces[-2]].ravel()]
+    top = pos[np.isclose(pos[:, 2], b.height, atol=1e-3)]
+    assert len(top) >= 2 and np.ptp(top[:, :2], axis=0).min() < 1e-3     # a line: the ridge
