@@ -190,8 +190,10 @@ def _short_repr(v: Any, n: int = 60) -> str:
     return r if len(r) <= n else r[:n - 3] + "..."
 
 
-def save_npz(path: str | os.PathLike, fmt: str, arrays: Mapping[str, np.ndarray], meta: Mapping | None = None) -> None:
-    """Write arrays plus a JSON header (key ``__meta__``) to a compressed npz, atomically."""
+def save_npz(path: str | os.PathLike, fmt: str, arrays: Mapping[str, np.ndarray], meta: Mapping | None = None,
+             compress: bool = True) -> None:
+    """Write arrays plus a JSON header (key ``__meta__``) to an npz, atomically: compressed, or with
+    ``compress`` False stored as they are (for arrays that barely compress and are read often: no inflating)."""
     m = dict(header(fmt))
     if meta:
         m.update(meta)
@@ -199,7 +201,7 @@ def save_npz(path: str | os.PathLike, fmt: str, arrays: Mapping[str, np.ndarray]
     payload["__meta__"] = np.frombuffer(json.dumps(m).encode(), dtype=np.uint8)
     with atomic_path(path, suffix=".npz") as tmp:
         with open(tmp, "wb") as f:
-            np.savez_compressed(f, **payload)
+            (np.savez_compressed if compress else np.savez)(f, **payload)
 
 
 def load_npz(path: str | os.PathLike, fmt: str, spec: Mapping[str, "ArraySpec"] | None = None,

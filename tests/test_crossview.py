@@ -235,7 +235,11 @@ def test_env_localizer_cross(tmp_path, monkeypatch):
     assert np.array_equal(runs[0], runs[1])
     # measured: about 0.4 m on every step
     assert max(errs) < 1.5, errs
-    assert list((tmp_path / "cache" / "cross").glob("satellite_features-*.npz"))   # the map's features, cached
+    (cached,) = (tmp_path / "cache" / "cross").glob("satellite_features-*.npz")   # the map's features, cached
+    import zipfile
+
+    with zipfile.ZipFile(cached) as z:     # stored as they are (float16 barely compresses): no inflating to read
+        assert all(i.compress_type == zipfile.ZIP_STORED for i in z.infolist())
     # the priors' generator takes nothing from the episode's other draws: the revisit change and the drift of a
     # second, unseeded episode are those of the same env with no localizer
     plain = gym.make("satloc/SatLoc-v0", localizer=None, change=0.5, max_steps=20)

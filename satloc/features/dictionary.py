@@ -105,9 +105,11 @@ class SatelliteFeatures:
         ctx = satellite_context(self.features, flat // w, flat % w, self.meters_per_pixel, context, span)
         return np.concatenate([base, ctx], axis=1)
 
-    def save(self, path: str | Path) -> None:
+    def save(self, path: str | Path, compress: bool = True) -> None:
+        """In an npz (:func:`satloc.persist.save_npz`; ``compress`` False: stored as they are)."""
         save_npz(path, "satellite_features", {"features": self.features},
-                 {"meters_per_pixel": self.meters_per_pixel, "origin": list(self.origin), "name": self.name})
+                 {"meters_per_pixel": self.meters_per_pixel, "origin": list(self.origin), "name": self.name},
+                 compress=compress)
 
     @staticmethod
     def load(path: str | Path) -> "SatelliteFeatures":
