@@ -345,16 +345,15 @@ class StereoSlot:
         return self.batch.render_many([(self, pose, tilt)], depth, labels)[0]
 
     def _map_from_camera(self, pose: Pose2, side: str, tilt: tuple[float, float] | None) -> np.ndarray:
+        body = pose.matrix3d()
         terrain = self.world.terrain
         if not terrain.flat:   # the car stands on the ground under its wheels, its own tilt on top
             z, pitch, roll = terrain.tilt(pose.x, pose.y, pose.yaw)
-            body = pose.matrix3d()
             body[2, 3] += z
             tilt = (pitch, roll) if tilt is None else (pitch + tilt[0], roll + tilt[1])
-            return body @ body_tilt(*tilt) @ self.camera.vehicle_from_camera(side)
-        if tilt is None:
-            return self.camera.map_from_camera(pose, side)
-        return pose.matrix3d() @ body_tilt(*tilt) @ self.camera.vehicle_from_camera(side)
+        if tilt is not None:
+            body = body @ body_tilt(*tilt)
+        return body @ self.camera.vehicle_from_camera(side)
 
     def _place(self, pose: Pose2, tilt: tuple[float, float] | None = None) -> None:
         """Put the cameras at ``pose`` (the body tilted by ``tilt``) and find the chunks whose footprint comes

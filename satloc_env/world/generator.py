@@ -99,6 +99,7 @@ class CellPainter:
         self.p, self.mpp = p, mpp
         self.rng = np.random.default_rng(seed)
         self.vrng = np.random.default_rng([seed, 4242])   # variety's own draws: the layout's stay as they were
+        self.roof_rng = np.random.default_rng([seed, 4245])   # houses' roof forms (variety), a generator of their own
         self.seed = seed
         self.n = int(round(p.pitch_m / mpp))
         self.labels = np.full((self.n, self.n), C["sidewalk"], np.uint8)
@@ -240,11 +241,8 @@ class CellPainter:
     def _roofed(self, b: Building) -> Building:
         """``variety``: a house with a roof of its own form: gabled (a ridge along its long side) for 80 % of a
         share ``variety`` of them (a generator of its own: every other draw stays as it was)."""
-        if self.p.variety > 0:
-            if not hasattr(self, "_roof_rng"):
-                self._roof_rng = np.random.default_rng([self.seed, 4245])
-            if self._roof_rng.random() < 0.8 * self.p.variety:
-                b.roof = "gabled"
+        if self.p.variety > 0 and self.roof_rng.random() < 0.8 * self.p.variety:
+            b.roof = "gabled"
         return b
 
     def _car(self, x, y, yaw, own: bool = False) -> Car:

@@ -226,32 +226,34 @@ def build_world(layout: Layout, chunk_m: float = 204.8, pad_m: float = 0.0, beyo
     def cell_of(x: float, y: float) -> tuple[int, int]:   # the square of CELL_M a centre stands on
         return int(math.floor(x / CELL_M)), int(math.floor(y / CELL_M))
 
-    members: list[list[tuple[tuple[int, int], Callable[[_MeshBuilder], None]]]] = [[] for _ in range(nx * ny)]
+    # per chunk: (square, add, level): a building stands level on a terrain, anything else follows it
+    members: list[list[tuple[tuple[int, int], Callable[[_MeshBuilder], None], bool]]] = [[] for _ in range(nx * ny)]
     look = lambda k, o: k if o.look is None else int(o.look)  # noqa: E731  (layout's note on looks)
     for k, b in enumerate(layout.buildings):
         c = np.asarray(b.footprint, dtype=np.float64).mean(axis=0)
-        members[chunk_of(*c)].append((cell_of(*c),
-                                      lambda mb, b=b, k=look(k, b): _level(mb, _add_building, b, k, layout)))
+        members[chunk_of(*c)].append((cell_of(*c), lambda mb, b=b, k=look(k, b): _add_building(mb, b, k, layout),
+                                      True))
     for k, t in enumerate(layout.trees):
-        members[chunk_of(*t.center)].append((cell_of(*t.center), lambda mb, t=t, k=look(k, t): _add_tree(mb, t, k)))
+        members[chunk_of(*t.center)].append((cell_of(*t.center), lambda mb, t=t, k=look(k, t): _add_tree(mb, t, k),
+                                             False))
     for k, c in enumerate(layout.cars):
         members[chunk_of(*c.center)].append((cell_of(*c.center),
-                                             lambda mb, c=c, k=look(k, c): _add_car(mb, c, ("parked", k))))
+                                             lambda mb, c=c, k=look(k, c): _add_car(mb, c, ("parked", k)), False))
     for k, f in enumerate(layout.furniture):
         members[chunk_of(*f.center)].append((cell_of(*f.center),
-                                             lambda mb, f=f, k=look(k, f): _add_furniture(mb, f, k)))
+                                             lambda mb, f=f, k=look(k, f): _add_furniture(mb, f, k), False))
 
     chunks, extents = [], []
     for j in range(ny):
         for i in range(nx):
             ground = _ground_region(layout, i * cpx, j * cpx, cpx, terrain)
             mb = _MeshBuilder(sun, atlas_width=ground.texture.shape[1])
-            for square, add in members[j * nx + i]:
-                mb.square, mb.standing = square, "follow"
+            for square, add, level in members[j * nx + i]:
+                mb.square = square
                 first = len(mb._pos)
                 add(mb)
                 if not terrain.flat:
-                    _stand_on(mb, first, terrain)
+                    _stand_on(mb, first, terrain, level)
             chunks.append(_in_cells(mb.build(ground), mb.cell_keys()))
             extents.append(ground.extent)
     if pad_m > 0 and beyond == "neutral":
@@ -261,22 +263,16 @@ def build_world(layout: Layout, chunk_m: float = 204.8, pad_m: float = 0.0, beyo
     return World(float(layout.width_m), float(layout.height_m), cpx * mpp, chunks, sun, terrain=terrain)
 
 
-def _level(mb: "_MeshBuilder", add: Callable, *args) -> None:
-    """``add(mb, *args)``, marked to stand level on the terrain (:func:`_stand_on`)."""
-    add(mb, *args)
-    mb.standing = "level"
-
-
-def _stand_on(mb: "_MeshBuilder", first: int, terrain: Terrain) -> None:
-    """Lift what ``mb`` added from its ``first`` vertex block on onto ``terrain``: a building (its walls end
-    in vertices at z 0 on its footprint) level, on the lowest ground under its footprint; anything else vertex
-    by vertex by the ground under it."""
+def _stand_on(mb: "_MeshBuilder", first: int, terrain: Terrain, level: bool = False) -> None:
+    """Lift what ``mb`` added from its ``first`` vertex block on onto ``terrain``: with ``level`` (a building,
+    its walls ending in vertices at z 0 on its footprint) level, on the lowest ground under its footprint;
+    else vertex by vertex by the ground under it."""
     blocks = mb._pos[first:]
     if not blocks:
         return
     p = np.concatenate(blocks)
     h = terrain.height(p[:, 0], p[:, 1])
-    if mb.standing == "level":
+    if level:
         base = np.abs(p[:, 2]) < 1e-9
         h = np.full(len(p), float(h[base].min() if base.any() else h.min()))
     at = 0
@@ -518,8 +514,6 @@ class _MeshBuilder:
         #: triangles added next
         self.square: tuple[int, int] = (0, 0)
         self.band = ALWAYS
-        #: how the object added last stands on a terrain: "follow" (vertex by vertex) or "level" (buildings)
-        self.standing = "follow"
         self._keys: list[np.ndarray] = []   # per call that added triangles: (square column, row, band) per face
 
     def add_patch(self, rgb: np.ndarray, label: int) -> int:

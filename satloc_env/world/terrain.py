@@ -2,9 +2,8 @@
 
 A :class:`Terrain` is a smooth height field ``h(x, y)`` (metres, map frame) drawn from a seed: a sum of a few
 long plane waves in random directions, of wavelengths around ``wavelength_m`` and with heights whose standard
-deviation over the map is ``relief_m``. Its slopes are those of real streets on rolling ground: the grade's
-standard deviation is about ``relief_m * 2 pi / wavelength_m / sqrt(2)`` (1.5 m over 250 m: 2.7 %, with the
-steepest stretches near 6 %).
+deviation over the map is ``relief_m``. Its slopes are those of real streets on rolling ground: at 1.5 m over
+250 m (seed 7, a 360 m square) the grade has a standard deviation of 1.6 %, 6.7 % at the 95th percentile.
 
 What stands on it (:func:`satloc_env.world.meshes.build_world`): the ground is a grid of :data:`GROUND_STEP_M`
 squares whose corners lie on ``h``; trees, parked cars, street furniture and an episode's moving objects follow
