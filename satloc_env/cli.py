@@ -298,13 +298,25 @@ def _detail_m(text: str) -> float | None:
     return v
 
 
+def _unit(text: str) -> float:
+    """A number from 0 to 1 (``--sensor``, ``--attitude``)."""
+    try:
+        v = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a number from 0 to 1, got {text!r}") from None
+    if not 0.0 <= v <= 1.0:
+        raise argparse.ArgumentTypeError(f"expected a number from 0 to 1, got {text!r}")
+    return v
+
+
 def cmd_bench(args) -> int:
     if args.what == "env":
         from satloc_env.experiments.bench import bench_env
 
         for n in args.num_envs:
             print(json.dumps(bench_env(args.resolution, args.steps, args.scene or "city", num_envs=n,
-                                       detail_m=args.detail_m)), flush=True)
+                                       detail_m=args.detail_m, sensor=args.sensor, attitude=args.attitude)),
+                  flush=True)
     elif args.what == "startup":
         from satloc_env.experiments.bench import bench_startup
 
@@ -676,6 +688,10 @@ def build_parser() -> argparse.ArgumentParser:
     b.add_argument("--detail-m", type=_detail_m, default=LOD_M, metavar="M|none",
                    help=f"env: metres within which objects keep their full detail (default {LOD_M:g}; none: "
                         "everywhere; the environment's detail_m)")
+    b.add_argument("--sensor", type=_unit, default=None, metavar="S",
+                   help="env: the camera's noise, vignetting and motion blur, 0 to 1 (default: the environment's)")
+    b.add_argument("--attitude", type=_unit, default=None, metavar="A",
+                   help="env: the body's pitch and roll, 0 to 1 (default: the environment's)")
     b.add_argument("--ways", type=int, nargs="+", default=[1000, 10000],
                    help="osm: sizes of the synthetic OpenStreetMap extracts loaded (ways)")
     b.add_argument("--sizes-km", type=float, nargs="+", default=[0.25, 1.0, 4.0], help="localize: database sizes")

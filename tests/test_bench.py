@@ -2,6 +2,7 @@
 import json
 
 import numpy as np
+import pytest
 
 from satloc.device import resolve_device
 from satloc_env.cli import main
@@ -25,6 +26,16 @@ def test_bench_env_prints_steps_per_second(capsys):
     r = json.loads(capsys.readouterr().out)
     assert r["steps"] == 10 and r["steps_per_s"] > 0 and r["width"] == 620
     assert r["gl_renderer"] and r["gl_version"]       # which driver rendered (llvmpipe here, a GPU's elsewhere)
+    assert r["cpu_ms_per_step"] > 0 and r["sensor"] is None and r["attitude"] is None
+
+
+def test_bench_env_takes_the_camera_knobs_and_refuses_bad_ones(capsys):
+    assert main(["bench", "env", "--steps", "4", "--sensor", "1", "--attitude", "0.5"]) == 0
+    r = json.loads(capsys.readouterr().out)
+    assert r["sensor"] == 1.0 and r["attitude"] == 0.5 and r["steps"] == 4
+    with pytest.raises(SystemExit):
+        main(["bench", "env", "--steps", "4", "--sensor", "2"])
+    assert "--sensor" in capsys.readouterr().err
 
 
 def test_bench_localize_reuses_only_a_recording_that_covers_the_longest_size(tmp_path):

@@ -8,7 +8,7 @@ import yaml
 
 from satloc.errors import FormatError
 from satloc.geometry import StereoCamera
-from satloc_env.world.meshes import ALWAYS, FAR, INSIDE, LOD_M, NEAR, load_world, save_world
+from satloc_env.world.meshes import ALWAYS, FAR, GROUND, INSIDE, LOD_M, NEAR, load_world, save_world
 from satloc_env.world.scene import load_scene
 
 SMALL = {
@@ -19,8 +19,10 @@ SMALL = {
 }
 
 
-def _scene(tmp_path, variety: float = 1.0, name: str = "s.yaml"):
+def _scene(tmp_path, variety: float = 1.0, name: str = "s.yaml", terrain: dict | None = None):
     d = {**SMALL, "generator": {**SMALL["generator"], "variety": variety}}
+    if terrain:
+        d["terrain"] = terrain
     p = tmp_path / name
     p.write_text(yaml.safe_dump(d))
     return load_scene(p)
@@ -71,13 +73,20 @@ def _drive(world, route, poses: int = 10):
         r.close()
 
 
-def test_culling_cells_changes_no_pixel_on_a_mirrored_world(tmp_path, monkeypatch):
+@pytest.mark.parametrize("terrain", [None, {"relief_m": 1.5, "wavelength_m": 150}], ids=["flat", "hills"])
+def test_culling_cells_changes_no_pixel_on_a_mirrored_world(tmp_path, monkeypatch, terrain):
     """Cells outside a camera's view volume or reach are skipped; the images (colour, depth, labels) are the same
-    as when every cell of every chunk in view is drawn, beyond the layout's edge as within it."""
+    as when every cell of every chunk in view is drawn, beyond the layout's edge as within it, and over hills,
+    whose ground grid is cut into cells of its own (band GROUND) that are skipped likewise."""
     import satloc_env.render.stereo as render
 
-    s = _scene(tmp_path)
+    s = _scene(tmp_path, terrain=terrain)
     route = s.routes["main"]
+    if terrain:
+        for c in s.world.chunks:
+            ground = np.flatnonzero(c.cell_bands == GROUND)
+            assert len(ground) > 1 and ground[-1] == len(c.cell_bands) - 1     # several, after the objects
+            assert (np.diff(ground) == 1).all()
     culled = _drive(s.world, route)
     monkeypatch.setattr(render, "_box_in_view", lambda boxes, *a, **k: np.ones(len(boxes), bool))
     near = render._near

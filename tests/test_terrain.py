@@ -8,7 +8,7 @@ import yaml
 from satloc import ConfigError
 from satloc.geometry import StereoCamera
 from satloc.labels import CLASS_ID
-from satloc_env.world.meshes import load_world, save_world
+from satloc_env.world.meshes import GROUND, load_world, save_world
 from satloc_env.world.scene import load_scene
 from satloc_env.world.terrain import TRACK_M, WHEELBASE_M, Terrain
 
@@ -58,13 +58,18 @@ def test_a_car_on_a_slope_pitches_and_rolls_with_it():
     assert WHEELBASE_M > TRACK_M > 1.0
 
 
+def _ground_start(chunk) -> int:
+    """The first face of a chunk's ground: its cells of band GROUND, after the objects'."""
+    return int(chunk.cell_faces[np.flatnonzero(chunk.cell_bands == GROUND)[0]])
+
+
 def test_the_world_stands_on_the_terrain_and_the_camera_sees_it(tmp_path):
     s = load_scene(write(tmp_path, SMALL))
     terrain = s.world.terrain
     assert terrain == Terrain(1.5, 150.0, 3)
     assert s.summary()["terrain"] == {"relief_m": 1.5, "wavelength_m": 150}
     ground = s.world.chunks[0]
-    gpos = ground.positions[ground.faces[ground.cell_faces[-2]:].ravel()]       # the ground's own cell, the last
+    gpos = ground.positions[ground.faces[_ground_start(ground):].ravel()]       # the ground's cells, the last
     assert len(np.unique(gpos[:, :2], axis=0)) > 4                              # a grid, not one quad
     assert np.allclose(gpos[:, 2], terrain.height(gpos[:, 0], gpos[:, 1]), atol=1e-4)
     assert np.ptp(gpos[:, 2]) > 1.0
@@ -76,7 +81,7 @@ def test_the_world_stands_on_the_terrain_and_the_camera_sees_it(tmp_path):
     b = s.layout.buildings[0]
     t = s.layout.trees[0]
     one = build_world(dataclasses.replace(s.layout, buildings=[b], trees=[], cars=[], furniture=[]), terrain=terrain)
-    objects = lambda c: c.positions[c.faces[:c.cell_faces[-2]].ravel()]  # noqa: E731
+    objects = lambda c: c.positions[c.faces[:_ground_start(c)].ravel()]  # noqa: E731
     p = objects(one.chunks[0])
     under = terrain.height(p[:, 0], p[:, 1])
     base = p[:, 2] <= p[:, 2].min() + 1e-4

@@ -21,7 +21,8 @@ def _rss_mb() -> float:
 
 
 def bench_env(resolution: str = "half", steps: int = 2000, scene: str = "city", warmup: int = 20,
-              num_envs: int = 1, detail_m: float | None = LOD_M) -> dict:
+              num_envs: int = 1, detail_m: float | None = LOD_M, sensor: float | None = None,
+              attitude: float | None = None) -> dict:
     """Stereo colour + depth steps per second driven by the autopilot, memory over the run, and which GL driver
     rendered (``gl_renderer``: e.g. llvmpipe for Mesa's software rasterizer, the GPU's name on a vendor's
     driver). ``num_envs`` > 1: the batched vector environment (:class:`satloc_env.envs.vector.SatLocVectorEnv`) with
@@ -29,10 +30,13 @@ def bench_env(resolution: str = "half", steps: int = 2000, scene: str = "city", 
     rounded up to a multiple of ``num_envs``). ``peak_rss_mb``: the largest resident size sampled during this
     run (after the warm-up steps, every 16 step calls and at the end), not the process's lifetime peak, so that
     runs of several ``num_envs`` in one process each report their own. ``detail_m``: the environment's setting
-    (the distance within which objects keep their full detail; None: everywhere)."""
+    (the distance within which objects keep their full detail; None: everywhere); ``sensor``, ``attitude``: the
+    environment's camera noise and body motion (None: its defaults). ``cpu_ms_per_step``: the process's CPU time
+    (all its threads, the rasterizer's included) per step, steadier than the wall clock on a shared machine."""
     if num_envs < 1:
         raise ConfigError(f"num_envs: expected an integer >= 1, got {num_envs}")
     kw = dict(scene=scene, resolution=resolution, depth=True, localizer=None, detail_m=detail_m)   # rendering only
+    kw.update({k: v for k, v in (("sensor", sensor), ("attitude", attitude)) if v is not None})
     if num_envs == 1:
         env = SatLocEnv(**kw)
         reset = env.reset
@@ -61,7 +65,7 @@ def bench_env(resolution: str = "half", steps: int = 2000, scene: str = "city", 
         rss_start = _rss_mb()
         peak = rss_start
         episodes = num_envs
-        t0 = time.perf_counter()
+        t0, c0 = time.perf_counter(), time.process_time()
         for i in range(calls):
             term, trunc = step()
             if i % 16 == 15:
@@ -69,7 +73,7 @@ def bench_env(resolution: str = "half", steps: int = 2000, scene: str = "city", 
             if num_envs == 1 and (term or trunc):
                 env.reset(seed=episodes)
             episodes += int(np.count_nonzero(np.logical_or(term, trunc)))
-        dt = time.perf_counter() - t0
+        dt, cpu = time.perf_counter() - t0, time.process_time() - c0
         rss_end = _rss_mb()
         peak = max(peak, rss_end)
         gl = renderer().gl_info
@@ -81,7 +85,8 @@ def bench_env(resolution: str = "half", steps: int = 2000, scene: str = "city", 
         "bench": "env", "resolution": resolution, "width": cam.width, "height": cam.height, "scene": scene,
         "num_envs": num_envs, "detail_m": detail_m, "gl_renderer": gl["renderer"], "gl_version": gl["version"],
         "steps": total, "episodes": episodes, "steps_per_s": round(total / dt, 1),
-        "ms_per_step": round(1000 * dt / total, 2), "rss_start_mb": round(rss_start, 1),
+        "ms_per_step": round(1000 * dt / total, 2), "cpu_ms_per_step": round(1000 * cpu / total, 2),
+        "sensor": kw.get("sensor"), "attitude": kw.get("attitude"), "rss_start_mb": round(rss_start, 1),
         "rss_end_mb": round(rss_end, 1), "peak_rss_mb": round(peak, 1),
     }
 

@@ -55,6 +55,7 @@ import atexit
 import ctypes
 import importlib
 import importlib.util
+import itertools
 import os
 import sys
 import weakref
@@ -231,6 +232,9 @@ class _MultiViewRenderer(pyrender.Renderer):
         self._uniform_locs: dict = {}
 
     def _update_context(self, scene, flags):
+        meshes = scene.meshes
+        if meshes == self._meshes and not scene.lights:
+            return   # the same meshes (materials are never changed in place here) and no lights: nothing to add
         super()._update_context(scene, flags)
         new = self._mesh_textures - self._filtered
         if new:
@@ -342,8 +346,7 @@ class _MultiViewRenderer(pyrender.Renderer):
         GL.glBindVertexArray(0)
         GL.glUseProgram(0)
         if depth == "first":
-            starts = np.cumsum([0] + [len(g.cameras) for g in groups[:-1]])
-            want = [int(i) for i in starts]
+            want = list(itertools.accumulate((len(g.cameras) for g in groups[:-1]), initial=0))
         else:
             want = list(range(len(cameras) if depth is True else min(int(depth), len(cameras))))
         return self._read_views(cameras, rows, len(groups), bands, color, want)

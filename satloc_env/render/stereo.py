@@ -19,7 +19,7 @@ import numpy as np
 from satloc.errors import ConfigError
 from satloc.geometry import Pose2, StereoCamera
 from satloc_env.world.layout import Car, Obstacle, Person
-from satloc_env.world.meshes import FAR, INSIDE, LOD_M, NEAR, TexturedMesh, World, build_occluders
+from satloc_env.world.meshes import FAR, GROUND, INSIDE, LOD_M, NEAR, TexturedMesh, World, build_occluders
 
 __all__ = ["BatchStereoRenderer", "StereoRenderer", "StereoSlot"]
 
@@ -208,7 +208,10 @@ class _Cells(NamedTuple):
                 continue   # one cell: the chunk drawn whole
             f = np.asarray(c.cell_faces, np.int64)
             k = len(f) - 1
-            parts.append((np.full(k, i), f[:-1], np.diff(f), np.arange(k) == k - 1,
+            bands = np.asarray(c.cell_bands, np.int8)
+            # the ground: a terrain's cells (band GROUND), else the chunk's last cell
+            ground = bands == GROUND if (bands == GROUND).any() else np.arange(k) == k - 1
+            parts.append((np.full(k, i), f[:-1], np.diff(f), ground,
                           np.asarray(c.cell_bounds, np.float64), np.asarray(c.cell_squares, np.float64),
                           np.asarray(c.cell_bands, np.int8), np.full(k, c.mirror)))
         if not parts:
@@ -226,7 +229,7 @@ class _Cells(NamedTuple):
         and meets the view volume (a cell that does neither puts no fragment in the image) and its band suits
         its square's distance to the vehicle (within ``detail_m``: NEAR, not FAR; INSIDE everywhere but in the
         reflections beyond the layout's edge); nearest box first (the depth test then rejects what it hides
-        before it is shaded), the ground last."""
+        before it is shaded), the ground last (a flat chunk's whole, a terrain's cells that meet the view)."""
         idx = np.flatnonzero(drawn[self.chunk])
         if not len(idx):
             return ({}, {})
@@ -235,10 +238,10 @@ class _Cells(NamedTuple):
         band = self.bands[idx]
         detail = np.select([band == NEAR, band == FAR, band == INSIDE], [lod, ~lod, lod | ~self.mirror[idx]], True)
         ok = _near(self.rects[idx], pose, reach) & detail
+        whole = self.ground[idx] & (band != GROUND)   # a flat chunk's ground: drawn with its chunk
         out = []
         for side, m in enumerate(views):
-            keep = in_view[side][self.chunk[idx]] & (self.ground[idx] | (
-                ok & _box_in_view(b, m, camera, znear)))
+            keep = in_view[side][self.chunk[idx]] & (whole | (ok & _box_in_view(b, m, camera, znear)))
             k = idx[keep]
             eye = m[:3, 3]
             gap = np.linalg.norm(np.clip(eye, self.boxes[k, 0], self.boxes[k, 1]) - eye, axis=1)
@@ -359,12 +362,12 @@ class StereoSlot:
         """Put the cameras at ``pose`` (the body tilted by ``tilt``) and find the chunks whose footprint comes
         within reach of them."""
         scene = self.batch._scene
-        for side, node in zip(_SIDES, self._cameras):
-            scene.set_pose(node, self._map_from_camera(pose, side, tilt) @ _CV_TO_GL)
+        views = [self._map_from_camera(pose, side, tilt) for side in _SIDES]
+        for view, node in zip(views, self._cameras):
+            scene.set_pose(node, view @ _CV_TO_GL)
         entry = self.batch._world_nodes(self.world)
         reach, znear = self.batch.reach, self.batch.znear
         self._visible = _near(entry.rects, pose, reach)
-        views = [self._map_from_camera(pose, side, tilt) for side in _SIDES]
         self._in_view = tuple(self._visible & _box_in_view(entry.boxes, m, self.camera, znear) for m in views)
         self._runs = entry.cells.runs(self._in_view[0] | self._in_view[1], self._in_view, views, pose, reach,
                                       self.camera, znear, self.batch.detail_m)

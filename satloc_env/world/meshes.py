@@ -181,7 +181,7 @@ def _checked_cells(offsets, bounds, squares, bands, faces: int) -> tuple[np.ndar
     k = len(offsets) - 1
     if (offsets.ndim != 1 or k < 1 or bounds.shape != (k, 2, 3) or squares.shape != (k, 4) or bands.shape != (k,)
             or offsets[0] != 0 or offsets[-1] != faces or (np.diff(offsets) < 0).any()
-            or not np.isin(bands, (ALWAYS, NEAR, FAR, INSIDE)).all()):
+            or not np.isin(bands, (ALWAYS, NEAR, FAR, INSIDE, GROUND)).all()):
         raise ValueError("cell_faces, cell_bounds, cell_squares and cell_bands do not partition the chunk's faces")
     return offsets.astype(np.int64), bounds.astype(np.float32), squares.astype(np.float32), bands.astype(np.int8)
 
@@ -292,6 +292,13 @@ CELL_M = 25.6
 #: same for both cameras of the pair, so the two views always show the same geometry), and at any distance in
 #: the layout itself but only within LOD_M in its reflections beyond its edge (the parked cars of the backdrop).
 ALWAYS, NEAR, FAR, INSIDE = 0, 1, 2, 3
+#: the band of the cells a terrain's ground grid is cut into (squares of :data:`GROUND_CELL_M`): drawn at any
+#: distance where they meet the view, after the objects of their chunk (a flat chunk's ground, two triangles,
+#: is one cell of band ALWAYS, the chunk's last, drawn whenever the chunk is)
+GROUND = 4
+#: side (metres) of the squares a terrain's ground grid is cut into: 4 x 4 squares of GROUND_STEP_M, 32
+#: triangles a draw range (the grid's squares one by one cost more in draw ranges than culling them saved)
+GROUND_CELL_M = 4 * GROUND_STEP_M
 #: metres from the vehicle to a square of :data:`CELL_M` beyond which its objects' NEAR triangles give way to
 #: their FAR ones: street furniture is left out and species trees are drawn coarse (at 60 m a 12 cm post is
 #: 0.7 px wide in a 620-pixel KITTI frame, a 3 m crown 18 px); the renderer's default ``detail_m``
@@ -301,14 +308,26 @@ LOD_M = 60.0
 def _in_cells(mesh: TexturedMesh, keys: np.ndarray) -> TexturedMesh:
     """``mesh`` (objects' faces in the order added, then the ground's) with its faces grouped by cell, a cell
     being the faces of one band of the objects standing on one square (``keys``: per object face, the square's
-    column and row and the band): a stable sort by key, the ground's faces last as a cell of their own (a
-    terrain's ground grid too: split into cells, its draw ranges cost more than culling them saves)."""
+    column and row and the band): a stable sort by key, the ground's faces last: a flat ground's two triangles
+    a cell of their own, a terrain's ground grid cut into squares of :data:`GROUND_CELL_M` (band
+    :data:`GROUND`), so that a view draws only the squares it sees."""
     n_obj = len(keys)
     order = np.lexsort(keys.T[::-1]) if n_obj else np.zeros(0, np.int64)
-    faces = np.concatenate([mesh.faces[:n_obj][order], mesh.faces[n_obj:]])
+    ground = mesh.faces[n_obj:]
+    gcells = np.zeros(len(ground), np.int64)
+    if len(ground) > 2:   # a terrain's grid: its faces by the square of GROUND_CELL_M their centre lies on
+        c = mesh.positions[ground].mean(axis=1)
+        sq = np.floor(c[:, :2] / GROUND_CELL_M).astype(np.int64)
+        sq -= sq.min(axis=0)
+        gcells = sq[:, 1] * (int(sq[:, 0].max()) + 1) + sq[:, 0]
+        g_order = np.argsort(gcells, kind="stable")
+        ground, gcells = ground[g_order], gcells[g_order]
+    faces = np.concatenate([mesh.faces[:n_obj][order], ground])
     ks = keys[order]
     starts = np.flatnonzero(np.r_[True, (ks[1:] != ks[:-1]).any(axis=1)]) if n_obj else np.zeros(0, np.int64)
-    offsets = np.r_[starts, n_obj, len(faces)].astype(np.int64)
+    g_starts = n_obj + np.flatnonzero(np.r_[True, gcells[1:] != gcells[:-1]]) if len(ground) else np.r_[n_obj]
+    offsets = np.r_[starts, g_starts, len(faces)].astype(np.int64)
+    split = len(g_starts) > 1
     bounds, squares, bands = [], [], []
     for a, b in zip(offsets[:-1], offsets[1:]):
         p = mesh.positions[faces[a:b].ravel()]
@@ -317,9 +336,9 @@ def _in_cells(mesh: TexturedMesh, keys: np.ndarray) -> TexturedMesh:
             (qx, qy, band) = ks[a]
             squares.append([qx * CELL_M, qy * CELL_M, (qx + 1) * CELL_M, (qy + 1) * CELL_M])
             bands.append(band)
-        else:   # the ground
+        else:   # the ground (a cell of it, on a terrain)
             squares.append([p[:, 0].min(), p[:, 1].min(), p[:, 0].max(), p[:, 1].max()])
-            bands.append(ALWAYS)
+            bands.append(GROUND if split else ALWAYS)
     # Vertices renumbered in the order the faces first use them: each cell's vertices one block (a driver
     # that shades an indexed draw's whole index range then shades only the cell's own)
     used, first = np.unique(faces.ravel(), return_index=True)
@@ -875,14 +894,14 @@ def _add_tree(mb: _MeshBuilder, t: Tree, index: int) -> None:
     crown = mb.add_patch(leaves, CLASS_ID["tree"])
     _add_loft(mb, rings, crown)
     if species is not None:
-        # Beyond LOD_M: the same textures on a square trunk and a five-sided crown through the profile's base,
-        # widest ring and top two rings (30 + 8 triangles against 80 + 12).
+        # Beyond LOD_M (where a crown is a few tens of pixels wide): the same textures on a three-sided trunk and a
+        # four-sided crown through the profile's base, widest ring and top two rings
         mb.band = FAR
-        _add_loft(mb, [_ring(t.center, 0.0, trunk_r, 4, phase), _ring(t.center, zb + 0.3 * hc, trunk_r, 4, phase)],
+        _add_loft(mb, [_ring(t.center, 0.0, trunk_r, 3, phase), _ring(t.center, zb + 0.3 * hc, trunk_r, 3, phase)],
                   bark)
         widest = max(range(len(profile)), key=lambda i: profile[i][1])
         keep = sorted({0, widest, len(profile) - 2, len(profile) - 1})
-        _add_loft(mb, [_ring(t.center, zb + profile[i][0] * hc, r * profile[i][1], 5, phase) for i in keep], crown)
+        _add_loft(mb, [_ring(t.center, zb + profile[i][0] * hc, r * profile[i][1], 4, phase) for i in keep], crown)
         mb.band = ALWAYS
 
 
