@@ -306,9 +306,9 @@ class _MultiViewRenderer(pyrender.Renderer):
         (view j of n in the j-th band from the top, at window y (n - 1 - j) * height), so that each group is
         drawn exactly as it would be alone: same draw order, same GL state, same window coordinates, so the
         rasterizer's rounding cannot differ (views placed elsewhere, e.g. one car's views further up one tall
-        framebuffer, gave colours 2 levels and depths 1 ulp apart). After each group the commands are flushed: a
-        software rasterizer (llvmpipe) then draws that group on its threads while this thread issues the next
-        group's commands."""
+        framebuffer, gave colours 2 levels and depths 1 ulp apart). After each view the commands are flushed: a
+        software rasterizer (llvmpipe) then draws that view on its threads while this thread issues the next
+        view's commands (and does their vertex work); on the 2-core machine a car's step took 4-7 % less."""
         flags = pyrender.RenderFlags.FLAT
         self._update_context(scene, flags)
         w, h = self.viewport_width, self.viewport_height
@@ -342,7 +342,7 @@ class _MultiViewRenderer(pyrender.Renderer):
                            group.ranges[j] if group.ranges else None)
                 cameras.append(cam)
                 rows.append((gi, (bands - n + j) * h))
-            GL.glFlush()
+                GL.glFlush()   # this view is rasterized while the next one's commands are issued
         GL.glBindVertexArray(0)
         GL.glUseProgram(0)
         if depth == "first":
