@@ -213,7 +213,7 @@ class _Cells(NamedTuple):
             ground = bands == GROUND if (bands == GROUND).any() else np.arange(k) == k - 1
             parts.append((np.full(k, i), f[:-1], np.diff(f), ground,
                           np.asarray(c.cell_bounds, np.float64), np.asarray(c.cell_squares, np.float64),
-                          np.asarray(c.cell_bands, np.int8), np.full(k, c.mirror)))
+                          bands, np.full(k, c.mirror)))
         if not parts:
             z = np.zeros(0)
             parts = [(z.astype(np.int64), z.astype(np.int64), z.astype(np.int64), z.astype(bool),
