@@ -202,6 +202,12 @@ def cli(*args: str, at: tuple[str, ...] = ()) -> list[str]:
     return ["driver.py", "--started", "started", *[a for h in at for a in ("--at", h)], "cli", *args]
 
 
+def after_frame(n: int, sig: str) -> str:
+    """A hook: ``sig`` right after the ``n``-th frame of the process is written (not when a file shows up: a
+    quick pass can end between two looks at the directory)."""
+    return f"satloc.sequence:SequenceWriter.add:{n}:{sig}"
+
+
 RECORD = ("record", "--scene", "tiny.yaml", "--max-frames", str(FRAMES), "--quiet", "--out")
 
 
@@ -222,14 +228,14 @@ def test_record_interrupted_resumes(work, ref):
     out = "rec1"
     cmd = ["-m", "satloc_env.cli", *RECORD, out]
     # Ctrl-C in the database pass: one line, status 130, no temporary left, the recording marked incomplete
-    r = run(cmd, work, signal.SIGINT, f"{out}/.database.{{pid}}-*.tmp/left/000004.png")
+    r = run(cli(*RECORD, out, at=(after_frame(5, "SIGINT"),)), work)
     assert_sigint_exit(r)
     assert temps(work / out) == []
     assert not (work / out / "database").exists()
     with pytest.raises(FormatError, match="recording.json: the recording is incomplete"):
         load_recording(work / out)
     # SIGKILL in the query pass: its temporary directory stays; the finished database pass is kept
-    r = run(cmd, work, signal.SIGKILL, f"{out}/.query.{{pid}}-*.tmp/left/000002.png")
+    r = run(cli(*RECORD, out, at=(after_frame(FRAMES + 3, "SIGKILL"),)), work)
     assert r.rc == -signal.SIGKILL, r
     assert [t.split(".")[1] for t in temps(work / out)] == ["query"]
     assert not (work / out / "query").exists()
@@ -268,7 +274,7 @@ def test_record_with_another_configuration_starts_over(work, ref):
     shutil.copytree(ref / "rec", out)
     load_recording(out)
     cmd = ["-m", "satloc_env.cli", *RECORD[:-2], "--seed", "5", "--quiet", "--out", "rec2"]
-    r = run(cmd, work, signal.SIGKILL, "rec2/.database.{pid}-*.tmp/left/000002.png")
+    r = run(cli(*cmd[2:], at=(after_frame(3, "SIGKILL"),)), work)
     assert r.rc == -signal.SIGKILL, r
     with pytest.raises(FormatError, match="recording.json: the recording is incomplete"):
         load_recording(out)
@@ -369,8 +375,7 @@ def test_auto_cache_interrupted_then_built_once_by_two_processes(work, ref_entry
     cache = work / "cache1"
     entry = cache / ref_entry.name
     # Ctrl-C while recording the database pass: the temporary directory goes, the entry does not appear
-    r = run(auto("cache1"), work, signal.SIGINT,
-            "cache1/.*.{pid}-*.tmp/recording/.database.{pid}-*.tmp/left/000003.png")
+    r = run(auto("cache1", after_frame(4, "SIGINT")), work)
     assert_sigint_exit(r)
     assert temps(cache) == [] and not entry.exists()
     # SIGKILL after the dictionary is built (before the projections): the temporary directory stays behind;
