@@ -399,6 +399,24 @@ def test_closing_one_renderer_keeps_others_working(renderer, world, camera, fram
     assert np.array_equal(renderer.render(POSE, depth=False)["left"], frame["left"])
 
 
+def test_a_renderer_closed_during_another_ones_frame_leaves_that_frame_whole(renderer, world, camera, frame,
+                                                                             monkeypatch):
+    """The garbage collector may finalize (close) a renderer at any allocation, as in the middle of another
+    renderer's frame: that frame keeps its GL context and is drawn whole (before, its next GL call found no
+    context current and raised)."""
+    other = StereoRenderer(world, camera)
+    other.render(POSE, depth=False)
+    inner = renderer._slot.batch._context()._renderer
+    update = inner._update_context
+
+    def closing_first(*args, **kwargs):   # runs with this renderer's context current, before it draws
+        other.close()
+        return update(*args, **kwargs)
+
+    monkeypatch.setattr(inner, "_update_context", closing_first)
+    assert np.array_equal(renderer.render(POSE, depth=False)["left"], frame["left"])
+
+
 # --- the world beyond the layout's edge --------------------------------------------------------------------------
 def test_mirrored_world_covers_the_pad_and_shares_textures(layout):
     w = build_world(layout, chunk_m=20.0, pad_m=50.0)

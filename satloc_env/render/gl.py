@@ -61,7 +61,7 @@ import sys
 import weakref
 from collections.abc import Iterable, Sequence
 from types import ModuleType
-from typing import NamedTuple
+from typing import Any, NamedTuple
 
 os.environ.setdefault("PYOPENGL_PLATFORM", "egl")
 
@@ -506,6 +506,12 @@ def _delete_live_renderers() -> None:
             pass
 
 
+def _handle(h: Any) -> int | None:
+    """An EGL handle (PyOpenGL's opaque pointer type, or an integer) as an integer; None for a null one."""
+    v = h if h is None or isinstance(h, int) else ctypes.cast(h, ctypes.c_void_p).value
+    return int(v) if v else None
+
+
 class MultiViewOffscreenRenderer(pyrender.OffscreenRenderer):
     """A ``pyrender.OffscreenRenderer`` (GL context of its own) whose :meth:`render_views` draws several
     cameras at once without multisampling (see :class:`_MultiViewRenderer`); newly uploaded mipmapped
@@ -543,14 +549,23 @@ class MultiViewOffscreenRenderer(pyrender.OffscreenRenderer):
             self._renderer = None
             self._platform = None
             return
-        platform.make_current()
-        self._renderer.delete()
-        if hasattr(platform, "_egl_display"):                  # pyrender's EGLPlatform
+        egl = hasattr(platform, "_egl_display")                # pyrender's EGLPlatform
+        if egl:
             from OpenGL import EGL
 
+            # a finalizer can run in the middle of another renderer's frame (the garbage collector runs at any
+            # allocation): give that renderer its context back, or its next GL call finds none current
+            before = (EGL.eglGetCurrentDisplay(), EGL.eglGetCurrentSurface(EGL.EGL_DRAW),
+                      EGL.eglGetCurrentSurface(EGL.EGL_READ), EGL.eglGetCurrentContext())
+        platform.make_current()
+        self._renderer.delete()
+        if egl:
             EGL.eglMakeCurrent(platform._egl_display, EGL.EGL_NO_SURFACE, EGL.EGL_NO_SURFACE, EGL.EGL_NO_CONTEXT)
+            own = _handle(platform._egl_context)
             EGL.eglDestroyContext(platform._egl_display, platform._egl_context)
             platform._egl_context = platform._egl_display = None   # its __del__ would terminate the display
+            if _handle(before[3]) not in (None, own):
+                EGL.eglMakeCurrent(*before)
         else:
             platform.delete_context()
         self._renderer = None
