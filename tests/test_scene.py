@@ -453,3 +453,52 @@ def test_variety_gives_houses_pitched_roofs():
     pos = w.chunks[0].positions[w.chunks[0].faces[:w.chunks[0].cell_faces[-2]].ravel()]
     top = pos[np.isclose(pos[:, 2], b.height, atol=1e-3)]
     assert len(top) >= 2 and np.ptp(top[:, :2], axis=0).min() < 1e-3     # a line: the ridge
+
+
+def test_variety_furnishes_flat_roofs():
+    """Downtown blocks at variety 1 carry roof furniture (a stairs housing on most, one to four air-conditioning
+    units), drawn from the building's own seed: the same every time, inside the roof 1.5 m from its edge, apart
+    from each other; in the world's mesh (class building, up to the unit's top) and on the tile (each top in its
+    colour, lit); none at variety 0, on gabled houses or low roofs."""
+    import dataclasses
+
+    from shapely.geometry import Polygon
+
+    from satloc_env.world.furniture import ROOF_MIN_HEIGHT_M, roof_parts
+    from satloc_env.world.meshes import build_world
+    from satloc_env.world.tile import paint_tile
+
+    city, _ = generate_grid(GridParams(blocks=(2, 2), pitch_m=60, margin_m=10, variety=1.0), 4, 0.0, 0.2)
+    tall = [b for b in city.buildings if b.height >= ROOF_MIN_HEIGHT_M and len(b.footprint) == 4]
+    assert tall and np.mean([bool(roof_parts(b)) for b in tall]) > 0.8
+    counts = []
+    for b in tall:
+        parts = roof_parts(b)
+        again = roof_parts(b)
+        assert [p.footprint.tobytes() for p in parts] == [p.footprint.tobytes() for p in again]
+        roof = Polygon(b.footprint).buffer(-1.5 + 1e-6)
+        polys = [Polygon(p.footprint) for p in parts]
+        assert all(roof.contains(q) for q in polys)
+        assert all(a.distance(c) >= 0.8 - 1e-6 for i, a in enumerate(polys) for c in polys[i + 1:])
+        assert all(p.z0 == b.height and 0.8 < p.z1 - p.z0 < 3.2 for p in parts)
+        counts.append(len(parts))
+    assert max(counts) >= 3
+    plain, _ = generate_grid(GridParams(blocks=(2, 2), pitch_m=60, margin_m=10), 4, 0.0, 0.2)
+    assert not any(roof_parts(b) for b in plain.buildings)
+    houses, _ = generate_grid(GridParams(style="residential", blocks=(2, 2), pitch_m=60, margin_m=10, variety=1.0),
+                              4, 0.0, 0.2)
+    assert not any(roof_parts(b) for b in houses.buildings if b.roof == "gabled" or b.height < ROOF_MIN_HEIGHT_M)
+    # the mesh reaches the units' tops; without them, only the roof
+    b = next(b for b in tall if roof_parts(b))
+    one = dataclasses.replace(city, buildings=[b], trees=[], cars=[], furniture=[])
+    w = build_world(one)
+    pos = w.chunks[0].positions[w.chunks[0].faces[:w.chunks[0].cell_faces[-2]].ravel()]
+    assert np.isclose(pos[:, 2].max(), max(p.z1 for p in roof_parts(b)), atol=1e-3)
+    # the tile shows each unit's top in its own colour, lit
+    img, labels = paint_tile(one, 0.2, 1)
+    h = img.shape[0]
+    for p in roof_parts(b):
+        cx, cy = p.footprint.mean(axis=0)
+        r, c = int(h - cy / 0.2), int(cx / 0.2)
+        assert labels[r, c] == CLASS_ID["building"]
+        assert np.allclose(img[r, c], np.minimum(255, np.asarray(p.rgb) * 1.08), atol=2)

@@ -16,11 +16,12 @@ from dataclasses import dataclass, field
 import cv2
 import numpy as np
 
-from .layout import Furniture
+from .layout import Building, Furniture
 from .paint import fbm, rect_poly
 from .variety import leaf_texture
 
-__all__ = ["KINDS", "ROWS", "HEDGE_SEGMENT_M", "Part", "furniture_parts", "footprint_radius"]
+__all__ = ["KINDS", "ROWS", "HEDGE_SEGMENT_M", "ROOF_MIN_HEIGHT_M", "Part", "furniture_parts", "footprint_radius",
+           "roof_parts"]
 
 #: furniture kinds by their code in :attr:`Furniture.kind`
 KINDS = {1: "lamp post", 2: "traffic sign", 3: "litter bin", 4: "bench", 5: "bollards", 6: "hydrant",
@@ -296,6 +297,75 @@ def _wall_face(rng: np.random.Generator, body, h: int, w: int) -> np.ndarray:
             img[r0:r0 + 1] *= 0.7
             for c0 in range(-off, w, cw):
                 img[r0:r0 + ch, max(0, c0):max(0, c0) + 1] *= 0.7
+    return np.clip(img, 0, 255).astype(np.uint8)
+
+
+#: metres: buildings with a look of their own (``style_seed``) and a flat roof at least this high carry roof
+#: furniture (:func:`roof_parts`); lower ones (houses, shops) do not
+ROOF_MIN_HEIGHT_M = 8.0
+
+
+def roof_parts(b: Building) -> list[Part]:
+    """The furniture on ``b``'s flat roof, drawn from ``b.style_seed``: on most roofs of 10 m x 10 m or more a
+    housing for the stairs or the lift, and one to four air-conditioning units with louvres on their long
+    sides, each at least 1.5 m in from the roof's edge and 0.8 m from the others (metres, map frame; heights
+    above the building's ground, from its roof up). None for a building without a look of its own (variety
+    0), a gabled roof or one from the imagery, a roof below :data:`ROOF_MIN_HEIGHT_M`, or a footprint that is
+    not a rectangle (4 corners, right angles within 5 degrees, sides of 6 m or more). The world's mesh and the
+    tile's painter both call it, so the two show the same units."""
+    if b.style_seed is None or b.roof != "flat" or b.roof_from_ground or b.height < ROOF_MIN_HEIGHT_M:
+        return []
+    p = np.asarray(b.footprint, np.float64)
+    if len(p) != 4:
+        return []
+    e, f = p[1] - p[0], p[3] - p[0]
+    length, width = float(np.linalg.norm(e)), float(np.linalg.norm(f))
+    if min(length, width) < 6.0 or abs(float(e @ f)) > math.sin(math.radians(5)) * length * width:
+        return []
+    u, v = e / length, f / width
+    yaw = math.atan2(u[1], u[0])
+    rng = np.random.default_rng([int(b.style_seed), 7001])
+    placed: list[tuple[float, float, float, float]] = []
+    parts: list[Part] = []
+
+    def put(lu: float, lv: float, z1: float, rgb: tuple[int, int, int], margin: float, faces: dict) -> None:
+        if lu + 2 * margin > length or lv + 2 * margin > width:
+            return
+        for _ in range(12):
+            cu = rng.uniform(margin + lu / 2, length - margin - lu / 2)
+            cv_ = rng.uniform(margin + lv / 2, width - margin - lv / 2)
+            box = (cu - lu / 2, cu + lu / 2, cv_ - lv / 2, cv_ + lv / 2)
+            if all(box[1] + 0.8 <= q[0] or q[1] + 0.8 <= box[0] or box[3] + 0.8 <= q[2] or q[3] + 0.8 <= box[2]
+                   for q in placed):
+                placed.append(box)
+                c = p[0] + cu * u + cv_ * v
+                parts.append(Part(rect_poly(c[0], c[1], lu, lv, yaw), b.height, b.height + z1, rgb, 0.04, faces))
+                return
+
+    if min(length, width) >= 10.0 and rng.random() < 0.7:      # stairs or lift
+        g = rng.uniform(140, 200)
+        tint = rng.uniform(-8, 8, 3)
+        put(rng.uniform(3.0, 4.5), rng.uniform(2.5, 3.5), rng.uniform(2.4, 3.1),
+            tuple(int(np.clip(g + t, 0, 255)) for t in tint), 2.0, {})
+    for _ in range(int(rng.integers(1, 5))):                   # air-conditioning units
+        g = rng.uniform(165, 215)
+        rgb = (int(g), int(g), int(min(255, g + rng.uniform(0, 10))))
+        lu, lv, hu = rng.uniform(1.2, 3.0), rng.uniform(0.9, 2.0), rng.uniform(0.9, 1.7)
+        louvre = _louvres(rgb, hu, lu)
+        put(lu, lv, hu, rgb, 1.5, {_SIDE: louvre, _OTHER_SIDE: louvre})
+    return parts
+
+
+def _louvres(rgb: tuple[int, int, int], height_m: float, length_m: float, texel: float = 0.04) -> np.ndarray:
+    """The picture (H, W, 3 uint8) of an air-conditioning unit's side: a frame in ``rgb`` around a panel of
+    dark horizontal slats every 8 cm."""
+    h, w = max(4, int(round(height_m / texel))), max(4, int(round(length_m / texel)))
+    img = np.empty((h, w, 3), np.float32)
+    img[:] = rgb
+    y, x = np.mgrid[0:h, 0:w]
+    panel = (y >= 2) & (y < h - 2) & (x >= 2) & (x < w - 2)
+    img[panel] *= 0.82
+    img[panel & (y % 2 == 0)] *= 0.55
     return np.clip(img, 0, 255).astype(np.uint8)
 
 

@@ -50,7 +50,7 @@ import numpy as np
 from satloc.errors import ConfigError
 from satloc.labels import CLASS_ID
 
-from .furniture import ROWS, furniture_parts, part_paint
+from .furniture import ROWS, furniture_parts, part_paint, roof_parts
 from .layout import Building, Car, Furniture, Layout, Obstacle, Person, Tree
 from .paint import fbm as _fbm
 from .terrain import GROUND_STEP_M, Terrain
@@ -792,7 +792,8 @@ def _add_building(mb: _MeshBuilder, b: Building, index: int, layout: Layout | No
     with ``roof_from_ground``, the layout's ground image over the footprint's bounding box (the roof as the
     imagery shows it, unshaded: the imagery has its light already). ``roof`` ``gabled`` on a rectangular
     footprint: walls to the eaves, two slopes up to a ridge along the long axis at ``height``, and the gable
-    ends (:func:`_add_gable_roof`); any other footprint keeps a flat roof."""
+    ends (:func:`_add_gable_roof`); any other footprint keeps a flat roof, with the furniture
+    :func:`satloc_env.world.furniture.roof_parts` puts on it."""
     rng = _rng("building", index, b.facade)
     style = _FACADE_STYLES[b.facade % len(_FACADE_STYLES)]
     roof = np.asarray(b.roof_rgb, dtype=np.float32)
@@ -810,6 +811,12 @@ def _add_building(mb: _MeshBuilder, b: Building, index: int, layout: Layout | No
     if gable is None:
         _add_prism(mb, fp, base, height, _FACADE_M, CLASS_ID["building"], walls, top,
                    top_shade=1.0 if b.roof_from_ground and layout is not None else None)
+        unit_rng = _rng("roof furniture", index)   # its own: the building's textures stay as they were
+        for part in roof_parts(b):
+            rgb = np.asarray(part.rgb, np.float32)
+            _add_prism(mb, part.footprint, part.z0, part.z1, part.texel, CLASS_ID["building"],
+                       lambda segs, h, part=part: part_paint(unit_rng, part, segs, h),
+                       lambda h, w, rgb=rgb: _paint(unit_rng, rgb, h, w))
         return
     _add_prism(mb, fp, base, gable[0], _FACADE_M, CLASS_ID["building"], walls, None)
     _add_gable_roof(mb, gable, top, walls)

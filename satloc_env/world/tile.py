@@ -13,7 +13,7 @@ import numpy as np
 
 from satloc.labels import CLASS_ID as C
 
-from .furniture import furniture_parts
+from .furniture import furniture_parts, roof_parts
 from .layout import Layout
 from .paint import fill_poly, noise, rect_poly
 
@@ -94,7 +94,17 @@ def paint_tile(lay: Layout, mpp: float, seed: int, lean: tuple[float, float] = (
         labels[box][sel] = C["building"]
         cv2.polylines(img, [np.round(px).astype(np.int32).reshape(-1, 1, 2)], True,
                       tuple(float(v) * 0.6 for v in b.roof_rgb), 1)
-        if len(fp) == 4:  # ridge along the long side (houses) or a rooftop unit (tall blocks)
+        units = roof_parts(b)
+        for part in units:   # roof furniture: the shadows on the roof, then the tops (lit), off nadir with height
+            base = part.footprint + lean_v * part.z0 if leaning else part.footprint
+            hull = cv2.convexHull(np.vstack([base, base - sun * (part.z1 - part.z0) * cot]).astype(np.float32))
+            fill_poly(img, _poly_px(lay, hull.reshape(-1, 2), mpp), tuple(float(v) * 0.55 for v in b.roof_rgb))
+        for part in units:
+            top = part.footprint + lean_v * part.z1 if leaning else part.footprint
+            fill_poly(img, _poly_px(lay, top, mpp), tuple(min(255.0, float(v) * 1.08) for v in part.rgb))
+            cv2.polylines(img, [np.round(_poly_px(lay, top, mpp)).astype(np.int32).reshape(-1, 1, 2)], True,
+                          tuple(float(v) * 0.7 for v in part.rgb), 1)
+        if len(fp) == 4 and not units:  # ridge along the long side (houses) or a rooftop unit (tall blocks)
             e = fp[1] - fp[0]
             f = fp[3] - fp[0]
             if np.linalg.norm(e) < np.linalg.norm(f):
