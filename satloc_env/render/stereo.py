@@ -415,8 +415,9 @@ class StereoSlot:
 class StereoRenderer:
     """Renders the rectified stereo pair of ``camera`` on a vehicle in ``world``.
 
-    Colour textures are sampled bilinearly from the nearest mipmap level with a level-of-detail bias of ``lod_bias`` (negative:
-    sharper far ground; -0.5 keeps lane markings visible further out without visible shimmer) and, when
+    Colour textures are sampled bilinearly from the nearest mipmap level with a level-of-detail bias of
+    ``lod_bias`` (negative: sharper far ground; -0.5 keeps lane markings visible further out without visible
+    shimmer) and, when
     ``anisotropy`` > 1, anisotropic filtering of that level (clamped to what the driver supports). On Mesa
     22.3's llvmpipe any anisotropy > 1 filters like 16x and makes a frame 3 to 4 times slower, hence the
     default of 1. ``mipmaps=False`` samples every colour texture at full resolution (bilinear, no level

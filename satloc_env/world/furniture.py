@@ -17,7 +17,7 @@ import cv2
 import numpy as np
 
 from .layout import Building, Furniture
-from .paint import fbm, rect_poly
+from .paint import fbm, rect_poly, right_angled
 from .variety import leaf_texture
 
 __all__ = ["KINDS", "ROWS", "HEDGE_SEGMENT_M", "ROOF_MIN_HEIGHT_M", "Part", "furniture_parts", "footprint_radius",
@@ -318,10 +318,10 @@ def roof_parts(b: Building) -> list[Part]:
     p = np.asarray(b.footprint, np.float64)
     if len(p) != 4:
         return []
+    if np.linalg.norm(np.roll(p, -1, axis=0) - p, axis=1).min() < 6.0 or not right_angled(p):
+        return []
     e, f = p[1] - p[0], p[3] - p[0]
     length, width = float(np.linalg.norm(e)), float(np.linalg.norm(f))
-    if min(length, width) < 6.0 or abs(float(e @ f)) > math.sin(math.radians(5)) * length * width:
-        return []
     u, v = e / length, f / width
     yaw = math.atan2(u[1], u[0])
     rng = np.random.default_rng([int(b.style_seed), 7001])

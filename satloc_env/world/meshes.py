@@ -53,6 +53,7 @@ from satloc.labels import CLASS_ID
 from .furniture import ROWS, furniture_parts, part_paint, roof_parts
 from .layout import Building, Car, Furniture, Layout, Obstacle, Person, Tree
 from .paint import fbm as _fbm
+from .paint import right_angled
 from .terrain import GROUND_STEP_M, Terrain
 from .variety import BODIES, SPECIES, facade_params, facade_texture, leaf_texture
 
@@ -834,8 +835,7 @@ def _gable(fp: np.ndarray, base: float, height: float):
     lengths = np.linalg.norm(e, axis=1)
     if lengths.min() <= 0.5:
         return None
-    cos = [abs(float(e[i] @ e[(i + 1) % 4])) / (lengths[i] * lengths[(i + 1) % 4]) for i in range(4)]
-    if max(cos) > math.sin(math.radians(5)):
+    if not right_angled(p):
         return None
     if lengths[0] < lengths[1]:          # start on a long side
         p = np.roll(p, -1, axis=0)

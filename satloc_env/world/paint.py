@@ -1,6 +1,8 @@
 """Procedural texture painting helpers (numpy + OpenCV), deterministic from a ``numpy.random.Generator``."""
 from __future__ import annotations
 
+import math
+
 import cv2
 import numpy as np
 
@@ -47,6 +49,15 @@ def rect_poly(cx: float, cy: float, length: float, width: float, yaw: float) -> 
     hl, hw = length / 2, width / 2
     local = np.array([[hl, hw], [-hl, hw], [-hl, -hw], [hl, -hw]])
     return np.stack([cx + c * local[:, 0] - s * local[:, 1], cy + s * local[:, 0] + c * local[:, 1]], axis=1)
+
+
+def right_angled(quad: np.ndarray, tol_deg: float = 5.0) -> bool:
+    """Whether the four corners ``quad`` ((4, 2), in order round the polygon, sides longer than zero) meet at
+    right angles within ``tol_deg`` degrees at every corner: a rectangle."""
+    e = np.roll(quad, -1, axis=0) - quad
+    lengths = np.linalg.norm(e, axis=1)
+    cos = np.abs(np.sum(e * np.roll(e, -1, axis=0), axis=1)) / (lengths * np.roll(lengths, -1))
+    return bool(cos.max() <= math.sin(math.radians(tol_deg)))
 
 
 def value_noise(rng: np.random.Generator, h: int, w: int, cell: int) -> np.ndarray:

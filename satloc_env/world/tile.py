@@ -100,9 +100,9 @@ def paint_tile(lay: Layout, mpp: float, seed: int, lean: tuple[float, float] = (
             hull = cv2.convexHull(np.vstack([base, base - sun * (part.z1 - part.z0) * cot]).astype(np.float32))
             fill_poly(img, _poly_px(lay, hull.reshape(-1, 2), mpp), tuple(float(v) * 0.55 for v in b.roof_rgb))
         for part in units:
-            top = part.footprint + lean_v * part.z1 if leaning else part.footprint
-            fill_poly(img, _poly_px(lay, top, mpp), tuple(min(255.0, float(v) * 1.08) for v in part.rgb))
-            cv2.polylines(img, [np.round(_poly_px(lay, top, mpp)).astype(np.int32).reshape(-1, 1, 2)], True,
+            top = _poly_px(lay, part.footprint + lean_v * part.z1 if leaning else part.footprint, mpp)
+            fill_poly(img, top, tuple(min(255.0, float(v) * 1.08) for v in part.rgb))
+            cv2.polylines(img, [np.round(top).astype(np.int32).reshape(-1, 1, 2)], True,
                           tuple(float(v) * 0.7 for v in part.rgb), 1)
         if len(fp) == 4 and not units:  # ridge along the long side (houses) or a rooftop unit (tall blocks)
             e = fp[1] - fp[0]
