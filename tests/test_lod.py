@@ -98,6 +98,41 @@ def test_culling_cells_changes_no_pixel_on_a_mirrored_world(tmp_path, monkeypatc
             assert np.array_equal(a[key], b[key]), key
 
 
+@pytest.mark.parametrize("terrain", [None, {"relief_m": 1.5, "wavelength_m": 150}], ids=["flat", "hills"])
+def test_a_chunk_with_cells_is_never_drawn_whole(tmp_path, monkeypatch, terrain):
+    """A chunk cut into cells is drawn by its cells' runs, none when no cell is kept: never whole (every cell, in
+    reach or not, at every level of detail at once). Over hills the ground is cells too, so a chunk in view whose
+    cells are all culled had no runs, and was drawn whole: four times the triangles, the same pixels."""
+    import satloc_env.render.gl as gl
+    from satloc_env.render.stereo import StereoRenderer
+
+    s = _scene(tmp_path, terrain=terrain)
+    route = s.routes["main"]
+    seen = {"runs": 0, "none": 0}
+    draw = gl._MultiViewRenderer._draw
+
+    def checked(self, draws, view, proj, ranges=None):
+        for *_, node in draws:
+            if id(node) in cut:
+                seen["runs" if ranges is not None and id(node) in ranges else "none"] += 1
+        return draw(self, draws, view, proj, ranges)
+
+    monkeypatch.setattr(gl._MultiViewRenderer, "_draw", checked)
+    cut: set[int] = set()
+    r = StereoRenderer(s.world, StereoCamera.preset("half"))
+    try:
+        r.render(route.pose_at(0.0, -1.75), depth=False)     # adds the world's nodes
+        nodes = r._slot.batch._world_nodes(s.world).nodes
+        cut |= {id(n) for c, pair in zip(s.world.chunks, nodes) if c.cell_faces is not None and len(c.cell_faces) >= 3
+                for n in pair}
+        assert cut
+        for t in np.linspace(0, route.length * 0.97, 12):
+            r.render(route.pose_at(t, -1.75), depth=True, labels=True)
+    finally:
+        r.close()
+    assert seen["runs"] > 0 and seen["none"] == 0, seen
+
+
 def test_level_of_detail_follows_the_distance_and_the_edge(tmp_path):
     """Street furniture and detailed trees (NEAR) within LOD_M of the car, coarse trees (FAR) beyond it, in the
     layout and its reflections beyond its edge alike; parked cars (INSIDE) at any distance in the layout, within

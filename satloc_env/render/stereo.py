@@ -249,8 +249,12 @@ class _Cells(NamedTuple):
             chunks = self.chunk[order]
             cut = np.flatnonzero(np.diff(chunks)) + 1
             pairs = np.stack([self.first[order], self.count[order]], axis=1).tolist()
-            out.append({int(chunks[a]): [tuple(q) for q in pairs[a:z] if q[1] > 0]
-                        for a, z in zip(np.r_[0, cut], np.r_[cut, len(order)]) if z > a})
+            # every chunk of this view that has cells gets its runs, none if no cell is kept (a chunk missing
+            # here would be drawn whole: every cell, out of reach or not, at every level of detail)
+            runs = dict.fromkeys(np.unique(self.chunk[idx[in_view[side][self.chunk[idx]]]]).tolist(), [])
+            runs.update({int(chunks[a]): [tuple(q) for q in pairs[a:z] if q[1] > 0]
+                         for a, z in zip(np.r_[0, cut], np.r_[cut, len(order)]) if z > a})
+            out.append(runs)
         return tuple(out)
 
 
