@@ -422,6 +422,29 @@ def test_variety_paints_balconies_and_fire_escapes():
         assert changed.mean() > 0.01 and not changed[ground:].any()
 
 
+def test_a_door_on_a_short_wall_stays_on_its_facade():
+    """A wall's door is shifted from the middle by up to a window spacing; on a wall of 5-7 m at the texture's
+    end the shift once put its frame past the texture (IndexError while building a scene) or wrapped it round to
+    the other end. The door now stays whole on the facade strip."""
+    import dataclasses
+
+    from satloc_env.world.variety import facade_params, facade_texture
+
+    texel, h = 0.1, 40
+    dw = int(0.55 / texel)
+    door_rows = slice(h - int(round(0.6 / texel)), h)     # its foot: below any ground-floor window
+    for seed in range(60):
+        for city in (True, False):
+            f = dataclasses.replace(facade_params(seed, city), shopfront=False, drainpipes=False)
+            for length in (5.2, 5.6, 6.4):
+                img = facade_texture(np.random.default_rng(seed), f, [length], h, texel)
+                assert img.shape[:2] == (h, int(round(length / texel)))
+                door = np.all(img[door_rows] == np.clip(np.asarray(f.door) + 0.5, 0, 255).astype(np.uint8), axis=-1).all(axis=0)
+                cols = np.flatnonzero(door)
+                assert len(cols) == 2 * dw - 2, (seed, city, length)          # the door's leaf between its frame
+                assert cols[-1] - cols[0] == len(cols) - 1 and cols[0] >= 1 and cols[-1] <= img.shape[1] - 2
+
+
 def test_variety_gives_houses_pitched_roofs():
     """Most houses at variety 1 are gabled (a ridge along the long side, in the world's mesh), none at
     variety 0 or downtown; the roofs draw from a generator of their own, so nothing else moves."""

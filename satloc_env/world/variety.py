@@ -295,6 +295,8 @@ def facade_texture(rng: np.random.Generator, f: FacadeParams, segs: list[float],
         if not (f.shopfront and seg > 5.0) and seg > 5.0:                 # a door
             cx = (a + b) // 2 + int(rng.integers(-2, 3)) * max(1, int(f.spacing / texel / 2))
             dw = int(0.55 / texel)
+            if cx - dw < 0 or cx + dw > img.shape[1]:                    # shifted past the texture's end
+                cx = min(max(cx, dw + 2), img.shape[1] - dw - 2)
             r0, r1 = rows(0.0, 2.2)
             img[r0:r1, cx - dw:cx + dw] = np.asarray(f.door, np.float32)
             img[r0:r1, cx - dw] = img[r0:r1, cx + dw - 1] = np.asarray(f.frame, np.float32)
