@@ -439,7 +439,8 @@ def test_a_door_on_a_short_wall_stays_on_its_facade():
             for length in (5.2, 5.6, 6.4):
                 img = facade_texture(np.random.default_rng(seed), f, [length], h, texel)
                 assert img.shape[:2] == (h, int(round(length / texel)))
-                door = np.all(img[door_rows] == np.clip(np.asarray(f.door) + 0.5, 0, 255).astype(np.uint8), axis=-1).all(axis=0)
+                colour = np.clip(np.asarray(f.door) + 0.5, 0, 255).astype(np.uint8)
+                door = np.all(img[door_rows] == colour, axis=-1).all(axis=0)
                 cols = np.flatnonzero(door)
                 assert len(cols) == 2 * dw - 2, (seed, city, length)          # the door's leaf between its frame
                 assert cols[-1] - cols[0] == len(cols) - 1 and cols[0] >= 1 and cols[-1] <= img.shape[1] - 2
