@@ -68,6 +68,8 @@ SKY_RGB = (168, 196, 226)
 DEFAULT_GROUND_PAD_M = 250.0
 #: Texel size (metres) of the procedural textures.
 _FACADE_M, _FOLIAGE_M, _BARK_M, _CAR_M, _PERSON_M, _OBSTACLE_M = 0.1, 0.08, 0.05, 0.04, 0.03, 0.04
+#: Largest side (texels) of a chunk's texture: the GL_MAX_TEXTURE_SIZE every OpenGL 4.5 implementation has.
+MAX_TEXTURE = 16384
 #: Width (texels) of the atlas of an occluder mesh, which has no ground region.
 _OCCLUDER_ATLAS_W = 4096  # wide enough that dense occluder sets stay under GL max texture size
 #: Baked shading: factor = _AMBIENT + (1 - _AMBIENT) * max(0, normal . sun).
@@ -589,13 +591,21 @@ class _MeshBuilder:
         """Pack the atlas below ``ground``'s region (if any) and emit the mesh; the ground quad's triangles
         come last so that, drawn in order, objects in front of the ground get depth-tested first."""
         top = 0 if ground is None else ground.texture.shape[0]
-        offsets, strip_h = _pack_shelves([t.shape[:2] for t, _ in self._patches], self.atlas_width)
+        sizes = [t.shape[:2] for t, _ in self._patches]
+        width = self.atlas_width
+        offsets, strip_h = _pack_shelves(sizes, width)
+        while top + strip_h > MAX_TEXTURE and width < MAX_TEXTURE:   # too tall for GL: a wider atlas, the
+            width = min(MAX_TEXTURE, width + self.atlas_width)          # ground in its top left corner
+            offsets, strip_h = _pack_shelves(sizes, width)
+        if top + strip_h > MAX_TEXTURE:
+            raise ValueError(f"a chunk's textures do not fit a {MAX_TEXTURE} x {MAX_TEXTURE} atlas")
         height = top + strip_h
-        tex = np.zeros((height, self.atlas_width, 3), np.uint8)
-        lab = np.zeros((height, self.atlas_width), np.uint8)
-        if ground is not None:
-            tex[:top] = ground.texture
-            lab[:top] = ground.labels
+        tex = np.zeros((height, width, 3), np.uint8)
+        lab = np.zeros((height, width), np.uint8)
+        if ground is not None:   # (right of a narrower ground: its last column, as the narrow atlas's clamp gave)
+            gw = ground.texture.shape[1]
+            tex[:top] = np.pad(ground.texture, ((0, 0), (0, width - gw), (0, 0)), mode="edge")
+            lab[:top] = np.pad(ground.labels, ((0, 0), (0, width - gw)), mode="edge")
         for (rgb, labels), (r, c) in zip(self._patches, offsets):
             h, w = labels.shape
             r0, c0 = top + r, c
@@ -619,7 +629,7 @@ class _MeshBuilder:
         if ground is not None:
             cr.append(ground.texel_rc)
         cr = np.concatenate(cr)
-        uvs = np.stack([cr[:, 0] / self.atlas_width, 1.0 - cr[:, 1] / height], axis=1)
+        uvs = np.stack([cr[:, 0] / width, 1.0 - cr[:, 1] / height], axis=1)
         return TexturedMesh(
             positions=np.concatenate(pos).astype(np.float32),
             uvs=uvs.astype(np.float32),
