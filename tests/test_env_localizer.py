@@ -313,12 +313,14 @@ def test_overview_shows_a_far_off_estimate():
     green = lambda img: np.all(np.abs(img.astype(int) - ESTIMATE_RGB) < 40, axis=2)  # noqa: E731
     bird = slice(cam_w, cam_w + PANEL_PX)
     ov = slice(cam_w + PANEL_PX, None)
-    assert green(with_est[:, bird]).sum() > 20 and green(without[:, bird]).sum() == 0  # the border arrow
+    # the border arrow: green the view without an estimate does not have (the map has a few green-ish
+    # texels of its own: awnings, cars)
+    assert (green(with_est[:, bird]) & ~green(without[:, bird])).sum() > 20
     # in the overview, the estimate ring sits where the map puts it
     sm = scene.satmap
     s = PANEL_PX / max(sm.image.shape[:2])
     u, v = (sm.world_to_pixel(far[:2]) + 0.5) * s - 0.5
-    g = green(with_est[:, ov])
+    g = green(with_est[:, ov]) & ~green(without[:, ov])
     ys, xs = np.nonzero(g)
     assert len(xs) > 10 and abs(xs.mean() - u) < 4 and abs(ys.mean() - v) < 4
 
