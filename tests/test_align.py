@@ -142,3 +142,46 @@ def test_scan_prefers_the_true_path():
     for bad in (0.0, 30.0):
         with pytest.raises(ConfigError, match="yaw_bin_deg"):
             al.scan(img, depth, cands, yaw_bin_deg=bad)
+
+
+def render_grade(cam, feats, mpp, origin, pose, grade):
+    """As :func:`render_ground`, the ground climbing ahead of the car at ``grade`` (z = grade x in the car's frame,
+    the car level on it at x = 0: a road whose grade changes under the car)."""
+    v, u = np.mgrid[0:cam.height, 0:cam.width].astype(np.float64)
+    ray = np.stack([(u - cam.cx) / cam.fx, (v - cam.cy) / cam.fy, np.ones_like(u)], -1)
+    t = cam.map_from_camera(pose)
+    d = ray @ t[:3, :3].T
+    o = t[:3, 3]
+    c, s = math.cos(pose.yaw), math.sin(pose.yaw)
+    ahead = lambda p: (p[..., 0] - pose.x) * c + (p[..., 1] - pose.y) * s   # noqa: E731
+    den = d[..., 2] - grade * (d[..., 0] * c + d[..., 1] * s)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        z = (grade * ahead(o) - o[2]) / den
+    z = np.where((z > 0) & np.isfinite(z), z, 0.0)
+    wx, wy = o[0] + z * d[..., 0], o[1] + z * d[..., 1]
+    mu = ((wx - origin[0]) / mpp - 0.5).astype(np.float32)
+    mv = ((origin[1] - wy) / mpp - 0.5).astype(np.float32)
+    return cv2.remap(np.ascontiguousarray(feats), mu, mv, cv2.INTER_LINEAR), z.astype(np.float32)
+
+
+def test_alignment_fits_the_ground_the_stereo_depth_shows():
+    """A road that climbs 4 % ahead of a level car: the plane of the camera's mounting puts the ground 0.8 m
+    too low at 20 m, so its bird's-eye view is stretched and most of it fails the depth check; the plane fitted
+    to the depth (``fit_ground``, the default) finds the grade and aligns as on flat ground."""
+    cam = StereoCamera.kitti_half()
+    feats, mpp, origin = textured_map()
+    truth = Pose2(60.0, 55.0, math.radians(20.0))
+    img, depth = render_grade(cam, feats, mpp, origin, truth, 0.04)
+    seed = Pose2(truth.x + 0.9, truth.y - 0.7, truth.yaw + math.radians(1.0))
+    fit = BevAligner(cam, feats, mpp, origin, AlignConfig(search_m=2.0))
+    a, b, c = fit.ground_plane(depth)
+    assert abs(a - 0.04) < 0.003 and abs(b) < 0.003 and abs(c) < 0.03
+    mount = BevAligner(cam, feats, mpp, origin, AlignConfig(search_m=2.0, fit_ground=False))
+    assert fit.bev(img, depth)[1].sum() > 1.5 * mount.bev(img, depth)[1].sum()
+    got = fit.align(img, depth, [seed])
+    assert got is not None and got.correlation > 0.8 and got.pose.distance(truth) < 0.15
+    old = mount.align(img, depth, [seed])
+    assert old is None or old.pose.distance(truth) > 2 * got.pose.distance(truth)
+    # on flat ground the fitted plane is the mounting's
+    img0, depth0 = render_ground(cam, feats, mpp, origin, truth)
+    assert np.allclose(fit.ground_plane(depth0), 0.0, atol=5e-3)

@@ -4,9 +4,12 @@ The co-occurrence posterior (:mod:`satloc.localizers.database`) lands most queri
 candidates 0.5 m apart with the heading of the path. This stage re-checks its few strongest peaks densely:
 
 1. the query's ground pixels are warped to a bird's-eye view (BEV) of the ground plane in front of the
-   vehicle, at the satellite map's resolution, through the camera's known mounting (height, pitch). Only
-   cells whose stereo depth agrees with the ground plane are kept, so cars, people, walls and anything else
-   standing on the ground are masked out;
+   vehicle, at the satellite map's resolution. The plane is the one the stereo depth shows (``fit_ground``:
+   a least-squares plane through the points near the plane of the camera's mounting, outliers dropped, kept
+   where it is plausible: a road ahead climbing or banking otherwise than the ground under the wheels puts
+   the mounting's plane metres off at 20 m), else the camera's mounting (height, pitch). Only cells whose
+   stereo depth agrees with the plane are kept, so cars, people, walls and anything else standing on the
+   ground are masked out;
 2. around each peak, for a few heading offsets, the satellite features are resampled in the peak's vehicle
    frame, and the BEV is slid over them by masked normalised cross-correlation (``cv2.matchTemplate``),
    which gives every translation on the map's pixel grid at once; the best is refined to sub-pixel by a
@@ -50,6 +53,9 @@ class AlignConfig:
     min_correlation: float = 0.2          # below: keep the co-occurrence estimate
     min_cells: int = 400                  # fewer visible ground cells: keep the co-occurrence estimate
     prior_weight: float = 0.1             # peak score: correlation + prior_weight * log(P(peak) / P(best peak))
+    fit_ground: bool = True               # the ground plane fitted to the stereo depth (a road's grade and camber
+                                          # ahead differ from those under the wheels); False: the mounting's
+                                          # plane
 
     def __post_init__(self):
         if self.peaks < 1 or self.search_m <= 0 or not self.yaw_offsets_deg:
@@ -97,14 +103,8 @@ class BevAligner:
         nx = int(round((config.forward_m[1] - config.forward_m[0]) / self.res)) + 1
         ny = int(round(2 * config.half_width_m / self.res)) + 1
         xs, ys = self.x0 + self.res * np.arange(nx), self.y0 + self.res * np.arange(ny)
-        X, Y = np.meshgrid(xs, ys, indexing="ij")
-        t = np.linalg.inv(camera.vehicle_from_camera("left"))
-        pc = np.stack([X, Y, np.zeros_like(X)], -1) @ t[:3, :3].T + t[:3, 3]
-        uv, z = camera.project(pc)
-        self.map_u, self.map_v = uv[..., 0].astype(np.float32), uv[..., 1].astype(np.float32)
-        self.plane_z = z.astype(np.float32)
-        self.in_image = ((z > 0) & (uv[..., 0] >= 0) & (uv[..., 0] <= camera.width - 1)
-                         & (uv[..., 1] >= 0) & (uv[..., 1] <= camera.height - 1))
+        self._X, self._Y = np.meshgrid(xs, ys, indexing="ij")
+        self.map_u, self.map_v, self.plane_z, self.in_image = self._grid_on((0.0, 0.0, 0.0))
         self.shape = (nx, ny)
         # the satellite crop around a pose: the BEV grid grown by the search margin, in the vehicle frame
         self.margin = int(math.ceil(config.search_m / self.res))
@@ -130,14 +130,55 @@ class BevAligner:
         out._scan_key, out._scan_groups = None, []
         return out
 
-    def bev(self, features: np.ndarray, depth: np.ndarray) -> tuple[list[np.ndarray], np.ndarray]:
-        """The query's BEV channels and the mask (float32, 1 where the ground is seen, else 0)."""
+    def _grid_on(self, plane: tuple[float, float, float]) -> tuple[np.ndarray, ...]:
+        """The BEV grid's cells on the ground plane z = a x + b y + c (vehicle frame): their pixels (u, v), their
+        depth and whether the left image sees them."""
+        a, b, c = plane
+        X, Y = self._X, self._Y
+        t = np.linalg.inv(self.camera.vehicle_from_camera("left"))
+        pc = np.stack([X, Y, a * X + b * Y + c], -1) @ t[:3, :3].T + t[:3, 3]
+        uv, z = self.camera.project(pc)
+        cam = self.camera
+        seen = ((z > 0) & (uv[..., 0] >= 0) & (uv[..., 0] <= cam.width - 1)
+                & (uv[..., 1] >= 0) & (uv[..., 1] <= cam.height - 1))
+        return uv[..., 0].astype(np.float32), uv[..., 1].astype(np.float32), z.astype(np.float32), seen
+
+    def ground_plane(self, depth: np.ndarray) -> tuple[float, float, float] | None:
+        """The plane z = a x + b y + c (vehicle frame) through the ground the stereo depth shows in the BEV's
+        extent: least squares over the cells whose depth lies within 25 % of the mounting's plane, refitted
+        twice without those more than 0.15 m off it. None where fewer than ``min_cells`` cells support it or
+        it is implausible for a road (a grade or a bank above 15 %, or 0.5 m above or below the wheels)."""
         d = cv2.remap(depth.astype(np.float32), self.map_u, self.map_v, cv2.INTER_NEAREST,
                       borderMode=cv2.BORDER_CONSTANT, borderValue=0)
-        mask = (self.in_image & (np.abs(d - self.plane_z) <= self.config.ground_tolerance * self.plane_z)
-                ).astype(np.float32)
-        chans = [self._normalize(cv2.remap(c, self.map_u, self.map_v, cv2.INTER_LINEAR,
-                                           borderMode=cv2.BORDER_REPLICATE), mask)
+        near = self.in_image & (d > 0) & (np.abs(d - self.plane_z) <= 0.25 * self.plane_z)
+        if int(near.sum()) < self.config.min_cells:
+            return None
+        uv = np.stack([self.map_u[near], self.map_v[near]], -1)
+        p = self.camera.backproject(uv, d[near]) @ (v := self.camera.vehicle_from_camera("left"))[:3, :3].T + v[:3, 3]
+        keep = np.ones(len(p), bool)
+        for _ in range(3):
+            if int(keep.sum()) < self.config.min_cells:
+                return None
+            A = np.c_[p[keep, 0], p[keep, 1], np.ones(int(keep.sum()))]
+            coef = np.linalg.lstsq(A, p[keep, 2], rcond=None)[0]
+            keep = np.abs(np.c_[p[:, 0], p[:, 1], np.ones(len(p))] @ coef - p[:, 2]) <= 0.15
+        a, b, c = (float(x) for x in coef)
+        if not (abs(a) <= 0.15 and abs(b) <= 0.15 and abs(c) <= 0.5) or int(keep.sum()) < self.config.min_cells:
+            return None
+        return a, b, c
+
+    def bev(self, features: np.ndarray, depth: np.ndarray) -> tuple[list[np.ndarray], np.ndarray]:
+        """The query's BEV channels and the mask (float32, 1 where the ground is seen, else 0)."""
+        grid = (self.map_u, self.map_v, self.plane_z, self.in_image)
+        if self.config.fit_ground:
+            plane = self.ground_plane(depth)
+            if plane is not None:
+                grid = self._grid_on(plane)
+        map_u, map_v, plane_z, in_image = grid
+        d = cv2.remap(depth.astype(np.float32), map_u, map_v, cv2.INTER_NEAREST,
+                      borderMode=cv2.BORDER_CONSTANT, borderValue=0)
+        mask = (in_image & (np.abs(d - plane_z) <= self.config.ground_tolerance * plane_z)).astype(np.float32)
+        chans = [self._normalize(cv2.remap(c, map_u, map_v, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE), mask)
                  for c in _channel_maps(features, self.config.channels)]
         return chans, mask
 
