@@ -167,13 +167,13 @@ def render_grade(cam, feats, mpp, origin, pose, grade):
 def test_alignment_fits_the_ground_the_stereo_depth_shows():
     """A road that climbs 4 % ahead of a level car: the plane of the camera's mounting puts the ground 0.8 m
     too low at 20 m, so its bird's-eye view is stretched and most of it fails the depth check; the plane fitted
-    to the depth (``fit_ground``, the default) finds the grade and aligns as on flat ground."""
+    to the depth (``fit_ground``) finds the grade and aligns as on flat ground."""
     cam = StereoCamera.kitti_half()
     feats, mpp, origin = textured_map()
     truth = Pose2(60.0, 55.0, math.radians(20.0))
     img, depth = render_grade(cam, feats, mpp, origin, truth, 0.04)
     seed = Pose2(truth.x + 0.9, truth.y - 0.7, truth.yaw + math.radians(1.0))
-    fit = BevAligner(cam, feats, mpp, origin, AlignConfig(search_m=2.0))
+    fit = BevAligner(cam, feats, mpp, origin, AlignConfig(search_m=2.0, fit_ground=True))
     a, b, c = fit.ground_plane(depth)
     assert abs(a - 0.04) < 0.003 and abs(b) < 0.003 and abs(c) < 0.03
     mount = BevAligner(cam, feats, mpp, origin, AlignConfig(search_m=2.0, fit_ground=False))

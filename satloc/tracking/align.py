@@ -4,12 +4,12 @@ The co-occurrence posterior (:mod:`satloc.localizers.database`) lands most queri
 candidates 0.5 m apart with the heading of the path. This stage re-checks its few strongest peaks densely:
 
 1. the query's ground pixels are warped to a bird's-eye view (BEV) of the ground plane in front of the
-   vehicle, at the satellite map's resolution. The plane is the one the stereo depth shows (``fit_ground``:
-   a least-squares plane through the points near the plane of the camera's mounting, outliers dropped, kept
-   where it is plausible: a road ahead climbing or banking otherwise than the ground under the wheels puts
-   the mounting's plane metres off at 20 m), else the camera's mounting (height, pitch). Only cells whose
-   stereo depth agrees with the plane are kept, so cars, people, walls and anything else standing on the
-   ground are masked out;
+   vehicle, at the satellite map's resolution, through the camera's known mounting (height, pitch), or with
+   ``fit_ground`` (off by default) the plane the stereo depth shows: a least-squares plane through the points
+   near the mounting's plane, outliers dropped, kept where it is plausible for a road (a road ahead climbing or
+   banking otherwise than the ground under the wheels puts the mounting's plane metres off at 20 m). Only
+   cells whose stereo depth agrees with the plane are kept, so cars, people, walls and anything else standing
+   on the ground are masked out;
 2. around each peak, for a few heading offsets, the satellite features are resampled in the peak's vehicle
    frame, and the BEV is slid over them by masked normalised cross-correlation (``cv2.matchTemplate``),
    which gives every translation on the map's pixel grid at once; the best is refined to sub-pixel by a
@@ -53,9 +53,10 @@ class AlignConfig:
     min_correlation: float = 0.2          # below: keep the co-occurrence estimate
     min_cells: int = 400                  # fewer visible ground cells: keep the co-occurrence estimate
     prior_weight: float = 0.1             # peak score: correlation + prior_weight * log(P(peak) / P(best peak))
-    fit_ground: bool = True               # the ground plane fitted to the stereo depth (a road's grade and camber
+    fit_ground: bool = False              # the ground plane fitted to the stereo depth (a road's grade and camber
                                           # ahead differ from those under the wheels); False: the mounting's
-                                          # plane
+                                          # plane (the default until it is calibrated on depth from stereo
+                                          # matching, which biased its fit on a flat street)
 
     def __post_init__(self):
         if self.peaks < 1 or self.search_m <= 0 or not self.yaw_offsets_deg:
