@@ -185,3 +185,20 @@ def test_alignment_fits_the_ground_the_stereo_depth_shows():
     # on flat ground the fitted plane is the mounting's
     img0, depth0 = render_ground(cam, feats, mpp, origin, truth)
     assert np.allclose(fit.ground_plane(depth0), 0.0, atol=5e-3)
+
+
+def test_shift_penalty_holds_the_alignment_near_its_seed():
+    """``shift_penalty`` (per m^2, off by default) charges a translation for its distance from the seed: a small one
+    still lets a 1.1 m correction through (the correlation gains far more), a large one keeps the pose near the
+    seed; a negative one is refused."""
+    cam = StereoCamera.kitti_half()
+    feats, mpp, origin = textured_map()
+    truth = Pose2(60.0, 55.0, math.radians(20.0))
+    img, depth = render_ground(cam, feats, mpp, origin, truth)
+    seed = Pose2(truth.x + 0.9, truth.y - 0.7, truth.yaw)
+    small = BevAligner(cam, feats, mpp, origin, AlignConfig(search_m=2.0, shift_penalty=0.01)).align(img, depth, [seed])
+    assert small is not None and small.pose.distance(truth) < 0.1
+    large = BevAligner(cam, feats, mpp, origin, AlignConfig(search_m=2.0, shift_penalty=1.0)).align(img, depth, [seed])
+    assert large is not None and large.pose.distance(seed) < 0.5 and large.pose.distance(truth) > 0.6
+    with pytest.raises(ConfigError, match="shift_penalty"):
+        AlignConfig(shift_penalty=-0.1)

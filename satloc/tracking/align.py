@@ -53,6 +53,8 @@ class AlignConfig:
     min_correlation: float = 0.2          # below: keep the co-occurrence estimate
     min_cells: int = 400                  # fewer visible ground cells: keep the co-occurrence estimate
     prior_weight: float = 0.1             # peak score: correlation + prior_weight * log(P(peak) / P(best peak))
+    shift_penalty: float = 0.0            # per m^2: subtracted from a translation's correlation for its squared
+                                          # distance from the seed (a lane over must correlate that much better)
     fit_ground: bool = False              # the ground plane fitted to the stereo depth (a road's grade and camber
                                           # ahead differ from those under the wheels); False: the mounting's
                                           # plane (the default until it is calibrated on depth from stereo
@@ -63,6 +65,8 @@ class AlignConfig:
             raise ConfigError("align: peaks >= 1, search_m > 0 and at least one yaw offset are required")
         if not 0 < self.forward_m[0] < self.forward_m[1] or self.half_width_m <= 0:
             raise ConfigError(f"align: forward_m must be 0 < near < far, got {self.forward_m}")
+        if not self.shift_penalty >= 0:
+            raise ConfigError(f"align.shift_penalty: expected a number >= 0, got {self.shift_penalty!r}")
         if self.channels not in ("gray", "edge", "gray+edge", "learned"):
             raise ConfigError(f"align.channels: expected gray, edge, gray+edge or learned, got {self.channels!r}")
 
@@ -214,6 +218,9 @@ class BevAligner:
             crop = self._crop(p)
             r = sum(cv2.matchTemplate(cr, t, cv2.TM_CCOEFF_NORMED, mask=mask) for cr, t in zip(crop, chans)) / len(chans)
             r = np.nan_to_num(r, nan=-1.0, posinf=-1.0, neginf=-1.0)
+            if self.config.shift_penalty > 0:
+                k = (np.arange(r.shape[0]) - self.margin) * self.res, (np.arange(r.shape[1]) - self.margin) * self.res
+                r = r - self.config.shift_penalty * (k[0][:, None] ** 2 + k[1][None, :] ** 2)
             i, j = np.unravel_index(int(np.argmax(r)), r.shape)
             if r[i, j] > best:
                 di = _parabola_peak(r[i - 1, j], r[i, j], r[i + 1, j]) if 0 < i < r.shape[0] - 1 else 0.0
