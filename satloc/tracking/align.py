@@ -109,6 +109,8 @@ class BevAligner:
         ny = int(round(2 * config.half_width_m / self.res)) + 1
         xs, ys = self.x0 + self.res * np.arange(nx), self.y0 + self.res * np.arange(ny)
         self._X, self._Y = np.meshgrid(xs, ys, indexing="ij")
+        self._vehicle_from_cam = camera.vehicle_from_camera("left")
+        self._cam_from_vehicle = np.linalg.inv(self._vehicle_from_cam)
         self.map_u, self.map_v, self.plane_z, self.in_image = self._grid_on((0.0, 0.0, 0.0))
         self.shape = (nx, ny)
         # the satellite crop around a pose: the BEV grid grown by the search margin, in the vehicle frame
@@ -139,11 +141,9 @@ class BevAligner:
         """The BEV grid's cells on the ground plane z = a x + b y + c (vehicle frame): their pixels (u, v), their
         depth and whether the left image sees them."""
         a, b, c = plane
-        X, Y = self._X, self._Y
-        t = np.linalg.inv(self.camera.vehicle_from_camera("left"))
+        X, Y, t, cam = self._X, self._Y, self._cam_from_vehicle, self.camera
         pc = np.stack([X, Y, a * X + b * Y + c], -1) @ t[:3, :3].T + t[:3, 3]
-        uv, z = self.camera.project(pc)
-        cam = self.camera
+        uv, z = cam.project(pc)
         seen = ((z > 0) & (uv[..., 0] >= 0) & (uv[..., 0] <= cam.width - 1)
                 & (uv[..., 1] >= 0) & (uv[..., 1] <= cam.height - 1))
         return uv[..., 0].astype(np.float32), uv[..., 1].astype(np.float32), z.astype(np.float32), seen
@@ -159,7 +159,8 @@ class BevAligner:
         if int(near.sum()) < self.config.min_cells:
             return None
         uv = np.stack([self.map_u[near], self.map_v[near]], -1)
-        p = self.camera.backproject(uv, d[near]) @ (v := self.camera.vehicle_from_camera("left"))[:3, :3].T + v[:3, 3]
+        v = self._vehicle_from_cam
+        p = self.camera.backproject(uv, d[near]) @ v[:3, :3].T + v[:3, 3]
         keep = np.ones(len(p), bool)
         for _ in range(3):
             if int(keep.sum()) < self.config.min_cells:
