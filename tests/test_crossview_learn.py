@@ -66,6 +66,24 @@ def test_surfaces_are_what_the_localizer_computes(data):
     assert max(abs(i0 - c), abs(j0 - c)) * sm.meters_per_pixel <= 1.0
 
 
+
+def test_samples_see_the_ground_where_the_localizer_does(data):
+    """Training's BEV mask is the localizer's, on the mounting's plane or on the plane ``fit_ground`` fits to the
+    stereo depth (it was always the mounting's)."""
+    from satloc.features import BilateralRGB
+    from satloc.features.dictionary import FrameDepth
+    from satloc.tracking.align import AlignConfig, BevAligner
+
+    seq, sm, sf, s, cfg = data
+    frames = [int(i) for i in s["index"][:3]]
+    for fit in (False, True):
+        align = AlignConfig(fit_ground=fit)
+        smp = samples_from_sequence(seq, sf, frames=frames, align=align, config=cfg)
+        al = BevAligner(seq.camera, sf.features, sf.meters_per_pixel, sf.origin, align).with_search(cfg.search_m)
+        for k, i in enumerate(smp["index"]):
+            _, mask = al.bev(BilateralRGB()(seq[int(i)].left, "ground"), FrameDepth(seq.camera)(seq[int(i)], "q"))
+            assert np.array_equal(smp["mask"][k].astype(bool), mask.astype(bool)), (fit, int(i))
+
 def test_training_lowers_the_loss_and_round_trips(data, tmp_path):
     seq, sm, sf, s, cfg = data
     p = train_crossview([s], cfg, ["residential (test only)"], sm.meters_per_pixel, progress=False, log=lambda m: None)

@@ -112,12 +112,10 @@ def samples_from_sequence(seq, satfeat, frames=None, search_m: float = 2.0, alig
             continue
         d = depth(fr, "training frame")
         g = rgb(fr.left, "ground")
-        dm = cv2.remap(d.astype(np.float32), al.map_u, al.map_v, cv2.INTER_NEAREST, borderMode=cv2.BORDER_CONSTANT,
-                       borderValue=0)
-        mask = al.in_image & (np.abs(dm - al.plane_z) <= align.ground_tolerance * al.plane_z)
+        map_u, map_v, _, _, mask = al.grid(d)   # the localizer's BEV grid: on the fitted plane with fit_ground
         if mask.sum() < align.min_cells:
             continue
-        bev = np.stack([cv2.remap(np.ascontiguousarray(g[..., c], np.float32), al.map_u, al.map_v, cv2.INTER_LINEAR,
+        bev = np.stack([cv2.remap(np.ascontiguousarray(g[..., c], np.float32), map_u, map_v, cv2.INTER_LINEAR,
                                   borderMode=cv2.BORDER_REPLICATE) for c in range(3)])
         p = fr.pose
         crop = crop_at(p, cx, cy)
