@@ -188,7 +188,7 @@ def test_alignment_fits_the_ground_the_stereo_depth_shows():
 
 
 def test_shift_penalty_holds_the_alignment_near_its_seed():
-    """``shift_penalty`` (per m^2, off by default) charges a translation for its distance from the seed: a small one
+    """``shift_penalty`` (per m^2, 0.01 by default) charges a translation for its distance from the seed: a small one
     still lets a 1.1 m correction through (the correlation gains far more), a large one keeps the pose near the
     seed; a negative one is refused."""
     cam = StereoCamera.kitti_half()

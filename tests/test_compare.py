@@ -359,10 +359,12 @@ def test_cross_area_protocol_beside_the_database_rows(tmp_path):
     cross = {r["method"]: r for r in rows if r["protocol"] == "cross-area" and r["method"].startswith("No")}
     revisit = rows[0]
     assert all(r["queries"] == revisit["queries"] == 3 for r in cross.values())
-    # a 3-query section at the start of city's look-alike frontage: single frames answer each query (measured:
-    # mean 6.2 m, misses along the road), tracked ones recover (measured: mean 0.31 m)
+    # a 3-query section at the start of city's look-alike frontage: single frames answer each query (measured
+    # at the default world: mean 8.6 m, misses along the road), tracked ones do better (measured: mean 2.4 m,
+    # median 1.2 m; on the plain, flat world of earlier releases: mean 6.2 and 0.31 m)
     assert all(r["failure_rate"] == 0 and np.isfinite(r["mean_m"]) for r in cross.values()), cross
-    assert cross["No database + track"]["median_m"] < 1.0, cross
+    assert cross["No database + track"]["median_m"] < 2.0, cross
+    assert cross["No database + track"]["mean_m"] < cross["No database"]["mean_m"], cross
     lines = (tmp_path / "cross_area.csv").read_text().splitlines()
     assert lines[0] == ",".join(CROSS_COLUMNS)
     assert [ln.split(",")[0] for ln in lines[1:]] == ["No database", "No database + track"] + floors + ["Ours-GO"]

@@ -5,7 +5,7 @@ candidates 0.5 m apart with the heading of the path. This stage re-checks its fe
 
 1. the query's ground pixels are warped to a bird's-eye view (BEV) of the ground plane in front of the
    vehicle, at the satellite map's resolution, through the camera's known mounting (height, pitch), or with
-   ``fit_ground`` (off by default) the plane the stereo depth shows: a least-squares plane through the points
+   ``fit_ground`` (the default) the plane the stereo depth shows: a least-squares plane through the points
    near the mounting's plane, outliers dropped, kept where it is plausible for a road (a road ahead climbing or
    banking otherwise than the ground under the wheels puts the mounting's plane metres off at 20 m). Only
    cells whose stereo depth agrees with the plane are kept, so cars, people, walls and anything else standing
@@ -53,12 +53,12 @@ class AlignConfig:
     min_correlation: float = 0.2          # below: keep the co-occurrence estimate
     min_cells: int = 400                  # fewer visible ground cells: keep the co-occurrence estimate
     prior_weight: float = 0.1             # peak score: correlation + prior_weight * log(P(peak) / P(best peak))
-    shift_penalty: float = 0.0            # per m^2: subtracted from a translation's correlation for its squared
-                                          # distance from the seed (a lane over must correlate that much better)
-    fit_ground: bool = False              # the ground plane fitted to the stereo depth (a road's grade and camber
+    shift_penalty: float = 0.01           # per m^2: subtracted from a translation's correlation for its squared
+                                          # distance from the seed (a lane over must correlate that much better);
+                                          # chosen on the calibration scenes (docs/method.md); 0: off
+    fit_ground: bool = True               # the ground plane fitted to the stereo depth (a road's grade and camber
                                           # ahead differ from those under the wheels); False: the mounting's
-                                          # plane (the default until it is calibrated on depth from stereo
-                                          # matching, which biased its fit on a flat street)
+                                          # plane, exact only on flat ground under a level car
 
     def __post_init__(self):
         if self.peaks < 1 or self.search_m <= 0 or not self.yaw_offsets_deg:
