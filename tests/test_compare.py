@@ -8,7 +8,7 @@ import pytest
 from satloc.errors import ConfigError
 from satloc.persist import load_npz
 from satloc.sequence import Sequence
-from satloc_env.experiments.scene_run import ExperimentConfig
+from satloc_env.experiments.scene_run import ExperimentConfig, covered_queries
 from satloc_env.experiments.tables import CompareConfig, Table2Config, _write_table2, operating_point, trained_fabmap
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -372,7 +372,7 @@ def test_cross_area_protocol_beside_the_database_rows(tmp_path):
     assert "lateral 1 / 3 / 5 m" in (tmp_path / "cross_area.md").read_text()
     a, _ = load_npz(tmp_path / "city" / "cross_area" / "localization_cross.npz", "localization")
     # the priors: seeded per query, within the protocol's radius and heading range of the truth
-    from satloc_env.experiments.scene_run import ExperimentConfig
+    from satloc_env.experiments.scene_run import ExperimentConfig, covered_queries
 
     pri = query_priors(ExperimentConfig().cross_area, a["truth"], a["frames"])
     assert np.allclose(a["prior"][:, :2], [[p.x, p.y] for p in pri])
@@ -407,3 +407,23 @@ def test_kitti_city_protocol_splits_one_dense_pass(tmp_path):
     build = json.loads((tmp_path / "city" / "protocol_kitti-city" / "build_stage.json").read_text())
     assert len(build["config"]["database_frames"]) == n_db and build["config"]["protocol"] == "kitti-city"
     assert "kitti-city" in (tmp_path / "table1.csv").read_text()
+
+
+def test_a_query_crossing_the_database_path_is_not_covered():
+    """A query within ``coverage_m`` of the database path counts only where a database frame there looks the
+    same way (``coverage_yaw_deg``, 45 by default): at an intersection a query pass crossing the database's path
+    lies within a few metres of it and sees none of its views (found on city's demo: one query, 206 m off in
+    every mode)."""
+    from types import SimpleNamespace
+
+    north = np.array([[180.0, y, np.pi / 2] for y in np.arange(100.0, 260.0, 1.6)])   # the database drives north
+    q = np.array([[186.0, 180.0, np.pi],            # crossing it westwards, 6 m east of it: too far anyway
+                  [181.0, 180.0, np.pi],            # crossing it westwards over its path: not covered
+                  [179.0, 150.0, np.pi / 2 + 0.5],   # beside it, 29 degrees off its heading: covered
+                  [179.0, 150.0, -np.pi / 2],        # beside it, the other way: not covered
+                  [np.nan, np.nan, np.nan]])
+    db, qs = SimpleNamespace(poses=north), SimpleNamespace(poses=q)
+    assert covered_queries(db, qs, 5.0).tolist() == [1, 2, 3]                  # position only (180: any heading)
+    assert covered_queries(db, qs, 5.0, 45.0).tolist() == [2]
+    assert covered_queries(db, qs, 5.0, 180.0).tolist() == [1, 2, 3]
+    assert ExperimentConfig(scene="city").coverage_yaw_deg == 45.0

@@ -25,6 +25,7 @@ from __future__ import annotations
 import csv
 import dataclasses
 import json
+import math
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -158,6 +159,8 @@ class ExperimentConfig:
     speed_wander: float = added_field(DEFAULT_SPEED_WANDER, before=0.0)  # and speed drift (relative std), each
                                             # pass seeded by its own seed (satloc_env.envs.vehicle.Wander)
     coverage_m: float = 5.0                 # evaluate queries whose true pose is this close to the database path
+    coverage_yaw_deg: float = added_field(45.0, before=180.0)   # ... and heading within this of a database frame's
+                                            # there (180: any; a query crossing the path at an intersection is out)
     features: str = "default"
     context: ContextConfig = field(default_factory=ContextConfig)
     projection: ProjectionConfig = field(default_factory=ProjectionConfig)
@@ -220,13 +223,21 @@ def _stamp(path: Path, config: dict, **extra) -> None:
     write_json(path, {"format": "experiment_stage", "config": config, **extra})
 
 
-def covered_queries(db: Sequence, q: Sequence, radius_m: float) -> np.ndarray:
-    """Indices of the query frames whose true position lies within ``radius_m`` of a database frame."""
+def covered_queries(db: Sequence, q: Sequence, radius_m: float, max_yaw_deg: float = 180.0) -> np.ndarray:
+    """Indices of the query frames whose true position lies within ``radius_m`` of a database frame whose
+    heading is within ``max_yaw_deg`` degrees of the query's (180: any heading; a query crossing the database
+    path at an intersection lies within a few metres of it, looking across its views)."""
     from scipy.spatial import cKDTree
 
     ok = np.all(np.isfinite(db.poses), axis=1)
-    d, _ = cKDTree(db.poses[ok, :2]).query(np.nan_to_num(q.poses[:, :2], nan=1e12))
-    return np.flatnonzero(d <= radius_m)
+    P = db.poses[ok]
+    Q = np.nan_to_num(q.poses, nan=1e12)
+    if max_yaw_deg >= 180.0:
+        d, _ = cKDTree(P[:, :2]).query(Q[:, :2])
+        return np.flatnonzero(d <= radius_m)
+    near = cKDTree(P[:, :2]).query_ball_point(Q[:, :2], radius_m)
+    cos_max = math.cos(math.radians(max_yaw_deg))
+    return np.array([i for i, js in enumerate(near) if js and np.any(np.cos(P[js, 2] - Q[i, 2]) >= cos_max)], int)
 
 
 def record_config(cfg: ExperimentConfig) -> RecordConfig:
@@ -413,9 +424,10 @@ def build_and_learn(cfg, label: str, database: Sequence, satmap: str | Path, out
 
 def _covered(cfg: ExperimentConfig, db: Sequence, q: Sequence) -> np.ndarray:
     """The evaluated queries: the frames of the query pass ``query_spacing_m`` apart (:func:`spaced_frames`)
-    whose true position lies within ``coverage_m`` of the database path."""
-    sel = np.intersect1d(covered_queries(db, q, cfg.coverage_m), spaced_frames(q, cfg.query_spacing_m,
-                                                                                  cfg.query_frames))
+    whose true position lies within ``coverage_m`` of the database path, heading within ``coverage_yaw_deg`` of
+    the database's there."""
+    sel = np.intersect1d(covered_queries(db, q, cfg.coverage_m, cfg.coverage_yaw_deg),
+                         spaced_frames(q, cfg.query_spacing_m, cfg.query_frames))
     if len(sel) == 0:
         raise ConfigError(f"[{cfg.scene}] no query frame lies within {cfg.coverage_m} m of the database path")
     return sel
