@@ -126,10 +126,17 @@ def test_demo_and_table1_on_a_tiny_section(tmp_path, capsys):
     assert summary["queries"] >= 2 and set(summary["modes"]) == set(MODES)
     assert {"full+track", "full+track+align"} <= set(MODES)
     assert f"artefacts in {out}" in text and " rec/ " in text and " build/ " in text
-    # again with --no-keep-artefacts: the stages are reused, then everything but the pictures and summary goes
+    # again with --no-keep-artefacts: the stages are reused, then everything but the pictures and summary goes;
+    # a mode localized again (here: its stamp gone) draws its pictures anew, and an earlier run's picture of a
+    # query it does not show is removed
+    stale = out / "posterior_go_q999.png"
+    stale.write_bytes((out / "errors_along_route.png").read_bytes())
+    (out / "localization_go.stamp.json").unlink()
     assert main(["demo", "--out", str(out), "--db-frames", "20", "--query-frames", "3", "--features", "rgb",
                  "--quiet", "--no-keep-artefacts"]) == 0
-    assert "deleted the artefacts (rec/" in capsys.readouterr().out
+    text = capsys.readouterr().out
+    assert "deleted the artefacts (rec/" in text and not stale.exists() and "q999" not in text
+    assert len(list(out.glob("posterior_go_q*.png"))) >= 1
     left = sorted(p.name for p in out.iterdir())
     assert "summary.json" in left and "errors_along_route.png" in left
     assert all(n.endswith(".png") or n == "summary.json" for n in left), left

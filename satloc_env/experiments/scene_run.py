@@ -527,6 +527,9 @@ def localize_and_report(cfg, label: str, db: Sequence, q: Sequence, sel: np.ndar
 
     plot_errors_along_route(out, q, sel, cfg.modes, out / "errors_along_route.png")
     poses = q.poses
+    for mode in examples:   # an earlier run's pictures of this mode show queries this one may not have picked
+        for old in out.glob(f"posterior_{mode}_q*.png"):
+            old.unlink()
     for mode, ex in examples.items():
         for qi, r in ex:
             truth = Pose2.from_array(poses[qi]) if np.all(np.isfinite(poses[qi])) else None
