@@ -112,7 +112,7 @@ def samples_from_sequence(seq, satfeat, frames=None, search_m: float = 2.0, alig
             continue
         d = depth(fr, "training frame")
         g = rgb(fr.left, "ground")
-        map_u, map_v, _, _, mask = al.grid(d)   # the localizer's BEV grid: on the fitted plane with fit_ground
+        map_u, map_v, mask = al.grid(d)   # the localizer's BEV grid: on the fitted plane with fit_ground
         if mask.sum() < align.min_cells:
             continue
         bev = np.stack([cv2.remap(np.ascontiguousarray(g[..., c], np.float32), map_u, map_v, cv2.INTER_LINEAR,

@@ -173,11 +173,11 @@ class BevAligner:
             return None
         return a, b, c
 
-    def grid(self, depth: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    def grid(self, depth: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Where each BEV cell lies in the left image for this query, on the ground plane ``fit_ground`` fits
         to ``depth`` (else, or where no plausible plane is found, the mounting's): ``map_u``, ``map_v`` (pixel
-        coordinates, float32), ``plane_z`` (the plane's depth there), ``in_image`` and the ground mask (bool:
-        in the image, and the stereo depth within ``ground_tolerance`` of the plane's)."""
+        coordinates, float32) and the ground mask (bool: in the image, and the stereo depth within
+        ``ground_tolerance`` of the plane's)."""
         grid = (self.map_u, self.map_v, self.plane_z, self.in_image)
         if self.config.fit_ground:
             plane = self.ground_plane(depth)
@@ -186,12 +186,11 @@ class BevAligner:
         map_u, map_v, plane_z, in_image = grid
         d = cv2.remap(depth.astype(np.float32), map_u, map_v, cv2.INTER_NEAREST,
                       borderMode=cv2.BORDER_CONSTANT, borderValue=0)
-        ground = in_image & (np.abs(d - plane_z) <= self.config.ground_tolerance * plane_z)
-        return map_u, map_v, plane_z, in_image, ground
+        return map_u, map_v, in_image & (np.abs(d - plane_z) <= self.config.ground_tolerance * plane_z)
 
     def bev(self, features: np.ndarray, depth: np.ndarray) -> tuple[list[np.ndarray], np.ndarray]:
         """The query's BEV channels and the mask (float32, 1 where the ground is seen, else 0)."""
-        map_u, map_v, _, _, ground = self.grid(depth)
+        map_u, map_v, ground = self.grid(depth)
         mask = ground.astype(np.float32)
         chans = [self._normalize(cv2.remap(c, map_u, map_v, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE), mask)
                  for c in _channel_maps(features, self.config.channels)]

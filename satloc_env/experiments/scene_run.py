@@ -429,7 +429,8 @@ def _covered(cfg: ExperimentConfig, db: Sequence, q: Sequence) -> np.ndarray:
     sel = np.intersect1d(covered_queries(db, q, cfg.coverage_m, cfg.coverage_yaw_deg),
                          spaced_frames(q, cfg.query_spacing_m, cfg.query_frames))
     if len(sel) == 0:
-        raise ConfigError(f"[{cfg.scene}] no query frame lies within {cfg.coverage_m} m of the database path")
+        raise ConfigError(f"[{cfg.scene}] no query frame lies within {cfg.coverage_m} m of the database path, heading "
+                          f"within {cfg.coverage_yaw_deg} degrees of it")
     return sel
 
 
@@ -527,10 +528,9 @@ def localize_and_report(cfg, label: str, db: Sequence, q: Sequence, sel: np.ndar
 
     plot_errors_along_route(out, q, sel, cfg.modes, out / "errors_along_route.png")
     poses = q.poses
-    for mode in examples:   # an earlier run's pictures of this mode show queries this one may not have picked
-        for old in out.glob(f"posterior_{mode}_q*.png"):
-            old.unlink()
     for mode, ex in examples.items():
+        for old in out.glob(f"posterior_{mode}_q*.png"):   # an earlier run's: queries this one may not show
+            old.unlink()
         for qi, r in ex:
             truth = Pose2.from_array(poses[qi]) if np.all(np.isfinite(poses[qi])) else None
             plot_posterior(satmap, r, truth, out / f"posterior_{mode}_q{qi:03d}.png",
