@@ -58,17 +58,27 @@ def cooccurrence_scores(cands, pv, gid, wg, origin_x, origin_y, mpp, h, w, pixel
 
 
 @numba.njit(cache=True, nogil=True)
-def location_scores(cands, pv, loc, wg, radius):
+def location_scores(cands, pv, loc, wg, radius, raster, origin_x, origin_y, cell):
     """Ground-only: entry i (of NN(g_j)) counts when its location lies within ``radius`` of c ⊕ pv_j,
-    weighted wg / max(distance, 0.25)."""
+    weighted wg / max(distance, 0.25). Also, per candidate, the sum over its samples of the ``raster`` cell under
+    c ⊕ pv_j (row 0 from ``origin_y`` up, column 0 from ``origin_x``, cells of side ``cell``; 0 off the raster;
+    an empty raster gives 0). Returns (scores, raster sums)."""
     n, m = wg.shape
+    h, w = raster.shape
     out = np.zeros(len(cands))
+    chance = np.zeros(len(cands))
     r2 = radius * radius
     for c in range(len(cands)):
         co, si = math.cos(cands[c, 2]), math.sin(cands[c, 2])
         acc = 0.0
+        bg = 0.0
         for j in range(n):
             x, y = _place(cands[c, 0], cands[c, 1], co, si, pv[j, 0], pv[j, 1])
+            if h > 0:
+                col = int(math.floor((x - origin_x) / cell))
+                row = int(math.floor((y - origin_y) / cell))
+                if 0 <= row < h and 0 <= col < w:
+                    bg += raster[row, col]
             for k in range(m):
                 if wg[j, k] <= 0:
                     continue
@@ -77,4 +87,5 @@ def location_scores(cands, pv, loc, wg, radius):
                 if d2 <= r2:
                     acc += wg[j, k] / max(math.sqrt(d2), 0.25)
         out[c] = acc
-    return out
+        chance[c] = bg
+    return out, chance

@@ -202,6 +202,64 @@ def test_compiled_scores_match_the_numpy_formula():
     assert got.max() > 0
 
 
+def test_entry_density_is_the_voting_kernel_summed_over_the_entries():
+    """Unsmoothed, the raster at a cell is the ground-only voting kernel summed over the dictionary's entries
+    (entries on cell centres: exact); smoothing keeps its sum; the compiled look-up reads the cell under each
+    sample of each candidate."""
+    from satloc._kernels import location_scores
+    from satloc.localizers.database import entry_density
+
+    rng = np.random.default_rng(3)
+    loc = rng.integers(0, 40, (60, 2)) * 0.25 + 0.125 + 10.0          # on the centres of 0.25 m cells
+    dens, x0, y0, cell = entry_density(loc, 1.0, 0.0)
+    assert cell == 0.25 and (x0 - 0.125) / cell == pytest.approx(round((x0 - 0.125) / cell))
+    for _ in range(20):
+        p = loc[rng.integers(len(loc))] + rng.integers(-6, 7, 2) * 0.25
+        d = np.hypot(*(loc - p).T)
+        want = np.sum(np.where(d <= 1.0 + 1e-9, 1.0 / np.maximum(d, 0.25), 0.0))
+        got = dens[int((p[1] - y0) // cell), int((p[0] - x0) // cell)]
+        assert got == pytest.approx(want, rel=1e-5)
+    smooth = entry_density(loc, 1.0, 2.0)
+    assert smooth[0].sum() == pytest.approx(dens.sum(), rel=1e-3) and smooth[0].max() < dens.max()
+    pv = rng.uniform(0, 5, (7, 2))
+    cands = np.column_stack([rng.uniform(8, 20, 5), rng.uniform(8, 20, 5), rng.uniform(-3, 3, 5)])
+    none = np.zeros((len(pv), 1, 2))
+    got = location_scores(cands, pv, none, np.zeros((len(pv), 1), np.float32), 1.0, dens, x0, y0, cell)[1]
+    assert not location_scores(cands, pv, none, np.zeros((len(pv), 1), np.float32), 1.0,
+                               np.zeros((0, 0), np.float32), 0.0, 0.0, 1.0)[1].any()
+    for c, (x, y, yaw) in enumerate(cands):
+        px = x + np.cos(yaw) * pv[:, 0] - np.sin(yaw) * pv[:, 1]
+        py = y + np.sin(yaw) * pv[:, 0] + np.cos(yaw) * pv[:, 1]
+        col, row = np.floor((px - x0) / cell).astype(int), np.floor((py - y0) / cell).astype(int)
+        on = (row >= 0) & (row < dens.shape[0]) & (col >= 0) & (col < dens.shape[1])
+        assert got[c] == pytest.approx(dens[row[on], col[on]].sum(), rel=1e-6)
+
+
+def test_ground_only_weighs_a_place_by_what_chance_gives_it():
+    """A place the database saw from few frames (2 entries, both among a sample's neighbours) against one it saw
+    from many (20 entries, 4 among the neighbours): the plain ground-only sum prefers the second, the sum divided
+    by the entries' density (``go_density_m``) the first."""
+    cam, seq, sf, ext = tiny_setup()
+    d = build_dictionary(seq, sf, ext, GridConfig(step_px=4, min_depth_m=1.0), depth_source="frame", progress=False)
+    assert len(d) >= 22
+    poses = np.column_stack([np.arange(0.0, 41.0), np.zeros(41), np.zeros(41)])
+    loc = np.vstack([np.full((2, 2), [10.0, 0.0]),
+                     np.array([30.0, 0.0]) + np.random.default_rng(0).normal(0, 0.3, (20, 2))])
+    toy = Dictionary(d.g[:22], d.s[:22], loc, np.r_[np.full(2, 10), np.full(20, 30)].astype(np.int32), poses,
+                     d.grid, d.feature_name, d.context)
+    gid = np.array([[0, 1, 2, 3, 4, 5]])                      # one sample: both of the first place, 4 of the second
+    wg = np.ones((1, 6), np.float32)
+    pv = np.array([[5.0, 0.0]])
+    cands = np.array([[5.0, 0.0, 0.0], [25.0, 0.0, 0.0]])     # placing the sample at the first / second place
+    common = dict(mode="go", depth_source="frame", go_radius_m=1.0)
+    plain = Localizer(toy, sf, ext, cam, None, LocalizerConfig(go_density_m=0.0, **common))._scores(cands, pv, gid, wg)
+    dens = Localizer(toy, sf, ext, cam, None, LocalizerConfig(**common))._scores(cands, pv, gid, wg)
+    assert plain[1] > plain[0] > 0
+    assert dens[0] > dens[1] > 0
+    with pytest.raises(ConfigError, match="go_density_m"):
+        LocalizerConfig(go_density_m=-1.0)
+
+
 def test_stream_gives_what_single_calls_give_and_reports_bad_frames():
     cam, seq, sf, ext = tiny_setup()
     d = build_dictionary(seq, sf, ext, GridConfig(step_px=4, min_depth_m=1.0), depth_source="frame", progress=False)
