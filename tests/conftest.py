@@ -15,3 +15,27 @@ if _workers > 1 and "OMP_NUM_THREADS" not in os.environ:
     os.environ["OMP_NUM_THREADS"] = str(_threads)
     if "torch" in sys.modules:     # imported before this file (by a plugin): set its pool too
         sys.modules["torch"].set_num_threads(_threads)
+
+
+import gc  # noqa: E402
+
+import pytest  # noqa: E402
+
+#: per-process caches of built worlds (functions with functools.lru_cache), by module: at variety 1 a scene with
+#: its meshes and textures holds 1-2 GB, and one xdist worker that keeps four scenes and two revisit worlds from
+#: earlier test files reached 13-15 GB and was killed for memory on the 23 GB machine
+_CACHES = {"satloc_env.world.scene": ("_cached_scene",), "satloc_env.world.revisit": ("changed_world",),
+           "satloc_env.envs.auto_localizer": ("_load",)}
+
+
+@pytest.fixture(autouse=True, scope="module")
+def _free_built_worlds_after_each_file():
+    """After each test file, drop the worlds the process cached (a later file reads a scene back from the disk
+    cache in a fraction of a second), so a worker holds what one file needs, not what every file before it
+    built."""
+    yield
+    for mod, names in _CACHES.items():
+        m = sys.modules.get(mod)
+        for name in names if m is not None else ():
+            getattr(m, name).cache_clear()
+    gc.collect()
