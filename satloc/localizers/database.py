@@ -252,7 +252,8 @@ class Localizer:
         self.eps_g = config.min_distance_frac * _spread(pg) + 1e-9
         if config.mode != "go":
             self._satellite_table(table_cache, progress)
-        self._density = None
+        # (raster, x0, y0, cell, floor per sample); an empty raster and no floor: the plain sum
+        self._density = (np.zeros((0, 0), np.float32), 0.0, 0.0, 1.0, 0.0)
         if config.mode == "go" and config.go_density_m > 0:
             dens, x0, y0, cell = entry_density(dictionary.loc, config.go_radius_m, config.go_density_m)
             # a floor for the density under a candidate's samples: 5 % of a typical cell's, per sample
@@ -514,10 +515,10 @@ class Localizer:
         wg = np.ascontiguousarray(wg, dtype=np.float32)
         if self.config.mode == "go":
             loc = np.ascontiguousarray(self.dictionary.loc[np.maximum(gid, 0)], dtype=np.float64)
-            dens, x0, y0, cell, floor = self._density or (np.zeros((0, 0), np.float32), 0.0, 0.0, 1.0, 0.0)
+            dens, x0, y0, cell, floor = self._density
             scores, chance = _kernels.location_scores(cands, pv, loc, np.where(gid >= 0, wg, 0).astype(np.float32),
                                                       float(self.config.go_radius_m), dens, x0, y0, cell)
-            if self._density is not None:   # divided by what chance gives each candidate (see the module docstring)
+            if floor > 0:   # divided by what chance gives each candidate (see the module docstring)
                 scores = scores / np.maximum(chance, floor * len(pv))
             return scores
         sf = self.satfeat
