@@ -155,8 +155,8 @@ def test_errors():
 
 
 def test_view_volume_culling_changes_no_pixel(monkeypatch):
-    """Chunks and cells wholly outside a camera's view volume are skipped (satloc_env.render.stereo._box_in_view);
-    the images are the same as when every chunk and cell within reach is drawn."""
+    """Chunks and cells wholly outside a camera's view volume (beside, behind, or beyond the far plane) are skipped
+    (satloc_env.render.stereo._box_in_view); the images are the same as when every chunk and cell within reach is drawn."""
     import satloc_env.render.stereo as render
 
     def box(xs, ys, zs):   # min and max rows in the camera frame (the camera at the origin: map_from_cam = identity)
@@ -171,6 +171,9 @@ def test_view_volume_culling_changes_no_pixel(monkeypatch):
                              ((-1, 1), (-1, 1), (-5, 0.05), False),   # behind the near plane
                              ((-1, 1), (-1, 1), (-5, 0.2), True)):    # reaching past it
         assert render._box_in_view(box(xs, ys, zs), np.eye(4), cam, 0.1).tolist() == [seen], (xs, ys, zs)
+    for zs, seen in (((151, 160), False), ((149, 160), True)):     # beyond the far plane at 150 m, or reaching it
+        assert render._box_in_view(box((-1, 1), (-1, 1), zs), np.eye(4), cam, 0.1, zfar=150.0).tolist() == [seen]
+        assert render._box_in_view(box((-1, 1), (-1, 1), zs), np.eye(4), cam, 0.1).tolist() == [True]   # no far plane
     runs = []
     for cull in (True, False):
         if not cull:

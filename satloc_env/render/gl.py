@@ -407,9 +407,11 @@ class _MultiViewRenderer(pyrender.Renderer):
             runs = ranges.get(id(node)) if ranges else None
             if runs is None:
                 GL.glDrawElementsInstanced(prim.mode, prim.indices.size, GL.GL_UNSIGNED_INT, None, 1)
-            elif runs:   # one call for all runs: uint32 indices, 3 per triangle
-                counts = (ctypes.c_int32 * len(runs))(*(3 * c for _, c in runs))
-                starts = (ctypes.c_void_p * len(runs))(*(12 * f for f, _ in runs))
+            elif len(runs):   # one call for all runs: uint32 indices, 3 per triangle
+                counts, starts = getattr(runs, "counts_c", None), getattr(runs, "starts_c", None)
+                if counts is None:    # (first triangle, triangles) pairs
+                    counts = (ctypes.c_int32 * len(runs))(*(3 * c for _, c in runs))
+                    starts = (ctypes.c_void_p * len(runs))(*(12 * f for f, _ in runs))
                 GL.glMultiDrawElements(prim.mode, counts, GL.GL_UNSIGNED_INT, starts, len(runs))
 
     def _uniforms(self, program) -> dict[str, int]:
@@ -491,7 +493,7 @@ class ViewGroup(NamedTuple):
     meshes: Sequence
     bg_color: Sequence[float] | None = None
     hidden: tuple | None = None     # per camera: ids of nodes of ``meshes`` it skips (they cannot be in its view)
-    ranges: tuple | None = None     # per camera: {node id: [(first triangle, count), ...]}
+    ranges: tuple | None = None     # per camera: {node id: [(first triangle, count), ...] or a stereo.FaceRuns}
 
 
 #: the renderers not yet deleted; :func:`_delete_live_renderers` frees them at interpreter exit

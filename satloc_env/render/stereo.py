@@ -10,6 +10,7 @@ instead of hanging; see :mod:`satloc_env.render.gl`).
 """
 from __future__ import annotations
 
+import ctypes
 import math
 from collections.abc import Sequence
 from typing import Any, NamedTuple
@@ -187,6 +188,29 @@ def body_tilt(pitch: float, roll: float) -> np.ndarray:
     return ry @ rx
 
 
+class FaceRuns:
+    """Runs of triangles of one indexed primitive, as ``glMultiDrawElements`` takes them: ``counts`` (int32:
+    3 indices per triangle) and ``starts`` (byte offsets of uint32 indices), with the ctypes arrays over the
+    same memory. Iterates as (first triangle, triangles) pairs."""
+
+    __slots__ = ("counts", "starts", "counts_c", "starts_c")
+
+    def __init__(self, counts: np.ndarray, starts: np.ndarray):
+        self.counts, self.starts = counts, starts
+        n = len(counts)
+        self.counts_c = (ctypes.c_int32 * n).from_buffer(counts) if n else None
+        self.starts_c = (ctypes.c_void_p * n).from_buffer(starts) if n else None
+
+    def __len__(self) -> int:
+        return len(self.counts)
+
+    def __iter__(self):
+        return zip((self.starts // 12).tolist(), (self.counts // 3).tolist())
+
+
+_NO_RUNS = FaceRuns(np.zeros(0, np.int32), np.zeros(0, np.uintp))
+
+
 class _Cells(NamedTuple):
     """The cells (:attr:`TexturedMesh.cell_faces`) of all chunks of a world that have several, in one flat list."""
 
@@ -199,13 +223,22 @@ class _Cells(NamedTuple):
     squares: np.ndarray    # (C, 4) x0, y0, x1, y1 of the square of ground whose distance chooses its detail
     bands: np.ndarray      # (C,) its level-of-detail band (meshes.ALWAYS, NEAR, FAR, INSIDE)
     mirror: np.ndarray     # (C,) whether its chunk is a reflection beyond the layout's edge
+    whole: np.ndarray      # (C,) a flat chunk's ground: drawn whenever its chunk is (not a terrain's cell)
+    near_band: np.ndarray  # (C,) bands == NEAR
+    far_band: np.ndarray   # (C,) bands == FAR
+    inside_mirror: np.ndarray  # (C,) bands == INSIDE in a reflection (drawn within detail_m only)
+    has_cells: np.ndarray  # (chunks,) whether the chunk is cut into cells (then drawn by its runs alone)
 
     @staticmethod
     def of(chunks: Sequence[TexturedMesh]) -> "_Cells":
+        """The cells of ``chunks``; cells without faces are left out (they draw nothing), but a chunk cut into
+        cells keeps ``has_cells`` even if all of its are empty."""
         parts = []
+        has_cells = np.zeros(len(chunks), bool)
         for i, c in enumerate(chunks):
             if c.cell_faces is None or len(c.cell_faces) < 3:
                 continue   # one cell: the chunk drawn whole
+            has_cells[i] = True
             f = np.asarray(c.cell_faces, np.int64)
             k = len(f) - 1
             bands = np.asarray(c.cell_bands, np.int8)
@@ -219,41 +252,54 @@ class _Cells(NamedTuple):
             parts = [(z.astype(np.int64), z.astype(np.int64), z.astype(np.int64), z.astype(bool),
                       np.zeros((0, 2, 3)), np.zeros((0, 4)), z.astype(np.int8), z.astype(bool))]
         chunk, first, count, ground, boxes, squares, bands, mirror = (np.concatenate(a) for a in zip(*parts))
+        live = count > 0
+        chunk, first, count, ground, boxes, squares, bands, mirror = (
+            a[live] for a in (chunk, first, count, ground, boxes, squares, bands, mirror))
         rects = np.concatenate([boxes[:, 0, :2], boxes[:, 1, :2]], axis=1)
-        return _Cells(chunk, first, count, ground, boxes, rects, squares, bands, mirror)
+        return _Cells(chunk, first, count, ground, boxes, rects, squares, bands, mirror,
+                      ground & (bands != GROUND), bands == NEAR, bands == FAR, (bands == INSIDE) & mirror, has_cells)
 
     def runs(self, drawn: np.ndarray, in_view: tuple, views: Sequence[np.ndarray], pose: Pose2, reach: float,
-             camera: StereoCamera, znear: float, detail_m: float) -> tuple:
+             camera: StereoCamera, znear: float, detail_m: float, zfar: float = math.inf) -> tuple:
         """Per view, {chunk: (first face, faces) of each of its cells to draw} for the chunks of ``drawn``
         (those in that view, ``in_view[view]``): a cell is drawn when its box is within ``reach`` of the pose
         and meets the view volume (a cell that does neither puts no fragment in the image) and its band suits
         its square's distance to the vehicle (within ``detail_m``: NEAR, not FAR; INSIDE everywhere but in the
         reflections beyond the layout's edge); nearest box first (the depth test then rejects what it hides
-        before it is shaded), the ground last (a flat chunk's whole, a terrain's cells that meet the view)."""
+        before it is shaded), the ground last (a flat chunk's whole, a terrain's cells that meet the view).
+
+        Every chunk of ``in_view[view]`` that has cells gets an entry, an empty list if no cell is kept: a chunk
+        missing there would be drawn whole (every cell, out of reach or not, at every level of detail)."""
         idx = np.flatnonzero(drawn[self.chunk])
         if not len(idx):
             return ({}, {})
-        b = self.boxes[idx]
+        # the bands are exclusive: NEAR cells within detail_m, FAR ones beyond it, INSIDE ones within it or
+        # not in a reflection, the others always
         lod = _near(self.squares[idx], pose, detail_m)
-        band = self.bands[idx]
-        detail = np.select([band == NEAR, band == FAR, band == INSIDE], [lod, ~lod, lod | ~self.mirror[idx]], True)
-        ok = _near(self.rects[idx], pose, reach) & detail
-        whole = self.ground[idx] & (band != GROUND)   # a flat chunk's ground: drawn with its chunk
+        detail = (lod | ~self.near_band[idx]) & ~(lod & self.far_band[idx]) & (lod | ~self.inside_mirror[idx])
+        take = self.whole[idx] | (detail & _near(self.rects[idx], pose, reach))
+        cand = idx[take]
+        whole = self.whole[cand]
+        chunk = self.chunk[cand]
         out = []
         for side, m in enumerate(views):
-            keep = in_view[side][self.chunk[idx]] & (whole | (ok & _box_in_view(b, m, camera, znear)))
-            k = idx[keep]
+            sel = in_view[side][chunk]
+            k = cand[sel]
+            keep = whole[sel].copy()
+            test = ~keep
+            keep[test] = _box_in_view(self.boxes[k[test]], m, camera, znear, zfar=zfar)
+            k = k[keep]
             eye = m[:3, 3]
             gap = np.linalg.norm(np.clip(eye, self.boxes[k, 0], self.boxes[k, 1]) - eye, axis=1)
             order = k[np.lexsort((gap, self.ground[k], self.chunk[k]))]
             chunks = self.chunk[order]
             cut = np.flatnonzero(np.diff(chunks)) + 1
-            pairs = np.stack([self.first[order], self.count[order]], axis=1).tolist()
-            # every chunk of this view that has cells gets its runs, none if no cell is kept (a chunk missing
-            # here would be drawn whole: every cell, out of reach or not, at every level of detail)
-            runs = dict.fromkeys(np.unique(self.chunk[idx[in_view[side][self.chunk[idx]]]]).tolist(), [])
-            runs.update({int(chunks[a]): [tuple(q) for q in pairs[a:z] if q[1] > 0]
-                         for a, z in zip(np.r_[0, cut], np.r_[cut, len(order)]) if z > a})
+            counts = 3 * self.count[order].astype(np.int32)            # indices: uint32, 3 per triangle
+            starts = 12 * self.first[order].astype(np.uintp)           # byte offsets into the index buffer
+            runs: dict = dict.fromkeys(np.flatnonzero(in_view[side] & self.has_cells).tolist(), _NO_RUNS)
+            for a, z in zip([0, *cut.tolist()], [*cut.tolist(), len(order)]):
+                if z > a:
+                    runs[int(chunks[a])] = FaceRuns(counts[a:z], starts[a:z])
             out.append(runs)
         return tuple(out)
 
@@ -275,11 +321,12 @@ def _near(rects: np.ndarray, pose: Pose2, reach: float) -> np.ndarray:
 
 
 def _box_in_view(boxes: np.ndarray, map_from_cam: np.ndarray, camera: StereoCamera, znear: float,
-                 margin_px: float = 4.0) -> np.ndarray:
+                 margin_px: float = 4.0, zfar: float = math.inf) -> np.ndarray:
     """(n,) False for the axis-aligned boxes (``boxes``, (n, 2, 3) min and max rows, map frame) wholly on the
-    outer side of one plane of the camera's view volume (in front of the near plane, or beyond an image edge
-    widened by ``margin_px``): such a box puts no fragment in the image, so skipping it changes no pixel. A
-    conservative test: a box that misses the volume across a corner may still be kept.
+    outer side of one plane of the camera's view volume (in front of the near plane, beyond the far plane
+    ``zfar``, or beyond an image edge widened by ``margin_px``): such a box puts no fragment in the image, so
+    skipping it changes no pixel. A conservative test: a box that misses the volume across a corner may still
+    be kept.
 
     Each plane is a linear function f of the point, f >= 0 on the volume's side; its largest value over a box
     is f(centre) + |grad f| . half-extent, so a box is wholly outside when that is negative."""
@@ -288,10 +335,11 @@ def _box_in_view(boxes: np.ndarray, map_from_cam: np.ndarray, camera: StereoCame
     u0, u1 = camera.cx + 0.5 + margin_px, camera.cx + 0.5 - camera.width - margin_px
     v0, v1 = camera.cy + 0.5 + margin_px, camera.cy + 0.5 - camera.height - margin_px
     planes = np.array([[0.0, 0.0, 1.0, -znear], [camera.fx, 0.0, u0, 0.0], [-camera.fx, 0.0, -u1, 0.0],
-                       [0.0, camera.fy, v0, 0.0], [0.0, -camera.fy, -v1, 0.0]]) @ np.linalg.inv(map_from_cam)
+                       [0.0, camera.fy, v0, 0.0], [0.0, -camera.fy, -v1, 0.0],
+                       [0.0, 0.0, -1.0, min(zfar, 1e30)]]) @ np.linalg.inv(map_from_cam)
     b = np.asarray(boxes, np.float64)
     centre, half = (b[:, 0] + b[:, 1]) / 2, (b[:, 1] - b[:, 0]) / 2
-    top = centre @ planes[:, :3].T + planes[:, 3] + half @ np.abs(planes[:, :3]).T     # (n, 5)
+    top = centre @ planes[:, :3].T + planes[:, 3] + half @ np.abs(planes[:, :3]).T     # (n, 6)
     return ~(top < 0).any(axis=1)
 
 
@@ -312,6 +360,7 @@ class StereoSlot:
         self._visible = np.zeros(len(world.chunks), dtype=bool)   # the chunks within reach of the cameras
         self._in_view: tuple = (self._visible, self._visible)     # per camera: within reach and in its view
         self._runs: tuple = ({}, {})     # per camera: {chunk index: face runs of its cells within reach and view}
+        self._vehicle_from_cameras = tuple(self.camera.vehicle_from_camera(side) for side in _SIDES)
         if batch._scene is not None:
             self._attach()
 
@@ -352,6 +401,9 @@ class StereoSlot:
         return self.batch.render_many([(self, pose, tilt)], depth, labels)[0]
 
     def _map_from_camera(self, pose: Pose2, side: str, tilt: tuple[float, float] | None) -> np.ndarray:
+        return self._map_from_vehicle(pose, tilt) @ self.camera.vehicle_from_camera(side)
+
+    def _map_from_vehicle(self, pose: Pose2, tilt: tuple[float, float] | None) -> np.ndarray:
         body = pose.matrix3d()
         terrain = self.world.terrain
         if not terrain.flat:   # the car stands on the ground under its wheels, its own tilt on top
@@ -360,21 +412,24 @@ class StereoSlot:
             tilt = (pitch, roll) if tilt is None else (pitch + tilt[0], roll + tilt[1])
         if tilt is not None:
             body = body @ body_tilt(*tilt)
-        return body @ self.camera.vehicle_from_camera(side)
+        return body
 
     def _place(self, pose: Pose2, tilt: tuple[float, float] | None = None) -> None:
         """Put the cameras at ``pose`` (the body tilted by ``tilt``) and find the chunks whose footprint comes
         within reach of them."""
         scene = self.batch._scene
-        views = [self._map_from_camera(pose, side, tilt) for side in _SIDES]
+        body = self._map_from_vehicle(pose, tilt)
+        views = [body @ m for m in self._vehicle_from_cameras]
         for view, node in zip(views, self._cameras):
             scene.set_pose(node, view @ _CV_TO_GL)
         entry = self.batch._world_nodes(self.world)
         reach, znear = self.batch.reach, self.batch.znear
         self._visible = _near(entry.rects, pose, reach)
-        self._in_view = tuple(self._visible & _box_in_view(entry.boxes, m, self.camera, znear) for m in views)
+        zfar = self.batch.zfar
+        self._in_view = tuple(self._visible & _box_in_view(entry.boxes, m, self.camera, znear, zfar=zfar)
+                              for m in views)
         self._runs = entry.cells.runs(self._in_view[0] | self._in_view[1], self._in_view, views, pose, reach,
-                                      self.camera, znear, self.batch.detail_m)
+                                      self.camera, znear, self.batch.detail_m, zfar)
 
     def _draw_group(self, label_pass: bool, bg_color=None):
         """The slot's two views as a ``ViewGroup``: its chunks within reach, colour (or label) meshes, and its
