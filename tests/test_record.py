@@ -121,3 +121,26 @@ def test_bad_wander_or_gap_of_a_recording_is_refused_before_any_work(tmp_path, c
     assert main(["record", "--scene", "city", "--out", str(tmp_path / "g"), "--satellite-gap", "1.5"]) == 2
     assert "satellite_gap" in capsys.readouterr().err
     assert not (tmp_path / "r").exists() and not (tmp_path / "g").exists()
+
+
+def test_a_pass_records_with_its_own_attitude_and_stamps_it(tmp_path):
+    """A pass drives with its PassConfig's attitude (1 by default: the body pitches and rolls), whatever the
+    environment's default; the stamp names it, so a level recording made before the field is not reused."""
+    from satloc.config import to_dict
+    from satloc_env.envs.record import make_env, record_pass
+
+    assert to_dict(PassConfig(), stamp=True)["attitude"] == 1.0
+    assert "attitude" not in to_dict(PassConfig(attitude=0.0), stamp=True)    # as stamped before the field
+    with pytest.raises(Exception, match="attitude"):
+        PassConfig(attitude=1.5)
+    tilts = {}
+    for a in (0.0, 1.0):
+        env = make_env(scene="city", localizer=None, attitude=1.0 - a)           # the env's own setting is overridden
+        try:
+            record_pass(env, PassConfig(spacing_m=2.0, max_frames=3, attitude=a), "main", tmp_path / f"a{a}", "db",
+                        progress=False)
+            tilts[a] = env.attitude.tilt
+        finally:
+            env.close()
+    assert tilts[0.0] is None and tilts[1.0] is not None
+    assert Sequence.load(tmp_path / "a1.0").meta["pass_config"]["attitude"] == 1.0

@@ -89,10 +89,13 @@ def test_the_environment_applies_both_deterministically():
         env.close()
         return frames, tilt
 
-    plain, t0 = run()
+    plain, t0 = run(sensor=0.0, attitude=0.0)
     real, t1 = run(sensor=1.0, attitude=1.0)
     again, t2 = run(sensor=1.0, attitude=1.0)
     assert t0 is None and t1 == t2 and t1 is not None
+    default, td = run()                  # the defaults: the body's attitude on, the sensor off
+    assert td == t1                                   # the same seed: the same pitch and roll
+    assert not any(np.array_equal(x, y) for x, y in zip(default, real))   # no sensor noise
     assert all(np.array_equal(x, y) for x, y in zip(real, again))
     assert not any(np.array_equal(x, y) for x, y in zip(real, plain))
     diff = np.abs(real[-1].astype(np.int16) - plain[-1]).mean()

@@ -85,7 +85,7 @@ class EnvConfig:
                                             # ground (satloc_env.world.capture); None: the scene's; fixed when made
     sensor: float = 0.0                     # the camera's vignetting, motion blur and noise (satloc_env.render.sensor):
                                             # 1 an automotive camera in daylight, 0 the renderer's exact pixels
-    attitude: float = 0.0                   # the body's pitch and roll as the car brakes, accelerates, turns and rides
+    attitude: float = 1.0                   # the body's pitch and roll as the car brakes, accelerates, turns and rides
                                             # the road (satloc_env.envs.vehicle.Attitude): 1 a passenger car's, 0 a
                                             # level, fixed mount (the bird's-eye homography exact)
     anisotropy: int = 1                     # >1: anisotropic texture filtering (sharper far ground, ~4x slower on llvmpipe)

@@ -87,9 +87,11 @@ class PassConfig:
     wander_m: float = added_field(DEFAULT_WANDER_M, before=0.0)        # the autopilot's lateral drift (std, m;
     speed_wander: float = added_field(DEFAULT_SPEED_WANDER, before=0.0)  # satloc_env.envs.vehicle) and its speed's
                                                                          # (relative std), seeded by ``seed``
+    attitude: float = added_field(1.0, before=0.0)   # the body's pitch and roll (the environment's ``attitude``:
+                                                     # 1 a passenger car's, 0 a level mount, as before the field)
 
     def __post_init__(self):
-        for k, hi in (("wander_m", 0.5), ("speed_wander", 0.5)):
+        for k, hi in (("wander_m", 0.5), ("speed_wander", 0.5), ("attitude", 1.0)):
             v = getattr(self, k)
             if isinstance(v, bool) or not isinstance(v, (int, float)) or not 0.0 <= v <= hi:
                 raise ConfigError(f"pass {k}: expected a number in [0, {hi}], got {v!r}")
@@ -129,7 +131,7 @@ def record_pass(env: gym.Env, p: PassConfig, route: str, out: Path, name: str, p
     not), writing a frame every ``p.spacing_m`` metres to ``out``."""
     options = {"route": route, "lane_offset_m": p.lane_offset_m, "occlusion": p.occlusion,
                "appearance": p.appearance, "change": p.change, "max_steps": 10**9,
-               "wander_m": p.wander_m, "speed_wander": p.speed_wander}
+               "wander_m": p.wander_m, "speed_wander": p.speed_wander, "attitude": p.attitude}
     obs, info = env.reset(seed=p.seed, options=options)
     length = env.unwrapped.route.length
     total = p.max_frames or int(length // p.spacing_m) + 1

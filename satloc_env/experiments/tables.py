@@ -112,7 +112,8 @@ def trained_fabmap(cc: CompareConfig, test_scene: str, out: Path, progress: bool
     p = PassConfig(spacing_m=cc.fabmap_train_spacing_m, max_frames=cc.fabmap_train_frames, depth=False)
     stamp = {"train_scene": train_scene, "frames": cc.fabmap_train_frames, "spacing_m": cc.fabmap_train_spacing_m,
              "fabmap": to_dict(cc.fabmap), "scene_sha256": cache_key(train_scene, None)["scene_sha256"],
-             **{k: v for k, v in to_dict(p, stamp=True).items() if k in ("wander_m", "speed_wander")}}   # drift: since it existed
+             **{k: v for k, v in to_dict(p, stamp=True).items()   # drift and attitude: since they existed
+                if k in ("wander_m", "speed_wander", "attitude")}}
     model = d / "fabmap.npz"
     if _stage_done(Path(out) / "fabmap_stage.json", stamp) and model.is_file():
         return model
