@@ -26,7 +26,7 @@ def test_bench_env_prints_steps_per_second(capsys):
     r = json.loads(capsys.readouterr().out)
     assert r["steps"] == 10 and r["steps_per_s"] > 0 and r["width"] == 620
     assert r["gl_renderer"] and r["gl_version"]       # which driver rendered (llvmpipe here, a GPU's elsewhere)
-    assert r["cpu_ms_per_step"] > 0 and r["sensor"] is None and r["attitude"] is None
+    assert r["cpu_ms_per_step"] > 0 and r["sensor"] == 0.0 and r["attitude"] == 1.0   # the defaults, named
 
 
 def test_bench_env_takes_the_camera_knobs_and_refuses_bad_ones(capsys):

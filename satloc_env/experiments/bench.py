@@ -11,7 +11,7 @@ import numpy as np
 
 from satloc.errors import ConfigError
 from satloc.geometry import StereoCamera
-from satloc_env.envs.drive import SatLocEnv
+from satloc_env.envs.drive import EnvConfig, SatLocEnv
 from satloc_env.world.meshes import LOD_M
 
 
@@ -31,7 +31,8 @@ def bench_env(resolution: str = "half", steps: int = 2000, scene: str = "city", 
     run (after the warm-up steps, every 16 step calls and at the end), not the process's lifetime peak, so that
     runs of several ``num_envs`` in one process each report their own. ``detail_m``: the environment's setting
     (the distance within which objects keep their full detail; None: everywhere); ``sensor``, ``attitude``: the
-    environment's camera noise and body motion (None: its defaults). ``cpu_ms_per_step``: the process's CPU time
+    environment's camera noise and body motion (None: its defaults; the result names the values the steps
+    ran with). ``cpu_ms_per_step``: the process's CPU time
     (all its threads, the rasterizer's included) per step, steadier than the wall clock on a shared machine."""
     if num_envs < 1:
         raise ConfigError(f"num_envs: expected an integer >= 1, got {num_envs}")
@@ -80,13 +81,14 @@ def bench_env(resolution: str = "half", steps: int = 2000, scene: str = "city", 
     finally:
         env.close()
     cam = StereoCamera.preset(resolution)
+    cfg = EnvConfig(**{k: v for k, v in kw.items() if k in ("sensor", "attitude")})   # what the steps ran with
     total = calls * num_envs
     return {
         "bench": "env", "resolution": resolution, "width": cam.width, "height": cam.height, "scene": scene,
         "num_envs": num_envs, "detail_m": detail_m, "gl_renderer": gl["renderer"], "gl_version": gl["version"],
         "steps": total, "episodes": episodes, "steps_per_s": round(total / dt, 1),
         "ms_per_step": round(1000 * dt / total, 2), "cpu_ms_per_step": round(1000 * cpu / total, 2),
-        "sensor": kw.get("sensor"), "attitude": kw.get("attitude"), "rss_start_mb": round(rss_start, 1),
+        "sensor": cfg.sensor, "attitude": cfg.attitude, "rss_start_mb": round(rss_start, 1),
         "rss_end_mb": round(rss_end, 1), "peak_rss_mb": round(peak, 1),
     }
 
@@ -406,6 +408,7 @@ def bench_crossview(scene: str = "city", frames: int = 40, radius_m: float = 20.
     search); ``error`` columns are reported so a speed is never read apart from what it gives."""
     import tempfile
 
+    from satloc.config import to_dict
     from satloc.evaluation.metrics import pose_errors
     from satloc.features import make_extractor
     from satloc.features.dictionary import SatelliteFeatures
@@ -417,6 +420,12 @@ def bench_crossview(scene: str = "city", frames: int = 40, radius_m: float = 20.
 
     work = Path(work) if work else Path(tempfile.mkdtemp(prefix="satloc_bench_cross_"))
     drive = work / f"{Path(scene).stem}_cross_{frames}"
+    p = PassConfig(lane_offset_m=-0.75, spacing_m=5.0, max_frames=frames)
+    if ((drive / "sequence.json").is_file() and (work / f"{Path(scene).stem}_map" / "map.json").is_file()
+            and Sequence.load(drive).meta.get("pass_config") != to_dict(p)):
+        import shutil
+
+        shutil.rmtree(drive)   # a drive recorded otherwise (another pass, or before the body's attitude): again
     if not (drive / "sequence.json").is_file() or not (work / f"{Path(scene).stem}_map" / "map.json").is_file():
         import shutil
 
@@ -424,8 +433,7 @@ def bench_crossview(scene: str = "city", frames: int = 40, radius_m: float = 20.
         env = make_env(scene=scene, localizer=None)
         try:
             env.reset(seed=0)
-            record_pass(env, PassConfig(lane_offset_m=-0.75, spacing_m=5.0, max_frames=frames),
-                        env.unwrapped.scene.spec.database_route, drive, "cross", progress,
+            record_pass(env, p, env.unwrapped.scene.spec.database_route, drive, "cross", progress,
                         {"source": "satloc_env", "scene": env.unwrapped.scene.name})
             env.unwrapped.scene.satmap.save(work / f"{Path(scene).stem}_map")
         finally:

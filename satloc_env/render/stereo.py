@@ -336,7 +336,7 @@ def _box_in_view(boxes: np.ndarray, map_from_cam: np.ndarray, camera: StereoCame
     v0, v1 = camera.cy + 0.5 + margin_px, camera.cy + 0.5 - camera.height - margin_px
     planes = np.array([[0.0, 0.0, 1.0, -znear], [camera.fx, 0.0, u0, 0.0], [-camera.fx, 0.0, -u1, 0.0],
                        [0.0, camera.fy, v0, 0.0], [0.0, -camera.fy, -v1, 0.0],
-                       [0.0, 0.0, -1.0, min(zfar, 1e30)]]) @ np.linalg.inv(map_from_cam)
+                       [0.0, 0.0, -1.0, min(zfar + 1e-3, 1e30)]]) @ np.linalg.inv(map_from_cam)   # 1 mm spare
     b = np.asarray(boxes, np.float64)
     centre, half = (b[:, 0] + b[:, 1]) / 2, (b[:, 1] - b[:, 0]) / 2
     top = centre @ planes[:, :3].T + planes[:, 3] + half @ np.abs(planes[:, :3]).T     # (n, 6)
