@@ -421,26 +421,25 @@ def bench_crossview(scene: str = "city", frames: int = 40, radius_m: float = 20.
     work = Path(work) if work else Path(tempfile.mkdtemp(prefix="satloc_bench_cross_"))
     drive = work / f"{Path(scene).stem}_cross_{frames}"
     p = PassConfig(lane_offset_m=-0.75, spacing_m=5.0, max_frames=frames)
-    if ((drive / "sequence.json").is_file() and (work / f"{Path(scene).stem}_map" / "map.json").is_file()
-            and Sequence.load(drive).meta.get("pass_config") != to_dict(p)):
+    map_dir = work / f"{Path(scene).stem}_map"
+    if not ((drive / "sequence.json").is_file() and (map_dir / "map.json").is_file()
+            and Sequence.load(drive).meta.get("pass_config") == to_dict(p)):
         import shutil
 
-        shutil.rmtree(drive)   # a drive recorded otherwise (another pass, or before the body's attitude): again
-    if not (drive / "sequence.json").is_file() or not (work / f"{Path(scene).stem}_map" / "map.json").is_file():
-        import shutil
-
-        shutil.rmtree(drive, ignore_errors=True)   # an interrupted run's: recorded again with the map
+        # an interrupted run's, or a drive recorded otherwise (another pass, or before the body's attitude):
+        # recorded again with the map
+        shutil.rmtree(drive, ignore_errors=True)
         env = make_env(scene=scene, localizer=None)
         try:
             env.reset(seed=0)
             record_pass(env, p, env.unwrapped.scene.spec.database_route, drive, "cross", progress,
                         {"source": "satloc_env", "scene": env.unwrapped.scene.name})
-            env.unwrapped.scene.satmap.save(work / f"{Path(scene).stem}_map")
+            env.unwrapped.scene.satmap.save(map_dir)
         finally:
             env.close()
     loaded = Sequence.load(drive)
     seq = Sequence(loaded.camera, list(loaded), loaded.name, loaded.meta)
-    sm = SatelliteMap.load(work / f"{Path(scene).stem}_map")
+    sm = SatelliteMap.load(map_dir)
     ext = make_extractor("default")
     t = time.perf_counter()
     sf = SatelliteFeatures.compute(sm, ext)

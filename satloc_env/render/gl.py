@@ -386,7 +386,8 @@ class _MultiViewRenderer(pyrender.Renderer):
         """Issue the draw calls of ``draws`` (see :meth:`_draw_list`) with view matrix ``view`` and projection
         ``proj``, setting only the uniforms and bindings that change. Uniform locations are looked up once per
         program (pyrender's ``set_uniform`` queries GL for the location at every call). ``ranges``: per node id,
-        the (first triangle, triangles) runs of its one primitive to draw (see :class:`ViewGroup`)."""
+        the runs of triangles of its one primitive to draw (a :class:`satloc_env.render.stereo.FaceRuns`; see
+        :class:`ViewGroup`)."""
         bound, model, factor = None, None, None
         for _, _, _, program, prim, pose, node in draws:
             if program is not bound:
@@ -407,12 +408,8 @@ class _MultiViewRenderer(pyrender.Renderer):
             runs = ranges.get(id(node)) if ranges else None
             if runs is None:
                 GL.glDrawElementsInstanced(prim.mode, prim.indices.size, GL.GL_UNSIGNED_INT, None, 1)
-            elif len(runs):   # one call for all runs: uint32 indices, 3 per triangle
-                counts, starts = getattr(runs, "counts_c", None), getattr(runs, "starts_c", None)
-                if counts is None:    # (first triangle, triangles) pairs
-                    counts = (ctypes.c_int32 * len(runs))(*(3 * c for _, c in runs))
-                    starts = (ctypes.c_void_p * len(runs))(*(12 * f for f, _ in runs))
-                GL.glMultiDrawElements(prim.mode, counts, GL.GL_UNSIGNED_INT, starts, len(runs))
+            elif len(runs):   # one call for all runs (stereo.FaceRuns: its ctypes arrays, as GL takes them)
+                GL.glMultiDrawElements(prim.mode, runs.counts_c, GL.GL_UNSIGNED_INT, runs.starts_c, len(runs))
 
     def _uniforms(self, program) -> dict[str, int]:
         locs = self._uniform_locs.get(program)
@@ -493,7 +490,7 @@ class ViewGroup(NamedTuple):
     meshes: Sequence
     bg_color: Sequence[float] | None = None
     hidden: tuple | None = None     # per camera: ids of nodes of ``meshes`` it skips (they cannot be in its view)
-    ranges: tuple | None = None     # per camera: {node id: [(first triangle, count), ...] or a stereo.FaceRuns}
+    ranges: tuple | None = None     # per camera: {node id: stereo.FaceRuns, the runs of triangles to draw}
 
 
 #: the renderers not yet deleted; :func:`_delete_live_renderers` frees them at interpreter exit
