@@ -157,3 +157,53 @@ def test_the_environment_drives_over_hills(tmp_path):
         assert np.array_equal(runs[0], runs[1])
         frames[name] = runs[0]
     assert np.abs(frames["hills"].astype(int) - frames["flat"].astype(int)).mean() > 2.0
+
+
+def test_a_road_falls_from_its_crown_to_its_kerbs():
+    from satloc_env.world.terrain import Crown
+
+    mpp, camber = 0.1, 0.02
+    labels = np.full((600, 800), CLASS_ID["sidewalk"], np.uint8)      # 60 m x 80 m
+    labels[:, 200:320] = CLASS_ID["road"]                              # a street 12 m wide from x = 20 m to 32 m
+    labels[:, 259:261] = CLASS_ID["lane_marking"]                      # its centre line: still the road
+    labels[400:520, :] = CLASS_ID["road"]                              # a cross street, y = 8 to 20 m
+    crown = Crown.of(labels, mpp, camber)
+    assert np.allclose(crown.xlines, [20.0, 26.0, 32.0])                # edges and the centre line
+    assert np.allclose(crown.ylines, [8.0, 14.0, 20.0])
+    y = np.full(5, 45.0)
+    h = crown.height(np.array([10.0, 20.0, 23.0, 26.0, 29.0]), y)
+    assert h[0] == 0.0 and h[1] == pytest.approx(0.0, abs=4e-3)         # off the road, at its kerb
+    assert h[3] == pytest.approx(camber * 6.0, abs=5e-3)                # the crown: 12 cm at 2 %
+    assert h[2] == pytest.approx(camber * 3.0, abs=3e-3) and h[4] == pytest.approx(h[2], abs=2e-3)
+    assert crown.height(np.array([26.0]), np.array([14.0]))[0] <= camber * 10.0 + 1e-6   # the crossing: capped
+    with pytest.raises(ConfigError, match=r"terrain\.camber"):
+        Terrain(camber=0.5)
+
+
+def test_a_cambered_street_rolls_the_car_and_is_saved_with_the_world(tmp_path):
+    data = copy.deepcopy(SMALL)
+    data["terrain"] = {"relief_m": 0.0, "wavelength_m": 150, "camber": 0.02}
+    s = load_scene(write(tmp_path, data))
+    terrain = s.world.terrain
+    assert not terrain.flat and terrain.crown is not None and len(terrain.crown.xlines) >= 3
+    assert s.summary()["terrain"]["camber"] == 0.02
+    # the ground's grid has vertices on the crown's lines, so its surface is the crown's heights
+    ground = s.world.chunks[0]
+    gpos = ground.positions[ground.faces[_ground_start(ground):].ravel()]
+    assert np.allclose(gpos[:, 2], terrain.height(gpos[:, 0], gpos[:, 1]), atol=1e-4)
+    centre = (np.abs(gpos[:, 1] - 10.0) < 1e-3) & (gpos[:, 0] > 20.0) & (gpos[:, 0] < 60.0)   # a street's centre
+    assert centre.any() and np.allclose(gpos[centre, 2], 0.02 * 6.0, atol=6e-3)                # line: its crown
+    tri = ground.positions[ground.faces[_ground_start(ground):]].astype(np.float64)
+    inner = tri.mean(axis=1)                                             # each triangle's centroid, and its surface
+    gap = np.abs(inner[:, 2] - terrain.height(inner[:, 0], inner[:, 1]))
+    assert np.percentile(gap, 90) < 0.05 * 0.12 and gap.max() < 0.05    # within 5 % of the crown (crossings: more)
+    # a car in the right lane of a straight street stands on the lane's fall: its left side up by atan(camber)
+    route = s.routes["main"]
+    pose = route.pose_at(40.0, -1.75)
+    assert terrain.tilt(pose.x, pose.y, pose.yaw)[2] == pytest.approx(np.arctan(0.02), abs=1e-3)
+    left = route.pose_at(40.0, 1.75)
+    assert terrain.tilt(left.x, left.y, left.yaw)[2] == pytest.approx(-np.arctan(0.02), abs=1e-3)
+    save_world(s.world, tmp_path / "w.npz")
+    back = load_world(tmp_path / "w.npz").terrain
+    x, y = np.meshgrid(np.linspace(0, 140, 50), np.linspace(0, 140, 50))
+    assert back == terrain and np.array_equal(back.height(x, y), terrain.height(x, y))

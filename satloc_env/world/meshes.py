@@ -54,7 +54,7 @@ from .furniture import ROWS, furniture_parts, part_paint, roof_parts
 from .layout import Building, Car, Furniture, Layout, Obstacle, Person, Tree
 from .paint import fbm as _fbm
 from .paint import right_angled
-from .terrain import GROUND_STEP_M, Terrain
+from .terrain import GROUND_STEP_M, Crown, Terrain
 from .variety import BODIES, SPECIES, facade_params, facade_texture, leaf_texture
 
 __all__ = ["TexturedMesh", "World", "build_world", "BEYOND", "build_occluders", "sun_direction", "SKY_RGB", "PAD"]
@@ -144,9 +144,14 @@ def save_world(world: World, path) -> None:
     arrays["texture_of"] = np.asarray(tex_of, np.int64)
     arrays["flags"] = np.asarray(flags, np.int64).reshape(-1, 2)
     arrays["sun_direction"] = np.asarray(world.sun_direction, np.float64)
-    save_npz(path, WORLD_FORMAT, arrays, {"width_m": float(world.width_m), "height_m": float(world.height_m),
-                                          "chunk_m": float(world.chunk_m), "sky_rgb": [int(v) for v in world.sky_rgb],
-                                          "chunks": len(world.chunks), "terrain": world.terrain.to_dict()})
+    meta = {"width_m": float(world.width_m), "height_m": float(world.height_m), "chunk_m": float(world.chunk_m),
+            "sky_rgb": [int(v) for v in world.sky_rgb], "chunks": len(world.chunks),
+            "terrain": world.terrain.to_dict()}
+    crown = world.terrain.crown
+    if crown is not None:
+        arrays.update(crown_offset=crown.offset, crown_xlines=crown.xlines, crown_ylines=crown.ylines)
+        meta["crown"] = {"mpp": crown.mpp, "height_m": crown.height_m}
+    save_npz(path, WORLD_FORMAT, arrays, meta)
 
 
 def load_world(path) -> World:
@@ -172,6 +177,10 @@ def load_world(path) -> World:
                     len(chunk.faces))
             chunks.append(chunk)
         terrain = Terrain(**m["terrain"]) if "terrain" in m else Terrain()
+        if "crown" in m:
+            terrain = terrain.with_crown(Crown(np.asarray(a["crown_offset"], np.float32), float(m["crown"]["mpp"]),
+                                               float(m["crown"]["height_m"]), np.asarray(a["crown_xlines"], np.float64),
+                                               np.asarray(a["crown_ylines"], np.float64)))
         return World(float(m["width_m"]), float(m["height_m"]), float(m["chunk_m"]), chunks,
                      np.asarray(a["sun_direction"], np.float64), tuple(int(v) for v in m["sky_rgb"]), terrain)
     except (KeyError, IndexError, TypeError, ValueError, ConfigError) as e:
@@ -205,11 +214,13 @@ def build_world(layout: Layout, chunk_m: float = 204.8, pad_m: float = 0.0, beyo
     """Turn ``layout`` into chunked, textured geometry, with ``pad_m`` metres of world around it: the layout
     mirrored across its edges (``beyond="mirror"``) or neutral ground (``"neutral"``); see the module
     docstring. Over a ``terrain`` that is not flat, the ground follows its heights and the objects stand on it
-    (:mod:`satloc_env.world.terrain`)."""
+    (:mod:`satloc_env.world.terrain`); a terrain with a ``camber`` gets the crown of ``layout``'s roads."""
     terrain = terrain or Terrain()
     if beyond not in BEYOND:
         raise ConfigError(f"build_world: beyond: expected one of {BEYOND}, got {beyond!r}")
     mpp = float(layout.ground_mpp)
+    if float(terrain.camber) > 0.0 and terrain.crown is None:
+        terrain = terrain.with_crown(Crown.of(layout.ground_labels, mpp, terrain.camber, layout.height_m))
     rows, cols = layout.ground_labels.shape
     if layout.ground_rgb.shape != (rows, cols, 3):
         raise ConfigError(f"layout: ground_rgb must be (H, W, 3) like ground_labels {(rows, cols)}, "
@@ -502,13 +513,33 @@ def _grid_quad(x0: float, x1: float, y0: float, y1: float, terrain: Terrain | No
                height=None) -> tuple[np.ndarray, np.ndarray]:
     """Vertices (n, 3) and triangles (m, 3), counter-clockwise from above, of the rectangle [x0, x1] x [y0, y1]:
     its four corners at z 0 (two triangles) where ``terrain`` is None or flat, else a grid of squares of about
-    :data:`GROUND_STEP_M` whose vertices lie on ``height(x, y)`` (default: the terrain's)."""
+    :data:`GROUND_STEP_M` whose vertices lie on ``height(x, y)`` (default: the terrain's), with more lines of
+    vertices along those of the terrain's road crown (:class:`satloc_env.world.terrain.Crown`)."""
     if terrain is None or terrain.flat:
         return (np.array([[x0, y0, 0.0], [x1, y0, 0.0], [x1, y1, 0.0], [x0, y1, 0.0]]),
                 np.array([[0, 1, 2], [0, 2, 3]]))
-    nx = max(1, math.ceil((x1 - x0) / GROUND_STEP_M - 1e-9))
-    ny = max(1, math.ceil((y1 - y0) / GROUND_STEP_M - 1e-9))
-    gx, gy = np.meshgrid(np.linspace(x0, x1, nx + 1), np.linspace(y0, y1, ny + 1))   # (ny + 1, nx + 1)
+
+    def axis(a: float, b: float, lines) -> np.ndarray:
+        ticks = np.linspace(a, b, max(1, math.ceil((b - a) / GROUND_STEP_M - 1e-9)) + 1)
+        if lines is None or height is not None:
+            return ticks
+        inner = np.asarray(lines, np.float64)
+        inner = inner[(inner > a + 1e-3) & (inner < b - 1e-3)]
+        if not len(inner):
+            return ticks
+        # the grid's own lines give way to the crown's within half a step of one (the hills between lines up
+        # to 1.5 steps apart depart from their chords by about 2 cm at relief 1 m), so that a street adds about
+        # two lines, not three
+        keep = np.ones(len(ticks), bool)
+        keep[1:-1] = np.abs(ticks[1:-1, None] - inner[None, :]).min(axis=1) >= GROUND_STEP_M / 2
+        ticks = np.unique(np.r_[ticks[keep], inner])
+        return ticks[np.r_[True, np.diff(ticks) > 1e-3]]   # a line within a millimetre of a tick: the tick
+
+    crown = terrain.crown
+    xs = axis(x0, x1, None if crown is None else crown.xlines)
+    ys = axis(y0, y1, None if crown is None else crown.ylines)
+    nx, ny = len(xs) - 1, len(ys) - 1
+    gx, gy = np.meshgrid(xs, ys)   # (ny + 1, nx + 1)
     gz = (height or terrain.height)(gx, gy)
     pos = np.stack([gx.ravel(), gy.ravel(), gz.ravel()], axis=1)
     a = (np.arange(ny)[:, None] * (nx + 1) + np.arange(nx)[None, :]).ravel()          # lower-left corners

@@ -23,7 +23,7 @@ A scene file (see ``scenes/*.yaml``)::
     ground_shadows: true           # the camera's ground shows the world's cast shadows (default: grids with variety)
     objects: {buildings: [...], trees: [...], cars: [...]}   # extra hand-placed objects
     lighting: {sun_azimuth_deg: 135, sun_elevation_deg: 50}
-    terrain: {relief_m: 1.5, wavelength_m: 250}   # gentle hills under the world (default: a plane)
+    terrain: {relief_m: 1.5, wavelength_m: 250, camber: 0.01}   # gentle hills, cambered roads (default: a plane)
     knobs: {aliasing: 0.0, occlusion: 0.0, appearance: 0.0, satellite_gap: 0.5}
 
 **Image scenes** (``generator: {type: image, ...}``) drape an image over the ground plane: the camera sees
@@ -278,10 +278,12 @@ class LightingSpec:
 @dataclass
 class TerrainSpec:
     """The ground's heights (:class:`satloc_env.world.terrain.Terrain`, drawn from the scene's seed):
-    ``relief_m`` their standard deviation (0: a plane), ``wavelength_m`` about how far apart the hills are."""
+    ``relief_m`` their standard deviation (0: a plane), ``wavelength_m`` about how far apart the hills are,
+    ``camber`` the roads' cross-fall from their crown to their kerbs (a fraction; 0: flat across)."""
 
     relief_m: float = 0.0
     wavelength_m: float = 250.0
+    camber: float = 0.0
 
 
 @dataclass
@@ -388,7 +390,7 @@ class SceneSpec:
         """The :class:`~satloc_env.world.terrain.Terrain` of ``terrain`` and the scene's seed."""
         from .terrain import Terrain
 
-        return Terrain(self.terrain.relief_m, self.terrain.wavelength_m, int(self.seed))
+        return Terrain(self.terrain.relief_m, self.terrain.wavelength_m, int(self.seed), self.terrain.camber)
 
     @property
     def route_names(self) -> list[str]:
@@ -585,8 +587,10 @@ class Scene:
                "cars": len(self.layout.cars)}
         if self.layout.furniture:
             out["furniture"] = len(self.layout.furniture)
-        if self.spec.terrain.relief_m > 0:
+        if self.spec.terrain.relief_m > 0 or self.spec.terrain.camber > 0:
             out["terrain"] = {"relief_m": self.spec.terrain.relief_m, "wavelength_m": self.spec.terrain.wavelength_m}
+            if self.spec.terrain.camber > 0:
+                out["terrain"]["camber"] = self.spec.terrain.camber
         if self.satmap.radiometry is not None:
             out["radiometry"] = self.satmap.radiometry
         if self.footprints is not None:
