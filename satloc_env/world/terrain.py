@@ -86,7 +86,7 @@ class Crown:
         # Ray worker's world differed from the same world built alone)
         dist = ndimage.distance_transform_edt(road) * mpp
         rise = float(camber) * np.clip(dist - mpp / 2, 0.0, CROWN_CAP_M)
-        f = max(1, int(round(_CROWN_MPP / mpp)))
+        f = max(1, min(int(round(_CROWN_MPP / mpp)), rows // 2, cols // 2))   # (at least 2 x 2 samples)
         h, w = rows // f, cols // f
         offset = rise[:h * f, :w * f].reshape(h, f, w, f).mean(axis=(1, 3)).astype(np.float32)
 
