@@ -24,7 +24,7 @@ import pytest  # noqa: E402
 #: per-process caches of built worlds (functions with functools.lru_cache), by module: at variety 1 a scene with
 #: its meshes and textures holds 1-2 GB, and one xdist worker that keeps four scenes and two revisit worlds from
 #: earlier test files reached 13-15 GB and was killed for memory on the 23 GB machine
-_CACHES = {"satloc_env.world.scene": ("_cached_scene",), "satloc_env.world.revisit": ("changed_world",),
+_CACHES = {"satloc_env.world.scene": ("_cached_scene",), "satloc_env.world.revisit": ("_changed_world",),
            "satloc_env.envs.auto_localizer": ("_load",)}
 
 

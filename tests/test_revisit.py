@@ -14,6 +14,7 @@ from test_env import run
 
 import satloc_env  # noqa: F401  (registers the ids)
 from satloc import ConfigError
+from satloc.config import to_dict
 from satloc.labels import CLASS_ID as C
 from satloc.labels import DRIVABLE
 from satloc_env.envs.record import QUERY_CHANGE, PassConfig, RecordConfig, record_passes
@@ -209,3 +210,39 @@ def test_example_script_measures_and_draws(scene_path, tmp_path, capsys):
     assert len(res[0.0]) == 3 and np.all(res[0.0] >= 0)
     assert mod.main(["--scene", scene_path, "--picture", str(tmp_path / "p.jpg"), "--at", "20"]) is None
     assert (tmp_path / "p.jpg").stat().st_size > 5000
+
+
+def test_a_revisit_with_some_parts_of_the_change(scene_path):
+    from satloc_env.experiments.scene_run import ExperimentConfig
+    from satloc_env.world.revisit import PARTS
+
+    scene = load_scene(scene_path)
+    full = changed_world(scene, 0.8, 4)
+    assert changed_world(scene, 0.8, 4, PARTS) is full                     # every part: the default
+    assert changed_world(scene, 0.8, 4, ()) is scene.world                 # none: the scene's own world
+    cars = changed_world(scene, 0.8, 4, ["cars", "shadows"])
+    assert cars is not full and np.allclose(cars.sun_direction, full.sun_direction)   # another day's sun, but ...
+    plain = scene.spec.build_world(changed_layout(scene.layout, 0.8, 4, parts=("cars", "shadows"),
+                                                  cast=not scene.spec.casts_shadows))
+    assert all(np.array_equal(a.texture, b.texture) for a, b in zip(cars.chunks, plain.chunks))   # no season's foliage
+    with pytest.raises(ConfigError, match="change parts: unknown"):
+        changed_world(scene, 0.8, 4, ["snow"])
+    env = gym.make("satloc/SatLoc-v0", scene=scene_path, localizer=None)
+    try:
+        every = run(env, 3, 2, {"change": 0.6})
+        some = run(env, 3, 2, {"change": 0.6, "change_parts": ["shadows"]})
+        none = run(env, 3, 2, {"change": 0.6, "change_parts": []})
+        plain = run(env, 3, 2)
+        assert not np.array_equal(every[-1][0]["left"], some[-1][0]["left"])
+        assert all(np.array_equal(a[0]["left"], b[0]["left"]) for a, b in zip(none, plain))
+        with pytest.raises(ConfigError, match="change_parts: unknown"):
+            env.reset(seed=0, options={"change_parts": ["snow"]})
+    finally:
+        env.close()
+    # a pass and an experiment take the parts; the default (every part) stamps as before the field
+    assert "change_parts" not in to_dict(PassConfig(), stamp=True)
+    assert to_dict(PassConfig(change_parts=("cars",)), stamp=True)["change_parts"] == ["cars"]
+    with pytest.raises(ConfigError, match="change_parts"):
+        PassConfig(change_parts=("snow",))
+    with pytest.raises(ConfigError, match="change_parts"):
+        ExperimentConfig(change_parts=("snow",))

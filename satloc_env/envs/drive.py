@@ -35,6 +35,7 @@ from satloc.sequence import Frame
 from satloc.tracking.track import compose_motion
 from satloc_env.render.sensor import Sensor
 from satloc_env.world.meshes import LOD_M
+from satloc_env.world.revisit import PARTS as REVISIT_PARTS
 from satloc_env.world.scene import Scene, load_scene
 
 from .occluders import Appearance, sample_occluders
@@ -81,6 +82,8 @@ class EnvConfig:
     appearance: float | None = None
     change: float | None = None             # revisit change of the world (satloc_env.world.revisit): shadows of another
                                             # sun, road wear, parked cars moved, season; 0 none
+    change_parts: tuple[str, ...] = REVISIT_PARTS   # which of those (satloc_env.world.revisit.PARTS: "vegetation",
+                                            # "road", "cars", "shadows"): a revisit a few days later has no season
     satellite_gap: float | None = None      # how far the satellite map is a capture of the world, not the rendered
                                             # ground (satloc_env.world.capture); None: the scene's; fixed when made
     sensor: float = 0.0                     # the camera's vignetting, motion blur and noise (satloc_env.render.sensor):
@@ -129,6 +132,9 @@ class EnvConfig:
             v = getattr(self, k)
             if v is not None and not 0.0 <= v <= 1.0:   # False for NaN
                 raise ConfigError(f"{k}: expected a value in [0, 1] (or None: the scene's), got {v}")
+        unknown = sorted(set(self.change_parts) - set(REVISIT_PARTS))
+        if unknown:
+            raise ConfigError(f"change_parts: unknown {unknown}; the parts are {list(REVISIT_PARTS)}")
         from satloc.localizers.crossview import Prior
 
         Prior(0.0, 0.0, 0.0, self.prior_radius_m, self.prior_yaw_deg)   # a prior's checks, naming the field
@@ -179,7 +185,7 @@ LOCALIZER_INSTANCE = "<instance>"
 #: keys that ``reset(options=...)`` may change; the others fix the spaces or the renderer.
 EPISODE_KEYS = frozenset({
     "scene", "route", "lane_offset_m", "start_s_m", "random_start", "speed_mps", "max_steps",
-    "odometry", "odometry_noise", "aliasing", "occlusion", "appearance", "change",
+    "odometry", "odometry_noise", "aliasing", "occlusion", "appearance", "change", "change_parts",
     "wander_m", "speed_wander", "wander_seed", "sensor", "attitude",
 })
 
@@ -908,7 +914,7 @@ class SatLocEnv(SharedSpecMixin, gym.Env):
             from satloc_env.world.revisit import changed_world
 
             self.change_seed = int(self.np_random.spawn(1)[0].integers(2**31 - 1))
-            world = changed_world(scene, change, self.change_seed)
+            world = changed_world(scene, change, self.change_seed, cfg.change_parts)
         self._use_world(world)
         self._episode, self.route = cfg, route
         rng = self.np_random

@@ -48,6 +48,7 @@ from satloc.geometry import Pose2
 from satloc.persist import header, read_json, write_json
 from satloc.satmap import SatelliteMap
 from satloc.sequence import Frame, Sequence, SequenceWriter
+from satloc_env.world.revisit import PARTS as REVISIT_PARTS
 from satloc_env.world.scene import SCENES_DIR, load_scene, load_spec, scene_path
 
 from .drivecheck import check_route, off_road_message
@@ -89,12 +90,17 @@ class PassConfig:
                                                                          # (relative std), seeded by ``seed``
     attitude: float = added_field(1.0, before=0.0)   # the body's pitch and roll (the environment's ``attitude``:
                                                      # 1 a passenger car's, 0 a level mount, as before the field)
+    change_parts: tuple[str, ...] = added_field(REVISIT_PARTS)   # which parts of the revisit change
+                                                     # (satloc_env.world.revisit.PARTS; the environment's ``change_parts``)
 
     def __post_init__(self):
         for k, hi in (("wander_m", 0.5), ("speed_wander", 0.5), ("attitude", 1.0)):
             v = getattr(self, k)
             if isinstance(v, bool) or not isinstance(v, (int, float)) or not 0.0 <= v <= hi:
                 raise ConfigError(f"pass {k}: expected a number in [0, {hi}], got {v!r}")
+        unknown = sorted(set(self.change_parts) - set(REVISIT_PARTS))
+        if unknown:
+            raise ConfigError(f"pass change_parts: unknown {unknown}; the parts are {list(REVISIT_PARTS)}")
 
 
 @dataclass
@@ -131,7 +137,8 @@ def record_pass(env: gym.Env, p: PassConfig, route: str, out: Path, name: str, p
     not), writing a frame every ``p.spacing_m`` metres to ``out``."""
     options = {"route": route, "lane_offset_m": p.lane_offset_m, "occlusion": p.occlusion,
                "appearance": p.appearance, "change": p.change, "max_steps": 10**9,
-               "wander_m": p.wander_m, "speed_wander": p.speed_wander, "attitude": p.attitude}
+               "wander_m": p.wander_m, "speed_wander": p.speed_wander, "attitude": p.attitude,
+               "change_parts": list(p.change_parts)}
     obs, info = env.reset(seed=p.seed, options=options)
     length = env.unwrapped.route.length
     total = p.max_frames or int(length // p.spacing_m) + 1

@@ -55,6 +55,7 @@ from satloc_env.envs.record import (
     record_stamp,
 )
 from satloc_env.envs.vehicle import DEFAULT_SPEED_WANDER, DEFAULT_WANDER_M
+from satloc_env.world.revisit import PARTS as REVISIT_PARTS
 from satloc_env.world.scene import load_scene
 
 from .grading import table_stats  # noqa: F401  (the tables import it from here)
@@ -154,6 +155,8 @@ class ExperimentConfig:
     occlusion: float = 0.3                  # ... with occluders and another appearance ...
     appearance: float = 0.5
     change: float = QUERY_CHANGE            # ... and the world changed as on another day (satloc_env.world.revisit)
+    change_parts: tuple[str, ...] = added_field(REVISIT_PARTS)   # which parts of that change (the revisit pass's and
+                                            # the residential protocol's second pass's; satloc_env.world.revisit.PARTS)
     satellite_gap: float | None = added_field(None)   # the map as a capture (satloc_env.world.capture); None: scene's
     wander_m: float = added_field(DEFAULT_WANDER_M, before=0.0)          # both passes' lateral drift (std, m)
     speed_wander: float = added_field(DEFAULT_SPEED_WANDER, before=0.0)  # and speed drift (relative std), each
@@ -192,6 +195,9 @@ class ExperimentConfig:
         bad = [p for p in self.protocols if p not in PROTOCOLS]
         if bad:
             raise ConfigError(f"protocols: unknown {bad}; expected a subset of {list(PROTOCOLS)}")
+        bad = sorted(set(self.change_parts) - set(REVISIT_PARTS))
+        if bad:
+            raise ConfigError(f"change_parts: unknown {bad}; the parts are {list(REVISIT_PARTS)}")
         if not 0 < self.city_database_fraction < 1:
             raise ConfigError(f"city_database_fraction: expected a fraction in (0, 1), got "
                               f"{self.city_database_fraction}")
@@ -249,8 +255,8 @@ def record_config(cfg: ExperimentConfig) -> RecordConfig:
                         database=PassConfig(max_frames=cfg.database_frames, **wander),
                         query=dense_pass(cfg, PassConfig(lane_offset_m=cfg.query_lane_m, spacing_m=cfg.query_spacing_m,
                                                          occlusion=cfg.occlusion, appearance=cfg.appearance,
-                                                         change=cfg.change, seed=1, max_frames=cfg.query_frames,
-                                                         **wander),
+                                                         change=cfg.change, change_parts=cfg.change_parts, seed=1,
+                                                         max_frames=cfg.query_frames, **wander),
                                          tracked=is_tracked(cfg) or "cross-area" in cfg.protocols))
 
 

@@ -913,7 +913,8 @@ def _protocol(cfg: ExperimentConfig, protocol: str, label: str, sdir: Path, db_f
         # a second pass over the database's route at one frame per second (the revisit pass's lane,
         # appearance and occluders, another seed; recorded densely for visual odometry)
         p = dense_pass(cfg, PassConfig(lane_offset_m=cfg.query_lane_m, spacing_m=speed, occlusion=cfg.occlusion,
-                                       appearance=cfg.appearance, change=cfg.change, seed=SECOND_PASS_SEED,
+                                       appearance=cfg.appearance, change=cfg.change,
+                                       change_parts=cfg.change_parts, seed=SECOND_PASS_SEED,
                                        max_frames=None if cfg.database_frames is None else
                                        int(np.ceil(db_full.path_length() / speed)) + 1,
                                        wander_m=cfg.wander_m, speed_wander=cfg.speed_wander))

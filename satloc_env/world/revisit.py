@@ -381,16 +381,22 @@ def cast_shadows(lay: Layout, depth: float) -> None:
 
 
 # --- the world ---------------------------------------------------------------------------------------------
-@functools.lru_cache(maxsize=2)
-def changed_world(scene, strength: float, seed: int):
+def changed_world(scene, strength: float, seed: int, parts: Iterable[str] = PARTS):
     """The :class:`satloc_env.world.meshes.World` a revisit of ``scene`` (a :class:`satloc_env.world.scene.Scene`) at
     (``strength``, ``seed``) shows the ground camera: built from :func:`changed_layout` of the scene's layout
-    with the scene's ground padding, its foliage changed (:func:`change_foliage`). ``scene.world`` for
-    strength 0. The last two are kept (per process), so episodes of one revisit build it once."""
-    strength, seed, _ = _check(strength, seed, ())
-    if strength == 0.0:
+    (its ``parts`` of the change) with the scene's ground padding, its foliage changed (:func:`change_foliage`,
+    with the part ``vegetation``). ``scene.world`` for strength 0 or no parts. The last two are kept (per
+    process), so episodes of one revisit build it once."""
+    strength, seed, parts = _check(strength, seed, parts)
+    return _changed_world(scene, strength, seed, tuple(p for p in PARTS if p in parts))
+
+
+@functools.lru_cache(maxsize=2)
+def _changed_world(scene, strength: float, seed: int, parts: tuple[str, ...]):
+    if strength == 0.0 or not parts:
         return scene.world
-    world = scene.spec.build_world(changed_layout(scene.layout, strength, seed,
+    world = scene.spec.build_world(changed_layout(scene.layout, strength, seed, parts=parts,
                                                   cast=not scene.spec.casts_shadows))
-    change_foliage(world, strength, seed)
+    if "vegetation" in parts:
+        change_foliage(world, strength, seed)
     return world
