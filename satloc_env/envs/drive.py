@@ -36,6 +36,7 @@ from satloc.tracking.track import compose_motion
 from satloc_env.render.sensor import Sensor
 from satloc_env.world.meshes import LOD_M
 from satloc_env.world.revisit import PARTS as REVISIT_PARTS
+from satloc_env.world.revisit import check_parts
 from satloc_env.world.scene import Scene, load_scene
 
 from .occluders import Appearance, sample_occluders
@@ -132,9 +133,7 @@ class EnvConfig:
             v = getattr(self, k)
             if v is not None and not 0.0 <= v <= 1.0:   # False for NaN
                 raise ConfigError(f"{k}: expected a value in [0, 1] (or None: the scene's), got {v}")
-        unknown = sorted(set(self.change_parts) - set(REVISIT_PARTS))
-        if unknown:
-            raise ConfigError(f"change_parts: unknown {unknown}; the parts are {list(REVISIT_PARTS)}")
+        check_parts(self.change_parts, "change_parts")
         from satloc.localizers.crossview import Prior
 
         Prior(0.0, 0.0, 0.0, self.prior_radius_m, self.prior_yaw_deg)   # a prior's checks, naming the field

@@ -49,6 +49,7 @@ from satloc.persist import header, read_json, write_json
 from satloc.satmap import SatelliteMap
 from satloc.sequence import Frame, Sequence, SequenceWriter
 from satloc_env.world.revisit import PARTS as REVISIT_PARTS
+from satloc_env.world.revisit import check_parts
 from satloc_env.world.scene import SCENES_DIR, load_scene, load_spec, scene_path
 
 from .drivecheck import check_route, off_road_message
@@ -98,9 +99,7 @@ class PassConfig:
             v = getattr(self, k)
             if isinstance(v, bool) or not isinstance(v, (int, float)) or not 0.0 <= v <= hi:
                 raise ConfigError(f"pass {k}: expected a number in [0, {hi}], got {v!r}")
-        unknown = sorted(set(self.change_parts) - set(REVISIT_PARTS))
-        if unknown:
-            raise ConfigError(f"pass change_parts: unknown {unknown}; the parts are {list(REVISIT_PARTS)}")
+        check_parts(self.change_parts, "pass change_parts")
 
 
 @dataclass

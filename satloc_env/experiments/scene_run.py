@@ -56,6 +56,7 @@ from satloc_env.envs.record import (
 )
 from satloc_env.envs.vehicle import DEFAULT_SPEED_WANDER, DEFAULT_WANDER_M
 from satloc_env.world.revisit import PARTS as REVISIT_PARTS
+from satloc_env.world.revisit import check_parts
 from satloc_env.world.scene import load_scene
 
 from .grading import table_stats  # noqa: F401  (the tables import it from here)
@@ -195,9 +196,7 @@ class ExperimentConfig:
         bad = [p for p in self.protocols if p not in PROTOCOLS]
         if bad:
             raise ConfigError(f"protocols: unknown {bad}; expected a subset of {list(PROTOCOLS)}")
-        bad = sorted(set(self.change_parts) - set(REVISIT_PARTS))
-        if bad:
-            raise ConfigError(f"change_parts: unknown {bad}; the parts are {list(REVISIT_PARTS)}")
+        check_parts(self.change_parts, "change_parts")
         if not 0 < self.city_database_fraction < 1:
             raise ConfigError(f"city_database_fraction: expected a fraction in (0, 1), got "
                               f"{self.city_database_fraction}")

@@ -76,7 +76,7 @@ from .furniture import furniture_parts
 from .layout import Car, Layout
 from .paint import fill_poly, noise, rect_poly
 
-__all__ = ["PARTS", "SEASONS", "change_foliage", "changed_layout", "changed_world"]
+__all__ = ["PARTS", "SEASONS", "change_foliage", "changed_layout", "changed_world", "check_parts"]
 
 #: the parts of a change, in the order they are applied
 PARTS = ("vegetation", "road", "cars", "shadows")
@@ -109,11 +109,16 @@ def _check(strength: float, seed: int, parts: Iterable[str]) -> tuple[float, int
         raise ConfigError(f"change: expected a strength in [0, 1], got {strength}")
     if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or seed < 0:
         raise ConfigError(f"change seed: expected an integer >= 0, got {seed!r}")
+    return strength, int(seed), check_parts(parts, "change parts")
+
+
+def check_parts(parts: Iterable[str], where: str) -> tuple[str, ...]:
+    """``parts`` as a tuple; :class:`satloc.ConfigError` naming ``where`` for a part not in :data:`PARTS`."""
     parts = tuple(parts)
     unknown = sorted(set(parts) - set(PARTS))
     if unknown:
-        raise ConfigError(f"change parts: unknown {unknown}; the parts are {list(PARTS)}")
-    return strength, int(seed), parts
+        raise ConfigError(f"{where}: unknown {unknown}; the parts are {list(PARTS)}")
+    return parts
 
 
 def changed_layout(layout: Layout, strength: float, seed: int, parts: Iterable[str] = PARTS,

@@ -31,6 +31,7 @@ are those of a flat world, bit for bit.
 """
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass, field
 
@@ -152,7 +153,7 @@ class Terrain:
 
     def with_crown(self, crown: Crown | None) -> "Terrain":
         """This terrain with the road heights ``crown`` on top of its hills."""
-        out = Terrain(self.relief_m, self.wavelength_m, self.seed, self.camber)
+        out = dataclasses.replace(self)   # (the crown is not an init field: not copied)
         object.__setattr__(out, "crown", crown)
         return out
 
