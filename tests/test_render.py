@@ -498,3 +498,18 @@ def test_a_tilted_body_moves_the_view(renderer, camera):
     d = m[:3, :3] @ ray
     z = -m[2, 3] / d[2]                        # the ray's z-depth where it meets the ground (z = 0)
     assert abs(float(down["depth_left"][v, u]) - z) < 0.02 * z
+
+
+@pytest.mark.parametrize("shape", [(376, 620, 4), (564, 1241, 4), (1, 3, 4), (7, 1, 4)])
+def test_read_back_converts_in_bands_as_one_call_would(shape):
+    """The read-back's RGBA -> RGB (and red channel) conversion, done in bands of rows so that OpenCV stays on the
+    calling thread, gives exactly what one OpenCV call on the whole image gives."""
+    import cv2
+
+    from satloc_env.render.gl import _rgba_to
+
+    rgba = np.random.default_rng(0).integers(0, 256, shape, dtype=np.uint8)
+    rgb = _rgba_to(rgba, "rgb")
+    assert rgb.flags.c_contiguous and rgb.shape == shape[:2] + (3,)
+    assert np.array_equal(rgb, cv2.cvtColor(rgba, cv2.COLOR_RGBA2RGB))
+    assert np.array_equal(_rgba_to(rgba, "red"), rgba[..., 0])

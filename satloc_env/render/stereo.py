@@ -260,7 +260,8 @@ class _Cells(NamedTuple):
                       ground & (bands != GROUND), bands == NEAR, bands == FAR, (bands == INSIDE) & mirror, has_cells)
 
     def runs(self, drawn: np.ndarray, in_view: tuple, views: Sequence[np.ndarray], pose: Pose2, reach: float,
-             camera: StereoCamera, znear: float, detail_m: float, zfar: float = math.inf) -> tuple:
+             camera: StereoCamera, znear: float, detail_m: float, zfar: float = math.inf,
+             planes: Sequence[np.ndarray | None] = (None, None)) -> tuple:
         """Per view, {chunk: (first face, faces) of each of its cells to draw} for the chunks of ``drawn``
         (those in that view, ``in_view[view]``): a cell is drawn when its box is within ``reach`` of the pose
         and meets the view volume (a cell that does neither puts no fragment in the image) and its band suits
@@ -287,7 +288,7 @@ class _Cells(NamedTuple):
             k = cand[sel]
             keep = whole[sel].copy()
             test = ~keep
-            keep[test] = _box_in_view(self.boxes[k[test]], m, camera, znear, zfar=zfar)
+            keep[test] = _box_in_view(self.boxes[k[test]], m, camera, znear, zfar=zfar, planes=planes[side])
             k = k[keep]
             eye = m[:3, 3]
             gap = np.linalg.norm(np.clip(eye, self.boxes[k, 0], self.boxes[k, 1]) - eye, axis=1)
@@ -320,8 +321,20 @@ def _near(rects: np.ndarray, pose: Pose2, reach: float) -> np.ndarray:
     return np.hypot(dx, dy) <= reach
 
 
+def _view_planes(map_from_cam: np.ndarray, camera: StereoCamera, znear: float, margin_px: float = 4.0,
+                 zfar: float = math.inf) -> np.ndarray:
+    """(6, 4) the planes of a camera's view volume in map coordinates, as :func:`_box_in_view` tests them."""
+    # pixel u = fx x / z + cx + 0.5 in [0, width] (GL window coordinates, see the camera nodes), likewise v;
+    # the planes in camera coordinates (x, y, z, 1), then in map coordinates
+    u0, u1 = camera.cx + 0.5 + margin_px, camera.cx + 0.5 - camera.width - margin_px
+    v0, v1 = camera.cy + 0.5 + margin_px, camera.cy + 0.5 - camera.height - margin_px
+    return np.array([[0.0, 0.0, 1.0, -znear], [camera.fx, 0.0, u0, 0.0], [-camera.fx, 0.0, -u1, 0.0],
+                     [0.0, camera.fy, v0, 0.0], [0.0, -camera.fy, -v1, 0.0],
+                     [0.0, 0.0, -1.0, min(zfar + 1e-3, 1e30)]]) @ np.linalg.inv(map_from_cam)   # 1 mm spare
+
+
 def _box_in_view(boxes: np.ndarray, map_from_cam: np.ndarray, camera: StereoCamera, znear: float,
-                 margin_px: float = 4.0, zfar: float = math.inf) -> np.ndarray:
+                 margin_px: float = 4.0, zfar: float = math.inf, planes: np.ndarray | None = None) -> np.ndarray:
     """(n,) False for the axis-aligned boxes (``boxes``, (n, 2, 3) min and max rows, map frame) wholly on the
     outer side of one plane of the camera's view volume (in front of the near plane, beyond the far plane
     ``zfar``, or beyond an image edge widened by ``margin_px``): such a box puts no fragment in the image, so
@@ -329,14 +342,11 @@ def _box_in_view(boxes: np.ndarray, map_from_cam: np.ndarray, camera: StereoCame
     be kept.
 
     Each plane is a linear function f of the point, f >= 0 on the volume's side; its largest value over a box
-    is f(centre) + |grad f| . half-extent, so a box is wholly outside when that is negative."""
-    # pixel u = fx x / z + cx + 0.5 in [0, width] (GL window coordinates, see the camera nodes), likewise v;
-    # the planes in camera coordinates (x, y, z, 1), then in map coordinates
-    u0, u1 = camera.cx + 0.5 + margin_px, camera.cx + 0.5 - camera.width - margin_px
-    v0, v1 = camera.cy + 0.5 + margin_px, camera.cy + 0.5 - camera.height - margin_px
-    planes = np.array([[0.0, 0.0, 1.0, -znear], [camera.fx, 0.0, u0, 0.0], [-camera.fx, 0.0, -u1, 0.0],
-                       [0.0, camera.fy, v0, 0.0], [0.0, -camera.fy, -v1, 0.0],
-                       [0.0, 0.0, -1.0, min(zfar + 1e-3, 1e30)]]) @ np.linalg.inv(map_from_cam)   # 1 mm spare
+    is f(centre) + |grad f| . half-extent, so a box is wholly outside when that is negative. ``planes``: those
+    of :func:`_view_planes` for the same camera and arguments, when the caller already has them (a slot tests
+    the chunks and then their cells against each view's)."""
+    if planes is None:
+        planes = _view_planes(map_from_cam, camera, znear, margin_px, zfar)
     b = np.asarray(boxes, np.float64)
     centre, half = (b[:, 0] + b[:, 1]) / 2, (b[:, 1] - b[:, 0]) / 2
     top = centre @ planes[:, :3].T + planes[:, 3] + half @ np.abs(planes[:, :3]).T     # (n, 6)
@@ -426,10 +436,11 @@ class StereoSlot:
         reach, znear = self.batch.reach, self.batch.znear
         self._visible = _near(entry.rects, pose, reach)
         zfar = self.batch.zfar
-        self._in_view = tuple(self._visible & _box_in_view(entry.boxes, m, self.camera, znear, zfar=zfar)
-                              for m in views)
+        planes = [_view_planes(m, self.camera, znear, zfar=zfar) for m in views]
+        self._in_view = tuple(self._visible & _box_in_view(entry.boxes, m, self.camera, znear, zfar=zfar, planes=p)
+                              for m, p in zip(views, planes))
         self._runs = entry.cells.runs(self._in_view[0] | self._in_view[1], self._in_view, views, pose, reach,
-                                      self.camera, znear, self.batch.detail_m, zfar)
+                                      self.camera, znear, self.batch.detail_m, zfar, planes)
 
     def _draw_group(self, label_pass: bool, bg_color=None):
         """The slot's two views as a ``ViewGroup``: its chunks within reach, colour (or label) meshes, and its
