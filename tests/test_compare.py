@@ -427,3 +427,18 @@ def test_a_query_crossing_the_database_path_is_not_covered():
     assert covered_queries(db, qs, 5.0, 45.0).tolist() == [2]
     assert covered_queries(db, qs, 5.0, 180.0).tolist() == [1, 2, 3]
     assert ExperimentConfig(scene="city").coverage_yaw_deg == 45.0
+
+
+def test_curves_give_every_method_its_own_colour_and_a_style_by_kind():
+    """The gap and sweep figures draw a sweep's 13 methods and floors in 13 colours (matplotlib's default cycle
+    has 10: Ours-NP and the prior alone were both orange), the baselines dashed, the floors dotted."""
+    from satloc_env.experiments.tables import _line_styles
+
+    methods = ["Ours-GO", "Ours-NP", "Ours-full", "Ours-full + BEV align", "Ours-GO + track", "Ours-NP + track",
+               "Ours-full + track", "Ours-full + track + BEV align", "FAB-MAP", "FAB-MAP + seq", "EFM",
+               "Prior alone", "Dead reckoning"]
+    st = _line_styles(methods + ["EFM"])        # a method named twice keeps one entry
+    assert list(st) == methods
+    assert len({tuple(s["color"]) for s in st.values()}) == len(methods)
+    assert {m for m, s in st.items() if s["fmt"] == "--"} == {"FAB-MAP", "FAB-MAP + seq", "EFM"}
+    assert {m for m, s in st.items() if s["fmt"] == ":"} == {"Prior alone", "Dead reckoning"}

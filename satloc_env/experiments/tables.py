@@ -773,6 +773,22 @@ def gap_curve(out: str | Path, config: dict | None = None, progress: bool = True
     return rows
 
 
+def _line_styles(methods) -> dict[str, dict]:
+    """Per method, matplotlib line keywords: a colour of its own (the 20 of ``tab20`` in turn: with matplotlib's
+    default cycle of 10, a sweep's 13 methods and floors shared colours) and a style: the baselines (ground
+    images only) dashed, the reference floors (:data:`REFERENCE_NAMES`) dotted, the method's own modes solid with
+    dots."""
+    import matplotlib
+
+    cmap = matplotlib.colormaps["tab20"]
+    floors = set(REFERENCE_NAMES.values())
+    out = {}
+    for i, m in enumerate(dict.fromkeys(methods)):
+        style = ":" if m in floors else "--" if m in BASELINE_NAMES.values() else "o-"
+        out[m] = {"fmt": style, "color": cmap(i % cmap.N), "label": m}
+    return out
+
+
 def plot_gap(rows: list[dict], path: Path) -> None:
     """Mean and median error (log) and the fraction within 1 m against ``satellite_gap``, one line per method
     (rows of :func:`sweep` that differ only in the gap)."""
@@ -782,13 +798,13 @@ def plot_gap(rows: list[dict], path: Path) -> None:
     import matplotlib.pyplot as plt
 
     fig, axes = plt.subplots(1, 3, figsize=(17, 4.8))
-    for m in dict.fromkeys(r["method"] for r in rows):
+    for m, st in _line_styles(r["method"] for r in rows).items():
         part = sorted((r for r in rows if r["method"] == m), key=lambda r: r["satellite_gap"])
         g = [r["satellite_gap"] for r in part]
-        style = "--" if m in BASELINE_NAMES.values() else "o-"
-        axes[0].semilogy(g, [max(r["mean_m"], 1e-2) for r in part], style, label=m)
-        axes[1].semilogy(g, [max(r["median_m"], 1e-2) for r in part], style, label=m)
-        axes[2].plot(g, [r["within_1m"] for r in part], style, label=m)
+        fmt, kw = st["fmt"], {"color": st["color"], "label": m}
+        axes[0].semilogy(g, [max(r["mean_m"], 1e-2) for r in part], fmt, **kw)
+        axes[1].semilogy(g, [max(r["median_m"], 1e-2) for r in part], fmt, **kw)
+        axes[2].plot(g, [r["within_1m"] for r in part], fmt, **kw)
     for ax, yl in zip(axes, ("mean error (m)", "median error (m)", "within 1 m")):
         ax.set_xlabel("satellite_gap (0: the map is the rendered ground's copy)")
         ax.set_ylabel(yl)
@@ -796,7 +812,7 @@ def plot_gap(rows: list[dict], path: Path) -> None:
     axes[2].set_ylim(0, 1.02)
     axes[2].legend(fontsize=8, loc="upper left", bbox_to_anchor=(1.02, 1.0), borderaxespad=0.0)
     fig.suptitle(f"{rows[0]['scene']}: error against the satellite map's capture gap (dashed: the baselines, "
-                 "ground images only)" if rows else "")
+                 "ground images only; dotted: the prior alone and dead reckoning)" if rows else "")
     fig.tight_layout()
     with atomic_path(path, suffix=".png") as tmp:
         fig.savefig(tmp, dpi=110)
@@ -814,11 +830,12 @@ def plot_sweep(rows: list[dict], path: Path) -> None:
     combos = list(dict.fromkeys(tuple(r.get(k, 0.0) for k in key) for r in rows))   # rows before the gap: 0
     labels = [f"a{a:g}\no{o:g}\np{p:g}\ng{g:g}" for a, o, p, g in combos]
     fig, axes = plt.subplots(1, 2, figsize=(max(8, 1.2 * len(combos) + 4), 4.5))
-    for m in dict.fromkeys(r["method"] for r in rows):
+    for m, st in _line_styles(r["method"] for r in rows).items():
         by = {tuple(r.get(k, 0.0) for k in key): r for r in rows if r["method"] == m}
         x = np.arange(len(combos))
-        axes[0].semilogy(x, [max(by[c]["mean_m"], 1e-2) if c in by else np.nan for c in combos], "o-", label=m)
-        axes[1].plot(x, [by[c]["recall_10m"] if c in by else np.nan for c in combos], "o-", label=m)
+        fmt, kw = st["fmt"], {"color": st["color"], "label": m}
+        axes[0].semilogy(x, [max(by[c]["mean_m"], 1e-2) if c in by else np.nan for c in combos], fmt, **kw)
+        axes[1].plot(x, [by[c]["recall_10m"] if c in by else np.nan for c in combos], fmt, **kw)
     for ax, yl in zip(axes, ("mean error (m)", "within 10 m")):
         ax.set_xticks(np.arange(len(combos)))
         ax.set_xticklabels(labels, fontsize=7)
