@@ -774,10 +774,10 @@ def gap_curve(out: str | Path, config: dict | None = None, progress: bool = True
 
 
 def _line_styles(methods) -> dict[str, dict]:
-    """Per method, matplotlib line keywords: a colour of its own (the 20 of ``tab20`` in turn: with matplotlib's
-    default cycle of 10, a sweep's 13 methods and floors shared colours) and a style: the baselines (ground
-    images only) dashed, the reference floors (:data:`REFERENCE_NAMES`) dotted, the method's own modes solid with
-    dots."""
+    """Per method, its line's ``color`` and format ``fmt``: a colour of its own (the 20 of ``tab20`` in turn:
+    with matplotlib's default cycle of 10, a sweep's 13 methods and floors shared colours); the baselines
+    (ground images only) dashed, the reference floors (:data:`REFERENCE_NAMES`) dotted, the method's own modes
+    solid with dots."""
     import matplotlib
 
     cmap = matplotlib.colormaps["tab20"]
@@ -785,7 +785,7 @@ def _line_styles(methods) -> dict[str, dict]:
     out = {}
     for i, m in enumerate(dict.fromkeys(methods)):
         style = ":" if m in floors else "--" if m in BASELINE_NAMES.values() else "o-"
-        out[m] = {"fmt": style, "color": cmap(i % cmap.N), "label": m}
+        out[m] = {"fmt": style, "color": cmap(i % cmap.N)}
     return out
 
 
