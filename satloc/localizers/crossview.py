@@ -39,11 +39,13 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from ..config import added_field
 from ..errors import ConfigError
 from ..features.dictionary import FrameDepth, SatelliteFeatures
 from ..geometry import Pose2, StereoCamera, wrap_angle
 from ..labels import DRIVABLE, NUM_CLASSES
 from ..tracking.align import AlignConfig, BevAligner, _parabola_peak
+from .gnss import draw_prior
 from .interface import MAX_RADIUS_M, Prior
 
 __all__ = ["Prior", "CrossViewConfig", "CrossViewResult", "CrossViewLocalizer", "CrossViewTracker", "draw_prior",
@@ -84,6 +86,12 @@ class CrossViewConfig:
     track_yaw_deg: float = 4.0
     track_sigma_m: float = 2.0
     track_sigma_deg: float = 3.0
+    # a fix whose disc the moved answer lies beyond (by more than the belief reaches) says the track is lost; with a
+    # receiver whose error persists and now and then outgrows the disc (satloc.localizers.gnss, model "receiver"),
+    # the track counts as lost only once the fixes have disagreed with it for longer than this many seconds (the
+    # frames' timestamps); meanwhile it goes on around the moved answer. 0: at the first such fix (the uniform
+    # prior always holds the truth, so a fix that disagrees means the track is wrong)
+    lost_after_s: float = added_field(0.0)
     align: AlignConfig = field(default_factory=AlignConfig)   # the BEV: extent, channels, normalisation
 
     def __post_init__(self):
@@ -100,19 +108,11 @@ class CrossViewConfig:
             raise ConfigError(f"crossview.track: expected 'gate' or 'fuse', got {self.track!r}")
         if not self.track_sigma_m > 0 or not self.track_sigma_deg > 0:
             raise ConfigError("crossview: track_sigma_m and track_sigma_deg must be > 0")
+        if not (self.lost_after_s >= 0 and math.isfinite(self.lost_after_s)):
+            raise ConfigError(f"crossview.lost_after_s: expected seconds >= 0, got {self.lost_after_s!r}")
         if not 0 < self.track_radius_m <= MAX_RADIUS_M or not 0 <= self.track_yaw_deg <= 180:
             raise ConfigError(f"crossview: track_radius_m must lie in (0, {MAX_RADIUS_M:g}] m and track_yaw_deg in "
                               f"[0, 180] degrees")
-
-
-def draw_prior(pose, radius_m: float = 20.0, yaw_deg: float = 10.0, rng: np.random.Generator | None = None) -> Prior:
-    """A prior as a GPS fix would give it around the true ``pose`` (a Pose2 or x, y, yaw): centred uniformly
-    within ``radius_m`` of it, its heading uniformly within ``yaw_deg`` degrees, with those widths."""
-    x, y, yaw = (pose.x, pose.y, pose.yaw) if isinstance(pose, Pose2) else (float(v) for v in np.asarray(pose)[:3])
-    rng = rng if rng is not None else np.random.default_rng()
-    r, a = radius_m * math.sqrt(rng.uniform()), rng.uniform(0.0, 2.0 * math.pi)
-    return Prior(x + r * math.cos(a), y + r * math.sin(a), float(wrap_angle(yaw + math.radians(rng.uniform(-yaw_deg, yaw_deg)))),
-                 radius_m, yaw_deg)
 
 
 @dataclass
@@ -236,8 +236,11 @@ class CrossViewLocalizer:
         self._rgb = BilateralRGB()
 
     def as_localizer(self, track: bool = False) -> "NoDatabaseLocalizer":
-        """This localizer as one of the common interface (:class:`NoDatabaseLocalizer`)."""
-        return NoDatabaseLocalizer(self, bool(track))
+        """This localizer as one of the common interface (:class:`NoDatabaseLocalizer`); tracked, a query without a
+        prior (a receiver's outage, a frame with no fix) searches ``track_radius_m`` / ``track_yaw_deg`` around the
+        tracked answer."""
+        follow = (self.config.track_radius_m, self.config.track_yaw_deg) if track else None
+        return NoDatabaseLocalizer(self, bool(track), follow=follow)
 
     def _searcher(self, radius_m: float) -> BevAligner:
         """The aligner whose satellite crop is grown by ``radius_m`` (the normalised map shared)."""
@@ -338,6 +341,7 @@ class CrossViewTracker:
 
     def reset(self) -> None:
         self.pose: Pose2 | None = None   # the last answer moved by the odometry since (None: lost)
+        self.disagree_since: float | None = None   # the time of the first fix of a run that disagrees with the track
 
     def predict(self, motion) -> None:
         m = np.asarray(motion, np.float64).reshape(-1)
@@ -351,18 +355,32 @@ class CrossViewTracker:
     def localize(self, frame, prior: Prior) -> CrossViewResult:
         """The frame's pose: ``fuse``, across ``prior`` with the moved answer as a Gaussian belief; ``gate``,
         within ``track_radius_m`` of the moved answer; across ``prior`` alone where the moved answer lies
-        farther outside ``prior`` than 3 ``track_sigma_m`` (``gate``: ``track_radius_m``)."""
+        farther outside ``prior`` than 3 ``track_sigma_m`` (``gate``: ``track_radius_m``), and has for longer than
+        ``lost_after_s`` (by the frames' timestamps; meanwhile the fix's disc is searched around the moved answer)."""
         cfg = self.localizer.config
         use, predicted = prior, None
         # lost: the moved answer lies farther outside the fix's disc than the belief reaches (3 sigma; gate: its
         # search radius). Slightly outside is not lost: a fix drawn near its disc's edge puts a right answer there
         reach = 3.0 * cfg.track_sigma_m if cfg.track == "fuse" else cfg.track_radius_m
-        if self.pose is not None and math.hypot(self.pose.x - prior.x, self.pose.y - prior.y) <= prior.radius_m + reach:
-            if cfg.track == "gate":
-                use = Prior(self.pose.x, self.pose.y, self.pose.yaw, min(cfg.track_radius_m, prior.radius_m),
-                            min(cfg.track_yaw_deg, prior.yaw_deg))
+        if self.pose is not None:
+            far = math.hypot(self.pose.x - prior.x, self.pose.y - prior.y) > prior.radius_m + reach
+            t = float(getattr(frame, "timestamp", 0.0) or 0.0)
+            if not far:
+                self.disagree_since = None
+            elif self.disagree_since is None:
+                self.disagree_since = t
+            if far and t - self.disagree_since >= cfg.lost_after_s:
+                self.disagree_since = None   # lost: the fix's disc alone
             else:
-                predicted = (self.pose, cfg.track_sigma_m, cfg.track_sigma_deg)
+                centre = prior if not far else Prior(self.pose.x, self.pose.y, self.pose.yaw, prior.radius_m,
+                                                     prior.yaw_deg)
+                if cfg.track == "gate":
+                    use = Prior(self.pose.x, self.pose.y, self.pose.yaw, min(cfg.track_radius_m, prior.radius_m),
+                                min(cfg.track_yaw_deg, prior.yaw_deg))
+                else:
+                    use, predicted = centre, (self.pose, cfg.track_sigma_m, cfg.track_sigma_deg)
+        else:
+            self.disagree_since = None
         res = self.localizer.localize(frame, use, predicted)
         self.pose = res.pose
         return res

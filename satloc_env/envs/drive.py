@@ -29,6 +29,7 @@ from satloc.config import from_dict, override, to_dict
 from satloc.errors import ConfigError, FormatError
 from satloc.geometry import Pose2, StereoCamera
 from satloc.labels import NUM_CLASSES
+from satloc.localizers.gnss import GnssConfig, GnssReceiver
 from satloc.persist import read_json
 from satloc.satmap import SatelliteMap
 from satloc.sequence import Frame
@@ -109,6 +110,9 @@ class EnvConfig:
     localize_every: int = 1                 # localize at the steps that are multiples of this (reset: step 0)
     prior_radius_m: float = 20.0            # "cross": each localization's prior, drawn around the true pose as a
     prior_yaw_deg: float = 10.0             # GPS fix gives it: within this radius and heading range
+    gnss: GnssConfig = field(default_factory=GnssConfig)   # how the prior's centre strays from the true pose
+                                            # (satloc.localizers.gnss): "uniform" within the radius, step by step;
+                                            # "receiver", a receiver's correlated error, multipath and outages
     reward: Literal["none", "neg_error"] = "none"  # neg_error: minus the localization error (metres)
 
     def __post_init__(self):
@@ -941,6 +945,7 @@ class SatLocEnv(SharedSpecMixin, gym.Env):
         self._prior_rng = None
         if self.localizer is not None:
             self._prior_rng = np.random.default_rng(self._child_seed(PRIOR_SPAWN_KEY))
+            self._gnss = GnssReceiver(cfg.gnss, cfg.prior_radius_m, cfg.prior_yaw_deg, self._prior_rng)
             # a new episode: the localizer's reset(context) (tracking: a new belief)
             self._loc.begin(self._context(scene, int(self._child_seed(LOCALIZER_SPAWN_KEY).generate_state(1)[0])))
         obs = self._observe(np.zeros(3, np.float32))
@@ -1076,10 +1081,8 @@ class SatLocEnv(SharedSpecMixin, gym.Env):
         ``prior_radius_m``, heading within ``prior_yaw_deg``); keeps the result for ``info`` and ``render``."""
         if self.localizer is None:
             return
-        from satloc.localizers.crossview import draw_prior
-
         cfg = self._episode
-        prior = self.last_prior = draw_prior(self.pose, cfg.prior_radius_m, cfg.prior_yaw_deg, self._prior_rng)
+        prior = self.last_prior = self._gnss.fix(self.pose, self.steps * cfg.dt)
         self._loc.localize(self._frame(), self.steps, prior)
 
     def _frame(self) -> Frame:

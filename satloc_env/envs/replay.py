@@ -23,7 +23,7 @@ from __future__ import annotations
 import dataclasses
 import math
 import os
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Literal
 
@@ -34,6 +34,7 @@ from gymnasium import spaces
 from satloc.config import from_dict, override, to_dict
 from satloc.errors import ConfigError
 from satloc.geometry import Pose2
+from satloc.localizers.gnss import GnssConfig, GnssReceiver
 from satloc.persist import read_json
 from satloc.satmap import SatelliteMap
 from satloc.sequence import Sequence
@@ -95,6 +96,10 @@ class ReplayConfig:
     localize_every: int = 1                 # localize at reset and at the steps that are multiples of this
     prior_radius_m: float = 20.0            # each localization's prior, drawn around the frame's GPS / OXTS pose
     prior_yaw_deg: float = 10.0             # as a fix gives it: within this radius and heading range
+    gnss: GnssConfig = field(default_factory=GnssConfig)   # how the prior's centre strays from that pose
+                                            # (satloc.localizers.gnss): "uniform" within the radius, frame by frame;
+                                            # "receiver", a receiver's correlated error, multipath and outages over
+                                            # the sequence's timestamps
     reward: Literal["none", "neg_error"] = "none"  # neg_error: minus the localization error (metres)
 
     def __post_init__(self):
@@ -441,6 +446,9 @@ class SatLocReplayEnv(SharedSpecMixin, gym.Env):
             from satloc.localizers.interface import Context
 
             self._prior_rng = np.random.default_rng(child(PRIOR_SPAWN_KEY))
+            stamps = np.asarray(self.sequence.timestamps, np.float64)
+            self._gnss = GnssReceiver(self.config.gnss, self.config.prior_radius_m, self.config.prior_yaw_deg,
+                                      self._prior_rng, float(stamps.min()) if len(stamps) else 0.0)
             self._loc.begin(Context(self.camera, self.map, seed=int(child(LOCALIZER_SPAWN_KEY).generate_state(1)[0]),
                                     database=None, place=self.sequence.name))
         else:
@@ -529,18 +537,15 @@ class SatLocReplayEnv(SharedSpecMixin, gym.Env):
 
     def _localize(self) -> None:
         """Localize the current frame from a prior drawn around its pose in the data (the GPS / OXTS fix; none for
-        a frame without a pose): uniform within ``prior_radius_m``, heading within ``prior_yaw_deg``."""
+        a frame without a pose) as ``gnss`` gives it (by default uniform within ``prior_radius_m``, heading within
+        ``prior_yaw_deg``)."""
         if self.localizer is None:
             return
-        from satloc.localizers.crossview import draw_prior
-
         f = self._frame
         frame = dataclasses.replace(f, pose=None, labels=None,
                                     depth=f.depth if self._loc.needs_frame_depth else None)
         p = self._poses[self.frame_index]
-        cfg = self.config
-        prior = draw_prior(p, cfg.prior_radius_m, cfg.prior_yaw_deg, self._prior_rng) if np.all(np.isfinite(p)) \
-            else None
+        prior = self._gnss.fix(p, float(f.timestamp)) if np.all(np.isfinite(p)) else None
         self.last_prior = prior
         self._loc.localize(frame, self.steps, prior)
 

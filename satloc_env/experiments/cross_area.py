@@ -98,7 +98,7 @@ def run_cross(q: Sequence, sel: np.ndarray, ca: CrossAreaConfig, odometry: np.nd
 
     out.mkdir(parents=True, exist_ok=True)
     truth = np.asarray(q.poses, np.float64)[sel]
-    priors = query_priors(ca, truth, sel)
+    priors = query_priors(ca, truth, sel, q.timestamps)
     context = Context(q.camera, satmap, seed=ca.seed, database=None, place=label)
     proj_id = None   # learned channels: the file's content, not its name
     if ca.crossview.projections is not None:
@@ -130,7 +130,10 @@ def run_cross(q: Sequence, sel: np.ndarray, ca: CrossAreaConfig, odometry: np.nd
                 ext = make_extractor("default")   # the shipped features, whatever the database method uses
                 sf = satellite_features(sdir, satmap, ext) if sdir is not None else SatelliteFeatures.compute(satmap, ext)
                 cv = CrossViewLocalizer(q.camera, sf, ext, ca.crossview, labels=satmap.labels)
-            m, _ = run_graded(NoDatabaseLocalizer(cv, track=tracked), row, CROSS_NAMES[row], context, q, sel,
+            # a query with no fix (a receiver's outage) follows the track
+            follow = (ca.crossview.track_radius_m, ca.crossview.track_yaw_deg) if tracked else None
+            loc = NoDatabaseLocalizer(cv, track=tracked, follow=follow)
+            m, _ = run_graded(loc, row, CROSS_NAMES[row], context, q, sel,
                               odometry if tracked else None, priors, out, db_poses, label, progress,
                               log=lambda s: None, meta={"stamp": stamp})
             secs = m["s_per_query"]
@@ -184,7 +187,10 @@ def _pictures(ca: CrossAreaConfig, label: str, satmap: SatelliteMap, sdir: Path 
     from satloc.evaluation.plots import plot_cross_posterior
     from satloc.geometry import Pose2
 
-    order = np.argsort(np.nan_to_num(errors, nan=1e9))
+    has = np.array([p is not None for p in priors])   # a query in a receiver's outage has no prior to draw
+    order = np.flatnonzero(has)[np.argsort(np.nan_to_num(np.asarray(errors)[has], nan=1e9))]
+    if not len(order):
+        return
     picks = sorted({int(order[0]), int(order[len(order) // 2]), int(order[-1])})
     todo = [k for k in picks if not (out / f"posterior_cross_q{int(sel[k]):03d}.png").is_file()]
     if not todo:

@@ -10,9 +10,10 @@ Every experiment that grades localizers (Table I's protocols, the sweep and the 
 
 Each goes through :func:`satloc.evaluation.run.run_localizer` exactly as the built-in ones do, with the same
 queries, the same odometry as the tracked modes and one prior per query drawn around its true pose as a GPS fix
-gives it (:func:`query_priors`: uniform within ``cross_area.prior_radius_m`` and ``cross_area.prior_yaw_deg``,
-seeded by ``cross_area.seed`` and the query's frame index, so every protocol and every method sees the same
-prior for the same frame). Its rows carry the same columns (:func:`table_stats`),
+gives it (:func:`query_priors`: by default uniform within ``cross_area.prior_radius_m`` and
+``cross_area.prior_yaw_deg``, seeded by ``cross_area.seed`` and the query's frame index; ``cross_area.gnss``: a
+receiver's correlated error instead), so every protocol and every method sees the same prior for the same frame.
+Its rows carry the same columns (:func:`table_stats`),
 named by the object's ``name`` attribute or its class name; its answers go into ``localization_<key>.npz``.
 """
 from __future__ import annotations
@@ -26,7 +27,7 @@ import numpy as np
 from satloc.errors import ConfigError
 from satloc.evaluation.metrics import bootstrap_ci, ci_method, error_stats, stationary_block_length, worst_case_errors
 from satloc.evaluation.run import Run, run_localizer
-from satloc.localizers.crossview import draw_prior
+from satloc.localizers.gnss import gnss_priors
 from satloc.localizers.interface import Context, localizer_name, resolve_localizer
 from satloc.localizers.reference import REFERENCES, reference_localizer
 from satloc.persist import header, write_json
@@ -57,17 +58,20 @@ def table_stats(errors, truth, db_poses, seed: int = 0) -> dict:
             "ci_method": ci_method("stationary", block)}
 
 
-def query_priors(ca, truth: np.ndarray, frames: np.ndarray) -> list:
-    """Each query's prior: drawn around its true pose (``truth`` (N, 3)) within ``ca.prior_radius_m`` and
-    ``ca.prior_yaw_deg`` (a :class:`satloc_env.experiments.scene_run.CrossAreaConfig`) by a generator seeded with
-    ``ca.seed`` and the query's frame index (``frames``), so a query's prior does not depend on which other
-    queries are evaluated. A query without a true pose gets none."""
-    out = []
-    for t, i in zip(np.asarray(truth, np.float64), frames):
-        ok = np.all(np.isfinite(t))
-        out.append(draw_prior(t, ca.prior_radius_m, ca.prior_yaw_deg, np.random.default_rng([ca.seed, int(i)]))
-                   if ok else None)
-    return out
+def query_priors(ca, truth: np.ndarray, frames: np.ndarray, timestamps: np.ndarray | None = None) -> list:
+    """Each query's prior around its true pose (``truth`` (N, 3)), of ``ca.prior_radius_m`` and ``ca.prior_yaw_deg``
+    (a :class:`satloc_env.experiments.scene_run.CrossAreaConfig`) as its receiver model ``ca.gnss`` gives it
+    (:func:`satloc.localizers.gnss.gnss_priors`): ``uniform``, from a generator seeded with ``ca.seed`` and the
+    query's frame index (``frames``); ``receiver``, the fix at the frame's time on the receiver's track over the
+    whole pass (``timestamps``: the pass's, indexed by ``frames``; seeded by ``ca.seed``). Either way a query's
+    prior does not depend on which other queries are evaluated. A query without a true pose, or in an outage,
+    gets none."""
+    frames = np.asarray(frames, np.int64)
+    times = start = None
+    if timestamps is not None:
+        stamps = np.asarray(timestamps, np.float64)
+        times, start = stamps[frames], float(stamps.min()) if len(stamps) else 0.0
+    return gnss_priors(truth, times, ca.gnss, ca.prior_radius_m, ca.prior_yaw_deg, ca.seed, keys=frames, start=start)
 
 
 def user_key(name: str) -> str:

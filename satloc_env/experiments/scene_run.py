@@ -40,6 +40,7 @@ from satloc.features.projection import ProjectionConfig
 from satloc.geometry import Pose2, wrap_angle
 from satloc.localizers.crossview import CrossViewConfig, Prior
 from satloc.localizers.database import Localization, LocalizerConfig
+from satloc.localizers.gnss import GnssConfig
 from satloc.persist import atomic_path, header, read_json, write_json
 from satloc.pipeline import BuildConfig, build, load_localizer, train_projection
 from satloc.satmap import SatelliteMap
@@ -118,6 +119,11 @@ class CrossAreaConfig:
     prior_yaw_deg: float = 10.0
     seed: int = 0
     crossview: CrossViewConfig = field(default_factory=CrossViewConfig)
+    # how each prior's centre strays from the truth (satloc.localizers.gnss): "uniform" (the default) within the
+    # radius and heading range, query by query; "receiver", a receiver's time-correlated error with multipath
+    # jumps and outages over the query pass's timeline (a query in an outage has no prior: the tracked rows follow
+    # their track, the single-frame rows give no answer)
+    gnss: GnssConfig = added_field(GnssConfig())
 
     def __post_init__(self):
         Prior(0.0, 0.0, 0.0, self.prior_radius_m, self.prior_yaw_deg)   # the same checks as a prior's
@@ -474,7 +480,7 @@ def localize_and_report(cfg, label: str, db: Sequence, q: Sequence, sel: np.ndar
     if odo is None and is_tracked(cfg):
         odo = tracked_odometry(cfg, q, sel, Path(out) / "odometry_visual.npz")
     truth = np.asarray(q.poses, np.float64)[np.asarray(sel, np.int64)]
-    priors = query_priors(cfg.cross_area, truth, sel)
+    priors = query_priors(cfg.cross_area, truth, sel, q.timestamps)
     context = Context(q.camera, satmap, seed=0, database=db, place=label)
     results: dict[str, dict] = {}
     examples: dict[str, list[tuple[int, Localization]]] = {}

@@ -1,0 +1,118 @@
+"""The receiver models of the priors (satloc.localizers.gnss) and the tracker's rule for fixes that disagree."""
+import dataclasses
+import math
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+
+from satloc.config import from_dict
+from satloc.errors import ConfigError
+from satloc.geometry import Pose2
+from satloc.localizers.crossview import CrossViewConfig, CrossViewResult, CrossViewTracker, draw_prior
+from satloc.localizers.gnss import GnssConfig, GnssReceiver, gnss_priors
+
+QUIET = dict(model="receiver", multipath_per_min=0.0, outage_per_min=0.0)
+
+
+def test_uniform_priors_are_the_draws_of_each_frames_own_generator():
+    truth = np.array([[0.0, 0.0, 0.1], [10.0, 5.0, -1.0], [np.nan, 0.0, 0.0], [3.0, 4.0, 2.0]])
+    keys = np.array([7, 3, 9, 12])
+    got = gnss_priors(truth, None, GnssConfig(), 20.0, 10.0, seed=4, keys=keys)
+    assert got[2] is None
+    for g, t, k in zip(got, truth, keys):
+        if g is not None:
+            assert g == draw_prior(t, 20.0, 10.0, np.random.default_rng([4, int(k)]))
+            assert math.hypot(g.x - t[0], g.y - t[1]) <= 20.0
+
+
+def test_receiver_fixes_depend_on_the_seed_and_time_only():
+    truth = np.column_stack([np.linspace(0, 300, 400), np.zeros(400), np.zeros(400)])
+    times = np.arange(400) * 0.1 + 5.0
+    cfg = GnssConfig(model="receiver")
+    a = gnss_priors(truth, times, cfg, seed=1, start=5.0)
+    assert a == gnss_priors(truth, times, cfg, seed=1, start=5.0)
+    assert a != gnss_priors(truth, times, cfg, seed=2, start=5.0)
+    sub = np.arange(0, 400, 37)   # asking for fewer frames of the same pass gives them the same fixes
+    assert gnss_priors(truth[sub], times[sub], cfg, seed=1, start=5.0) == [a[i] for i in sub]
+
+
+def test_receiver_bias_has_its_standard_deviation_and_correlation_time():
+    cfg = GnssConfig(noise_sigma_m=0.0, heading_sigma_deg=0.0, bias_sigma_m=4.0, bias_tau_s=30.0, rate_hz=1.0, **QUIET)
+    rx = GnssReceiver(cfg, rng=np.random.default_rng(0))
+    e = np.array([rx.error(float(t))[0] for t in range(60000)])
+    assert np.std(e, axis=0) == pytest.approx([4.0, 4.0], rel=0.1)
+    x = e[:, 0] - e[:, 0].mean()
+    rho = np.corrcoef(x[:-30], x[30:])[0, 1]   # one correlation time apart: exp(-1)
+    assert rho == pytest.approx(math.exp(-1.0), abs=0.05)
+    assert np.corrcoef(x[:-300], x[300:])[0, 1] < 0.1
+
+
+def test_receiver_outages_and_multipath_put_the_truth_outside_the_prior_now_and_then():
+    cfg = GnssConfig(model="receiver", outage_per_min=1.0, outage_mean_s=6.0)
+    rx = GnssReceiver(cfg, 20.0, 10.0, np.random.default_rng(3))
+    fixes = [rx.fix((0.0, 0.0, 0.0), 0.1 * k) for k in range(36000)]   # an hour at 10 Hz
+    up = np.array([f is not None for f in fixes])
+    # outages begin once a minute and last 6 s on average: about a tenth of the time without a fix, in runs
+    assert 0.05 < 1 - up.mean() < 0.15
+    assert np.count_nonzero(np.diff(up.astype(int)) == -1) > 20
+    r = np.array([math.hypot(f.x, f.y) for f in fixes if f is not None])
+    assert 3.0 < np.median(r) < 8.0
+    assert 0.005 < np.mean(r > 20.0) < 0.1       # beyond the prior's radius
+    quiet = GnssReceiver(dataclasses.replace(cfg, **QUIET), 20.0, 10.0, np.random.default_rng(3))
+    rq = np.array([math.hypot(f.x, f.y) for f in (quiet.fix((0, 0, 0), 0.1 * k) for k in range(36000))])
+    assert rq.max() < r.max() and np.mean(rq > 20.0) < np.mean(r > 20.0)
+
+
+def test_gnss_configuration_errors_name_the_field():
+    with pytest.raises(ConfigError, match="gnss.model"):
+        GnssConfig(model="gps")
+    with pytest.raises(ConfigError, match="gnss.bias_tau_s"):
+        GnssConfig(bias_tau_s=0.0)
+    with pytest.raises(ConfigError, match="gnss.noise_sigma_m"):
+        GnssConfig(noise_sigma_m=-1.0)
+    with pytest.raises(ConfigError, match="unknown key"):
+        from_dict(GnssConfig, {"modle": "receiver"}, "gnss")
+    rx = GnssReceiver(GnssConfig(model="receiver"), start=10.0)
+    with pytest.raises(ConfigError, match="before the receiver's first output"):
+        rx.fix((0.0, 0.0, 0.0), 9.0)
+    with pytest.raises(ConfigError, match="needs the frames' times"):
+        gnss_priors(np.zeros((2, 3)), None, GnssConfig(model="receiver"))
+    with pytest.raises(ConfigError, match="lost_after_s"):
+        CrossViewConfig(lost_after_s=-1.0)
+
+
+class _Recorder:
+    """A stand-in for the cross-view localizer: answers at the centre of what it is asked to search."""
+
+    def __init__(self, **kw):
+        self.config = CrossViewConfig(**kw)
+        self.calls = []
+
+    def localize(self, frame, prior, predicted=None):
+        self.calls.append((prior, predicted))
+        return CrossViewResult(Pose2(prior.x, prior.y, prior.yaw), 1.0, np.zeros((1, 3)), np.ones(1), 100)
+
+
+def _far_fixes(tracker, times):
+    """The track at the origin; fixes 40 m away (beyond the disc and the belief's reach) at ``times``."""
+    searched = []
+    for t in times:
+        tracker.pose = Pose2(0.0, 0.0, 0.0)
+        fix = draw_prior((40.0, 0.0, 0.0), 1e-3, 0.0, np.random.default_rng(0))
+        tracker.localize(SimpleNamespace(timestamp=t), fix)
+        searched.append(tracker.localizer.calls[-1][0])
+    return searched
+
+
+def test_tracker_yields_to_disagreeing_fixes_at_once_by_default_and_after_lost_after_s():
+    now = CrossViewTracker(_Recorder())
+    assert all(p.x > 39 for p in _far_fixes(now, [0.0, 1.0]))          # lost at the first such fix
+    patient = CrossViewTracker(_Recorder(lost_after_s=5.0))
+    s = _far_fixes(patient, [0.0, 2.0, 4.0, 5.0, 6.0])
+    assert [p.x < 1 for p in s] == [True, True, True, False, True]    # around the track, until 5 s of disagreement
+    # a fix that agrees again starts the count afresh
+    patient.pose = Pose2(0.0, 0.0, 0.0)
+    patient.localize(SimpleNamespace(timestamp=7.0), draw_prior((1.0, 0.0, 0.0), 1e-3, 0.0, np.random.default_rng(0)))
+    assert patient.disagree_since is None
+    assert _far_fixes(patient, [8.0])[0].x < 1
