@@ -3,6 +3,7 @@ satellite map (the default gap) from a +-20 m / +-10 degree prior, with the ship
 scenes/fcn_train, none of them `city`), and bad priors."""
 from __future__ import annotations
 
+import dataclasses
 import math
 import subprocess
 import sys
@@ -70,6 +71,27 @@ def test_no_database_finds_the_pose_from_a_20m_prior(setup):
     # depth): 8 of 12 within 1 m, median 0.35 m, the misses 1.3-9.6 m off along the road (on the plain, flat
     # world of earlier releases: 10 of 12, median 0.3 m); a guess within the +-15 m prior would be about 10 m off
     assert np.median(e) < 1.0 and (e < 1.0).mean() >= 0.6, np.round(e, 2)
+
+
+def test_a_fix_that_reports_its_accuracy_weighs_positions_near_its_centre(setup):
+    seq, cv = setup
+    for f in list(seq)[:3]:
+        t = f.pose
+        # 12 m along the lane (a drivable position: those off the road are never answers)
+        pinned = Prior(t.x + 12.0 * math.cos(t.yaw), t.y + 12.0 * math.sin(t.yaw), t.yaw, 20.0, 10.0, sigma_m=0.05)
+        # a fix of centimetres: the image cannot outweigh it, the answer is the centre (to the grid's cell)
+        r = cv.localize(f, pinned)
+        assert math.hypot(r.pose.x - pinned.x, r.pose.y - pinned.y) < 0.5
+        # a fix of metres near the truth: no worse than the same prior flat (the image decides within it)
+        flat = Prior(t.x + 2.0, t.y + 1.0, t.yaw, 20.0, 10.0)
+        near = dataclasses.replace(flat, sigma_m=4.0)
+        e_flat, e_near = (math.hypot(p.x - t.x, p.y - t.y)
+                          for p in (cv.localize(f, flat).pose, cv.localize(f, near).pose))
+        assert e_near <= e_flat + 0.3, (e_near, e_flat)
+    with pytest.raises(ConfigError, match=r"prior\.sigma_m"):
+        Prior(0.0, 0.0, 0.0, sigma_m=0.0)
+    with pytest.raises(ConfigError, match="crossview.fix_nu"):
+        CrossViewConfig(fix_nu=0.0)
 
 
 def test_bad_priors_get_clear_errors(setup):

@@ -92,6 +92,10 @@ class CrossViewConfig:
     # frames' timestamps); meanwhile it goes on around the moved answer. 0: at the first such fix (the uniform
     # prior always holds the truth, so a fix that disagrees means the track is wrong)
     lost_after_s: float = added_field(0.0)
+    # a prior that reports its accuracy (Prior.sigma_m: a receiver's fix) weighs each position by a Student t density
+    # of that scale around its centre, with fix_nu degrees of freedom (heavy tails: the fix may be misled by
+    # multipath); a prior without one is flat within its radius
+    fix_nu: float = added_field(3.0)
     align: AlignConfig = field(default_factory=AlignConfig)   # the BEV: extent, channels, normalisation
 
     def __post_init__(self):
@@ -108,6 +112,8 @@ class CrossViewConfig:
             raise ConfigError(f"crossview.track: expected 'gate' or 'fuse', got {self.track!r}")
         if not self.track_sigma_m > 0 or not self.track_sigma_deg > 0:
             raise ConfigError("crossview: track_sigma_m and track_sigma_deg must be > 0")
+        if not (self.fix_nu > 0 and math.isfinite(self.fix_nu)):
+            raise ConfigError(f"crossview.fix_nu: expected degrees of freedom > 0, got {self.fix_nu!r}")
         if not (self.lost_after_s >= 0 and math.isfinite(self.lost_after_s)):
             raise ConfigError(f"crossview.lost_after_s: expected seconds >= 0, got {self.lost_after_s!r}")
         if not 0 < self.track_radius_m <= MAX_RADIUS_M or not 0 <= self.track_yaw_deg <= 180:
@@ -286,6 +292,10 @@ class CrossViewLocalizer:
         ii, jj = np.mgrid[0:2 * m + 1, 0:2 * m + 1]
         dx, dy = (ii - m) * res, (jj - m) * res
         in_disc = (dx * dx + dy * dy) <= prior.radius_m ** 2
+        fix_nll = None
+        if prior.sigma_m is not None:   # the fix's reported accuracy: a Student t's negative log density, in
+            nu = self.config.fix_nu     # units of the temperature (the same for every heading)
+            fix_nll = self.config.temperature * (nu + 2) / 2 * np.log1p((dx * dx + dy * dy) / (nu * prior.sigma_m ** 2))
         xs, ys, yaws, scores, surfaces = [], [], [], [], []
         for dyaw in offsets:
             yaw = wrap_angle(prior.yaw + math.radians(float(dyaw)))
@@ -296,6 +306,8 @@ class CrossViewLocalizer:
             c, s = math.cos(yaw), math.sin(yaw)
             wx, wy = prior.x + c * dx - s * dy, prior.y + s * dx + c * dy
             ok = in_disc.copy()
+            if fix_nll is not None:
+                r = r - fix_nll
             if predicted is not None:   # log of the predicted belief, in units of the temperature
                 pp, sm, sd = predicted
                 dyaw_p = float(wrap_angle(yaw - pp.yaw))

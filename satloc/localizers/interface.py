@@ -70,19 +70,25 @@ DEFAULT_POSTERIOR_K = 32
 @dataclass(frozen=True)
 class Prior:
     """Where the vehicle is believed to be: within ``radius_m`` of (``x``, ``y``) (map metres), heading within
-    ``yaw_deg`` degrees of ``yaw`` (radians, counter-clockwise from east)."""
+    ``yaw_deg`` degrees of ``yaw`` (radians, counter-clockwise from east). ``sigma_m``: the accuracy the receiver
+    reports for its fix (one standard deviation per axis, metres), where it reports one: the position is then
+    likelier near the centre; None: equally likely anywhere within the radius."""
 
     x: float
     y: float
     yaw: float
     radius_m: float = 20.0
     yaw_deg: float = 10.0
+    sigma_m: float | None = None
 
     def __post_init__(self):
         for k in ("x", "y", "yaw", "radius_m", "yaw_deg"):
             v = getattr(self, k)
             if not isinstance(v, (int, float, np.floating, np.integer)) or not math.isfinite(float(v)):
                 raise ConfigError(f"prior.{k}: expected a finite number, got {v!r}")
+        s = self.sigma_m
+        if s is not None and (not isinstance(s, (int, float, np.floating, np.integer)) or not 0 < float(s) < math.inf):
+            raise ConfigError(f"prior.sigma_m: expected metres > 0 or None, got {s!r}")
         if not 0 < self.radius_m <= MAX_RADIUS_M:
             raise ConfigError(f"prior.radius_m: expected metres in (0, {MAX_RADIUS_M:g}], got {self.radius_m!r}")
         if not 0 <= self.yaw_deg <= 180:
