@@ -36,6 +36,9 @@ def test_receiver_fixes_depend_on_the_seed_and_time_only():
     # each fix reports the receiver's accuracy (bias and noise together); uniform priors report none
     assert all(p.sigma_m == pytest.approx(math.hypot(4.0, 1.0)) for p in a if p is not None)
     assert gnss_priors(truth[:3], times[:3], GnssConfig())[0].sigma_m is None
+    bare = gnss_priors(truth, times, dataclasses.replace(cfg, reports_accuracy=False), seed=1, start=5.0)
+    assert all(p.sigma_m is None for p in bare if p is not None)
+    assert [(p.x, p.y) for p in bare if p is not None] == [(p.x, p.y) for p in a if p is not None]
     sub = np.arange(0, 400, 37)   # asking for fewer frames of the same pass gives them the same fixes
     assert gnss_priors(truth[sub], times[sub], cfg, seed=1, start=5.0) == [a[i] for i in sub]
 

@@ -79,6 +79,7 @@ class GnssConfig:
     multipath_max_m: float = 60.0
     outage_per_min: float = 0.2
     outage_mean_s: float = 10.0
+    reports_accuracy: bool = True   # receiver: each fix carries its accuracy (Prior.sigma_m); False: a bare position
 
     def __post_init__(self):
         if self.model not in MODELS:
@@ -196,7 +197,9 @@ class GnssReceiver:
         """The accuracy the receiver reports with each fix (``receiver``: its bias and noise together, one standard
         deviation per axis; it does not know when multipath misleads it); None for the ``uniform`` model."""
         c = self.config
-        return math.hypot(c.bias_sigma_m, c.noise_sigma_m) or None if c.model == "receiver" else None
+        if c.model != "receiver" or not c.reports_accuracy:
+            return None
+        return math.hypot(c.bias_sigma_m, c.noise_sigma_m) or None
 
 
 def gnss_priors(truth, times, config: GnssConfig | None = None, radius_m: float = 20.0, yaw_deg: float = 10.0,
