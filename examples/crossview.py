@@ -16,6 +16,12 @@ answer moved by the visual odometry between them (``odometry_visual.npz`` beside
 ``--sigma`` metres / ``--sigma-yaw`` degrees; the GPS-like prior alone where the moved answer lies outside it
 (the fix says the track is lost) or after a frame with no answer.
 
+``--gnss receiver``: the priors as a receiver gives them over the pass's time (satloc.localizers.gnss: a drifting
+bias, multipath jumps that may put the truth outside the prior, outages with no fix, seeded by ``--seed``);
+``--no-accuracy``: its fixes report no accuracy; ``--lost-after S`` and ``--fix-nu NU``: the tracker's and the
+localizer's settings for such priors (``CrossViewConfig.lost_after_s``, ``fix_nu``). A frame in an outage has no
+answer single, and follows the track tracked.
+
 ``--temperatures T1 T2 ...`` also scores the posterior at each temperature: the mean log of the posterior
 mass within 1 m and 2 degrees of the truth (higher is better calibrated), to choose ``CrossViewConfig.
 temperature`` on a calibration recording (``satloc experiment tune`` records one on ``fcn_train/town_a``).
@@ -33,6 +39,7 @@ from satloc.evaluation.metrics import pose_errors
 from satloc.features import make_extractor
 from satloc.features.dictionary import SatelliteFeatures
 from satloc.localizers.crossview import CrossViewConfig, CrossViewLocalizer, draw_prior, localize_frames
+from satloc.localizers.gnss import GnssConfig, gnss_priors
 from satloc.satmap import SatelliteMap
 from satloc.tracking.align import AlignConfig
 from satloc.tracking.track import compose_motion
@@ -61,6 +68,10 @@ def main(argv=None):
     ap.add_argument("--track-yaw", type=float, default=d.track_yaw_deg)
     ap.add_argument("--sigma", type=float, default=d.track_sigma_m)
     ap.add_argument("--sigma-yaw", type=float, default=d.track_sigma_deg)
+    ap.add_argument("--gnss", default="uniform", choices=["uniform", "receiver"], help="how the priors stray")
+    ap.add_argument("--no-accuracy", action="store_true", help="--gnss receiver: fixes without their accuracy")
+    ap.add_argument("--lost-after", type=float, default=d.lost_after_s, help="seconds (CrossViewConfig.lost_after_s)")
+    ap.add_argument("--fix-nu", type=float, default=d.fix_nu, help="CrossViewConfig.fix_nu")
     a = ap.parse_args(argv)
     rec = Path(a.recording)
     seq, sm = Sequence.load(rec / "query"), SatelliteMap.load(rec / "map")
@@ -68,13 +79,19 @@ def main(argv=None):
     cfg = CrossViewConfig(top_k=10**9 if a.temperatures else 256, align=AlignConfig(channels=a.channels),
                           track=a.track_mode, track_radius_m=a.track_radius, track_yaw_deg=a.track_yaw,
                           track_sigma_m=a.sigma, track_sigma_deg=a.sigma_yaw, drivable=a.drivable,
+                          lost_after_s=a.lost_after, fix_nu=a.fix_nu,
                           projections=None if a.projections == "none" else a.projections)
     sf = SatelliteFeatures.compute(sm, ext)
     cv = CrossViewLocalizer(seq.camera, sf, ext, cfg, labels=sm.labels)
     rng = np.random.default_rng(a.seed)
     idx = np.linspace(0, len(seq) - 1, min(a.frames, len(seq))).astype(int)
     truth = np.asarray(seq.poses, np.float64)[idx]
-    priors = [draw_prior(t, a.radius, a.yaw, rng) for t in truth]
+    if a.gnss == "uniform":
+        priors = [draw_prior(t, a.radius, a.yaw, rng) for t in truth]
+    else:   # the receiver's track over the whole pass: a frame's fix does not depend on which frames are taken
+        stamps = np.asarray(seq.timestamps, np.float64)
+        priors = gnss_priors(truth, stamps[idx], GnssConfig(model="receiver", reports_accuracy=not a.no_accuracy),
+                             a.radius, a.yaw, a.seed, keys=idx, start=float(stamps.min()))
     odo = None
     if a.track:
         path = rec.parent / "odometry_visual.npz"
@@ -86,7 +103,20 @@ def main(argv=None):
             odo[k] = np.zeros(3)
             for step in steps[idx[k - 1] + 1:idx[k] + 1]:
                 odo[k] = compose_motion(odo[k], step)
-    r = localize_frames(cv, (seq[int(i)] for i in idx), priors, odo, top=cfg.top_k if a.temperatures else 32)
+    has = np.array([p is not None for p in priors])
+    follow = (cfg.track_radius_m, cfg.track_yaw_deg) if a.track else None
+    if a.track or has.all():
+        r = localize_frames(cv, (seq[int(i)] for i in idx), priors, odo, top=cfg.top_k if a.temperatures else 32,
+                            follow=follow)
+    else:   # single frames: those in an outage have no answer
+        got = localize_frames(cv, (seq[int(i)] for i in idx[has]), [p for p in priors if p is not None], None,
+                              top=cfg.top_k if a.temperatures else 32)
+        r = {k: np.full((len(idx),) + v.shape[1:], np.nan if v.dtype.kind == "f" else 0, v.dtype)
+             for k, v in got.items()}
+        for k, v in got.items():
+            r[k][has] = v
+    outside = np.mean([p is not None and math.hypot(p.x - t[0], p.y - t[1]) > p.radius_m
+                       for p, t in zip(priors, truth)])
     pe = pose_errors(r["estimates"], truth)
     for k, i in enumerate(idx):
         if not np.isfinite(pe["error"][k]):
@@ -99,7 +129,10 @@ def main(argv=None):
           f"+-{a.yaw:g} deg: mean {e[np.isfinite(e)].mean():.2f} m, median {np.median(e):.2f} m, within 1 m "
           f"{np.mean(e < 1):.0%}, lateral within 1 m {np.mean(pe['lateral'] < 1):.0%}, longitudinal within 1 m "
           f"{np.mean(pe['longitudinal'] < 1):.0%}, heading median {np.nanmedian(pe['heading_deg']):.1f} deg, "
-          f"{np.mean(r['seconds']):.2f} s per frame")
+          f"{np.nanmean(r['seconds']):.2f} s per frame")
+    if a.gnss != "uniform":
+        print(f"priors ({a.gnss}): {np.mean(~has):.0%} of frames with no fix, the truth outside the prior in "
+              f"{outside:.0%}")
     for temp in a.temperatures:   # softmax(score / T) is the posterior at cfg.temperature raised to cfg.temperature / T
         scores = []
         for k in range(len(idx)):

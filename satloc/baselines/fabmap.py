@@ -74,10 +74,11 @@ class FabMapConfig:
     """FAB-MAP's knobs: the build (features, vocabulary, tree) and the inference (detector, new place, prior)."""
 
     # vocabulary_size and contrast_threshold: chosen by `satloc experiment tune` on fcn_train/town_a (trained on
-    # town_b; no table tests there) at the default world (drifting passes), mean error of 57 revisit queries:
-    # words 500 / 1000 / 2000 / 5000 at 0.005: 80.5 / 51.2 / 4.46 / 4.53 m; then contrast 0.005 / 0.01 / 0.04 at
-    # 2000 words: 4.46 / 30.3 / 19.0 m
-    vocabulary_size: int = 2000           # k-means words
+    # town_b; no table tests there), mean error of 57 revisit queries. At the default world (varied streets over
+    # hills, cambered roads, the car pitching and rolling; commit 7e1994c): words 500 / 1000 / 2000 / 5000 at
+    # 0.005: 77.5 / 41.5 / 10.95 / 7.06 m; then contrast 0.005 / 0.01 / 0.04 at 5000 words: 7.06 / 8.76 / 12.3 m.
+    # (On the plain world of earlier releases: 80.5 / 51.2 / 4.46 / 4.53 m, 2000 words chosen.)
+    vocabulary_size: int = 5000           # k-means words
     max_features: int = 1000              # SIFT keypoints kept per image (strongest)
     contrast_threshold: float = 0.005     # SIFT's (OpenCV's default 0.04 finds ~180 features a rendered frame)
     image_scale: float = 1.0              # the left image is resized by this before feature extraction

@@ -114,13 +114,18 @@ def _merged(base: dict, over: dict) -> dict:
     return out
 
 
+#: means closer than this (metres) are equal: the same answers can differ in the last bits of a float (lock_mass
+#: at the default world gave 21.431019949 and 21.431019951 m for the same answers to a micrometre)
+TIE_M = 1e-6
+
+
 def pick_lowest(rows: list[dict], prefer=None) -> dict:
-    """The row with the lowest ``mean_m``; among equal means the one whose ``value`` is ``prefer`` (the current
-    default: a tie does not change it), else the first listed."""
+    """The row with the lowest ``mean_m``; among means equal to within :data:`TIE_M` the one whose ``value`` is
+    ``prefer`` (the current default: a tie does not change it), else the first listed."""
     if not rows:
         raise ValueError("pick_lowest: no rows")
     best = min(r["mean_m"] for r in rows)
-    tied = [r for r in rows if r["mean_m"] <= best]
+    tied = [r for r in rows if r["mean_m"] <= best + TIE_M]
     return next((r for r in tied if r["value"] == prefer), tied[0])
 
 
