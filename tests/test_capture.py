@@ -174,3 +174,30 @@ def test_a_scene_over_an_image_is_captured_too():
     quarter = load_scene("suburb_utm", satellite_gap=0.25)
     rq, _ = fine_texture_correlation(base.satmap.image, labels, quarter.satmap.image, quarter.satmap.labels, sigma)
     assert 0.2 < rq < 0.8, rq
+
+
+def test_texture_correlation_by_scale(city):
+    from satloc_env.world.capture import texture_correlation
+
+    lay, mpp, seed, satmap = city
+    copy, labels = paint_tile(lay, mpp, seed)
+    scales = (0.6, 2.4, 9.6)
+    same = texture_correlation(copy, labels, copy, labels, scales_m=scales, mpp=mpp)
+    for cls in ("road", "grass"):   # an image against itself
+        assert all(v == pytest.approx(1.0) for v in same[cls].values()), same
+    # the default capture against the copy: the fine texture is its own (coarser scales are issue 46's)
+    cap = texture_correlation(copy, labels, satmap.image, satmap.labels, scales_m=scales, mpp=mpp)
+    assert cap["road"][0.6] < 0.2 and cap["grass"][0.6] < 0.2, cap
+    # the same class edges and markings with a texture of its own at every scale: about 0 (edges do not count)
+    rng = np.random.default_rng(0)
+    noise = cv2.GaussianBlur(rng.normal(0, 1, labels.shape).astype(np.float32), (0, 0), 3.0)
+    own = copy.astype(np.float32)
+    for c in GROUND:
+        m = labels == c
+        own[m] = own[m].mean(axis=0) + 20 * noise[m][:, None] / noise[m].std()
+    mark = labels == C["lane_marking"]
+    own[mark] = 240
+    other = texture_correlation(copy, labels, np.clip(own, 0, 255).astype(np.uint8), labels, scales_m=scales, mpp=mpp)
+    for cls in ("road", "grass"):   # at 9.6 m this small city holds few independent patches: chance is wider
+        assert abs(other[cls][0.6]) < 0.1 and abs(other[cls][2.4]) < 0.1 and abs(other[cls][9.6]) < 0.35, other
+    assert np.isnan(texture_correlation(copy, labels, copy, labels, ("person",), (1.0,), mpp)["person"][1.0])

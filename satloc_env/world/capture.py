@@ -283,3 +283,50 @@ def _warp(img: np.ndarray, labels: np.ndarray, rms_px: float, spacing_px: float,
     lab = cv2.remap(labels, mx, my, cv2.INTER_NEAREST, borderMode=cv2.BORDER_REFLECT)
     return out, lab
 
+
+#: the scales (metres) at which :func:`texture_correlation` compares the ground and the map
+CORRELATION_SCALES_M = (0.6, 1.2, 2.4, 4.8, 9.6)
+
+
+def texture_correlation(ground_rgb: np.ndarray, ground_labels: np.ndarray, map_rgb: np.ndarray,
+                        map_labels: np.ndarray, classes: Iterable[str] = ("road", "grass"),
+                        scales_m: Iterable[float] = CORRELATION_SCALES_M, mpp: float = 0.2) -> dict:
+    """How much of the ground's texture the map shows: per class and scale, the correlation between the grey level
+    of the ground texture the camera renders (``ground_rgb``, ``ground_labels``: any resolution, the same
+    extent) and of the map (``map_rgb``, ``map_labels`` at ``mpp`` metres a pixel) over the pixels that both label
+    as the class, each band-passed around the scale within the class alone (a difference of Gaussians of sigma
+    s/4 and s/2, each a normalised convolution over the class's pixels, so that class edges and markings, which a
+    capture keeps, do not enter), where the class fills at least half of the wider Gaussian's window. A capture
+    that shares no texture with the ground gives about 0 at every scale; the ground against itself gives 1.
+    Returns ``{class: {scale: correlation}}`` (NaN where too few pixels qualify)."""
+    from satloc.labels import CLASS_ID
+
+    h, w = map_labels.shape
+    def gray(img):
+        return cv2.cvtColor(np.ascontiguousarray(img, np.uint8), cv2.COLOR_RGB2GRAY).astype(np.float32)
+
+    g = cv2.resize(gray(ground_rgb), (w, h), interpolation=cv2.INTER_AREA)
+    g_lab = cv2.resize(np.ascontiguousarray(ground_labels), (w, h), interpolation=cv2.INTER_NEAREST)
+    m = gray(map_rgb)
+    out: dict = {}
+    for name in classes:
+        c = CLASS_ID[name]
+        mask = ((g_lab == c) & (map_labels == c)).astype(np.float32)
+        out[name] = {}
+        for s in scales_m:
+            lo, hi = s / 4 / mpp, s / 2 / mpp
+            support = {sig: cv2.GaussianBlur(mask, (0, 0), sig) for sig in (lo, hi)}
+            use = (mask > 0) & (support[hi] >= 0.5)
+            if use.sum() < 100:
+                out[name][float(s)] = float("nan")
+                continue
+
+            def band(x):
+                return (cv2.GaussianBlur(x * mask, (0, 0), lo) / np.maximum(support[lo], 1e-6)
+                        - cv2.GaussianBlur(x * mask, (0, 0), hi) / np.maximum(support[hi], 1e-6))
+
+            a, b = band(g)[use], band(m)[use]
+            a, b = a - a.mean(), b - b.mean()
+            den = math.sqrt(float((a * a).sum()) * float((b * b).sum()))
+            out[name][float(s)] = float((a * b).sum() / den) if den > 0 else float("nan")
+    return out
