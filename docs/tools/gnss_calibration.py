@@ -1,0 +1,95 @@
+"""The no-database localizer under the receiver model of the priors (satloc.localizers.gnss), on a calibration
+recording: uniform priors against a receiver's, single frames and tracked, with and without the fixes' accuracy,
+and the tracker's ``lost_after_s``.
+
+    satloc experiment tune --out tune             # records the calibration pass on fcn_train/town_a
+    python docs/tools/gnss_calibration.py tune/rec 8 6 gnss_cal.json
+
+Takes every STEP-th frame of the recording's query pass (``odometry_visual.npz`` beside the recording: the
+visual odometry between them), draws each frame's prior with each of SEEDS seeds (uniform: seeded by the seed
+and the frame's index; receiver: one receiver per seed over the pass's time), localizes with the shipped
+features, and prints and writes per configuration: the share of frames answered (a frame in an outage has no
+answer single; tracked, it follows its track), the mean error over the answered, the median (an unanswered
+frame counted infinite), the shares within 1 m and beyond 10 m, the share of frames without a fix and with the
+truth outside the 20 m prior, and each seed's mean.
+"""
+import json
+import math
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+from satloc import Sequence
+from satloc.features import make_extractor
+from satloc.features.dictionary import SatelliteFeatures
+from satloc.localizers.crossview import CrossViewConfig, CrossViewLocalizer, draw_prior, localize_frames
+from satloc.localizers.gnss import GnssConfig, gnss_priors
+from satloc.satmap import SatelliteMap
+from satloc.tracking.track import compose_motion
+
+#: (prior model, tracked, fixes report their accuracy, CrossViewConfig fields)
+RUNS = [("uniform", False, True, {}), ("uniform", True, True, {}),
+        ("receiver", False, True, {}), ("receiver", False, False, {}),
+        ("receiver", True, True, {"lost_after_s": 0.0}), ("receiver", True, True, {"lost_after_s": 10.0}),
+        ("receiver", True, True, {"lost_after_s": 30.0}),
+        ("receiver", True, False, {"lost_after_s": 0.0}), ("receiver", True, False, {"lost_after_s": 10.0})]
+
+
+def main(rec: Path, step: int, n_seeds: int, dest: Path) -> None:
+    seq, sm = Sequence.load(rec / "query"), SatelliteMap.load(rec / "map")
+    ext = make_extractor("default")
+    t0 = time.time()
+    sf = SatelliteFeatures.compute(sm, ext)
+    print("features", time.time() - t0, flush=True)
+    idx = np.arange(0, len(seq), step)
+    truth = np.asarray(seq.poses, np.float64)[idx]
+    stamps = np.asarray(seq.timestamps, np.float64)
+    steps = np.load(rec.parent / "odometry_visual.npz", allow_pickle=False)["steps"]
+    odo = np.full((len(idx), 3), np.nan)
+    for k in range(1, len(idx)):   # the odometry between consecutive frames taken, composed
+        odo[k] = np.zeros(3)
+        for s in steps[idx[k - 1] + 1:idx[k] + 1]:
+            odo[k] = compose_motion(odo[k], s)
+    print(len(idx), "frames over", stamps[idx[-1]] - stamps[idx[0]], "s", flush=True)
+    cvs, out = {}, []
+    for model, track, acc, kw in RUNS:
+        key = tuple(sorted(kw.items()))
+        if key not in cvs:
+            cvs[key] = CrossViewLocalizer(seq.camera, sf, ext, CrossViewConfig(**kw), labels=sm.labels)
+        cv = cvs[key]
+        errs, nofix, outside = [], [], []
+        for seed in range(n_seeds):
+            if model == "uniform":
+                priors = [draw_prior(t, 20.0, 10.0, np.random.default_rng([seed, int(i)])) for t, i in zip(truth, idx)]
+            else:
+                priors = gnss_priors(truth, stamps[idx], GnssConfig(model="receiver", reports_accuracy=acc), 20.0,
+                                     10.0, seed, keys=idx, start=float(stamps.min()))
+            has = np.array([p is not None for p in priors])
+            nofix.append(1 - has.mean())
+            outside.append(np.mean([p is not None and math.hypot(p.x - t[0], p.y - t[1]) > 20
+                                    for p, t in zip(priors, truth)]))
+            if track:
+                r = localize_frames(cv, (seq[int(i)] for i in idx), priors, odo, follow=(5.0, 4.0))
+                est = r["estimates"]
+            else:   # single frames: those without a fix have no answer
+                est = np.full((len(idx), 3), np.nan)
+                sel = np.flatnonzero(has)
+                r = localize_frames(cv, (seq[int(idx[k])] for k in sel), [priors[k] for k in sel], None)
+                est[sel] = r["estimates"]
+            errs.append(np.hypot(est[:, 0] - truth[:, 0], est[:, 1] - truth[:, 1]))
+        e = np.concatenate(errs)
+        ans = np.isfinite(e)
+        row = dict(model=model, track=track, accuracy=acc, **kw, answered=float(ans.mean()),
+                   mean=float(e[ans].mean()), median=float(np.median(np.where(ans, e, np.inf))),
+                   within1=float(np.mean(e[ans] < 1)), beyond10=float(np.mean(np.where(ans, e, np.inf) > 10)),
+                   nofix=float(np.mean(nofix)), outside=float(np.mean(outside)),
+                   per_seed_mean=[float(np.nanmean(x)) for x in errs])
+        out.append(row)
+        print(json.dumps(row), flush=True)
+    dest.write_text(json.dumps(out, indent=1))
+
+
+if __name__ == "__main__":
+    main(Path(sys.argv[1]), int(sys.argv[2]), int(sys.argv[3]), Path(sys.argv[4]))
