@@ -201,3 +201,20 @@ def test_texture_correlation_by_scale(city):
     for cls in ("road", "grass"):   # at 9.6 m this small city holds few independent patches: chance is wider
         assert abs(other[cls][0.6]) < 0.1 and abs(other[cls][2.4]) < 0.1 and abs(other[cls][9.6]) < 0.35, other
     assert np.isnan(texture_correlation(copy, labels, copy, labels, ("person",), (1.0,), mpp)["person"][1.0])
+
+
+def test_coarse_texture_makes_the_map_s_texture_its_own_at_every_scale(city):
+    from satloc_env.world.capture import OPTIONAL_PARTS, texture_correlation
+
+    lay, mpp, seed, satmap = city
+    scales = (0.6, 2.4, 4.8)
+    base = texture_correlation(lay.ground_rgb, lay.ground_labels, satmap.image, satmap.labels, scales_m=scales,
+                               mpp=mpp)
+    img, lab = capture_tile(lay, mpp, seed, DEFAULT_GAP, PARTS + OPTIONAL_PARTS)
+    own = texture_correlation(lay.ground_rgb, lay.ground_labels, img, lab, scales_m=scales, mpp=mpp)
+    for cls in ("road", "grass"):
+        assert all(abs(v) < 0.15 for v in own[cls].values()), own
+        assert base[cls][4.8] > own[cls][4.8] + 0.15, (base, own)   # the default capture keeps the coarse texture
+    # an optional part is not in the default capture, and a capture with it is deterministic
+    assert np.array_equal(satmap.image, capture_tile(lay, mpp, seed, DEFAULT_GAP)[0])
+    assert np.array_equal(img, capture_tile(lay, mpp, seed, DEFAULT_GAP, PARTS + OPTIONAL_PARTS)[0])

@@ -70,6 +70,13 @@ __all__ = ["PARTS", "DEFAULT_GAP", "Capture", "capture_params", "capture_tile", 
 
 #: the parts of a capture, in the order they are applied
 PARTS = ("time", "lean", "texture", "blur", "registration", "jpeg")
+#: parts a capture may be asked for that the default leaves out (issue 46, being measured): ``coarse_texture``
+#: makes each class's texture below :data:`COARSE_TEXTURE_M` the capture's own as well, with the ground's
+#: spectrum (random phases), after ``texture``
+OPTIONAL_PARTS = ("coarse_texture",)
+#: the scale (metres) below which ``coarse_texture`` replaces the ground's texture: twice the generator's
+#: coarsest texture layer (12 m)
+COARSE_TEXTURE_M = 24.0
 #: a realistic gap (see the module docstring)
 DEFAULT_GAP = 0.5
 #: off-nadir angle (degrees) at gap 1
@@ -81,7 +88,8 @@ WARP_SPACING_M = 40.0
 #: the capture's own texture replaces what lies below this many GSDs (a Gaussian of that sigma): sub-metre
 #: texture entirely, and most of it up to a couple of metres
 TEXTURE_SCALE = 2.0
-_PART_SEED = {"time": 21, "lean": 22, "texture": 23, "blur": 24, "registration": 25, "jpeg": 26}
+_PART_SEED = {"time": 21, "lean": 22, "texture": 23, "blur": 24, "registration": 25, "jpeg": 26,
+              "coarse_texture": 27}
 
 
 @dataclass(frozen=True)
@@ -150,15 +158,19 @@ def _captured_ground(lay: Layout, cap: Capture, seed: int, parts: tuple[str, ...
         lay = dataclasses.replace(lay, ground_rgb=_own_texture(
             lay.ground_rgb, lay.ground_labels, TEXTURE_SCALE * cap.gsd_m / lay.ground_mpp, cap.texture,
             _rng(seed, "texture")))
+    if "coarse_texture" in parts:
+        lay = dataclasses.replace(lay, ground_rgb=_spectral_texture(
+            lay.ground_rgb, lay.ground_labels, COARSE_TEXTURE_M / 2 / lay.ground_mpp, cap.texture,
+            _rng(seed, "coarse_texture")))
     return lay
 
 
 def _checked(gap: float, mpp: float, parts: Iterable[str]) -> tuple[Capture, tuple[str, ...]]:
     cap = capture_params(gap, mpp)
     parts = tuple(parts)
-    unknown = sorted(set(parts) - set(PARTS))
+    unknown = sorted(set(parts) - set(PARTS) - set(OPTIONAL_PARTS))
     if unknown:
-        raise ConfigError(f"satellite capture parts: unknown {unknown}; the parts are {list(PARTS)}")
+        raise ConfigError(f"satellite capture parts: unknown {unknown}; the parts are {list(PARTS + OPTIONAL_PARTS)}")
     return cap, parts
 
 
@@ -239,6 +251,29 @@ def _own_texture(img: np.ndarray, labels: np.ndarray, sigma_px: float, amount: f
                              borderType=cv2.BORDER_REFLECT)
     n = fine_residual(n, sigma_px)
     new = (n / _class_std(n, labels)[labels])[..., None] * _class_std(res, labels)[labels]
+    a = amount * math.pi / 2
+    return np.clip(np.round(low + math.cos(a) * res + math.sin(a) * new), 0, 255).astype(np.uint8)
+
+
+def _spectral_texture(img: np.ndarray, labels: np.ndarray, sigma_px: float, amount: float,
+                      r: np.random.Generator) -> np.ndarray:
+    """(uint8) ``img`` with the fraction ``amount`` (as an angle) of each class's texture below ``sigma_px`` (all
+    of it up to about twice that scale) replaced by a field of the same power spectrum and random phases (a
+    phase-randomised surrogate of the class's residual: its own pattern, the ground's grain at every scale),
+    scaled to the residual's standard deviation per class and channel; one field for the three channels."""
+    img = np.asarray(img, np.float32)
+    low = class_lowpass(img, labels, sigma_px)
+    res = img - low
+    grey = res.mean(axis=2)
+    phase = np.exp(1j * np.angle(np.fft.rfft2(r.standard_normal(grey.shape))))
+    new = np.zeros_like(grey)
+    for c in np.unique(labels):
+        m = labels == c
+        if m.sum() < 64:
+            continue
+        amp = np.abs(np.fft.rfft2(np.where(m, grey, 0.0)))
+        new[m] = np.fft.irfft2(amp * phase, s=grey.shape)[m]
+    new = (new / _class_std(new, labels)[labels])[..., None] * _class_std(res, labels)[labels]
     a = amount * math.pi / 2
     return np.clip(np.round(low + math.cos(a) * res + math.sin(a) * new), 0, 255).astype(np.uint8)
 
