@@ -42,7 +42,7 @@ from satloc.localizers.crossview import CrossViewConfig, CrossViewLocalizer, dra
 from satloc.localizers.gnss import GnssConfig, gnss_priors
 from satloc.satmap import SatelliteMap
 from satloc.tracking.align import AlignConfig
-from satloc.tracking.track import compose_motion
+from satloc.tracking.track import compose_between
 
 
 def main(argv=None):
@@ -98,11 +98,7 @@ def main(argv=None):
         if not path.is_file():
             raise ConfigError(f"--track: {path} not found (satloc demo and the experiments write it)")
         steps = np.load(path, allow_pickle=False)["steps"]
-        odo = np.full((len(idx), 3), np.nan)
-        for k in range(1, len(idx)):   # the odometry between consecutive evaluated frames, composed
-            odo[k] = np.zeros(3)
-            for step in steps[idx[k - 1] + 1:idx[k] + 1]:
-                odo[k] = compose_motion(odo[k], step)
+        odo = compose_between(steps, idx)   # the odometry between consecutive evaluated frames
     has = np.array([p is not None for p in priors])
     follow = (cfg.track_radius_m, cfg.track_yaw_deg) if a.track else None
     if a.track or has.all():

@@ -316,3 +316,12 @@ def test_experiment_modes_name_tracking_and_alignment():
     assert METHOD_NAMES["go+track"] == "Ours-GO + track"
     with pytest.raises(ConfigError, match="unknown"):
         ExperimentConfig(modes=("full+align+track",))
+
+
+def test_compose_between_composes_the_steps_between_the_frames_taken():
+    from satloc.tracking.track import compose_between, compose_motion
+
+    steps = np.array([[np.nan] * 3, [1.0, 0.0, 0.1], [1.0, 0.2, -0.05], [0.5, 0.0, 0.0], [np.nan, 0.0, 0.0]])
+    out = compose_between(steps, [0, 2, 3, 3, 4])
+    assert np.isnan(out[0]).all() and np.isnan(out[3]).all() and np.isnan(out[4]).any()   # none / repeated / unknown
+    assert np.allclose(out[1], compose_motion(steps[1], steps[2])) and np.allclose(out[2], steps[3])

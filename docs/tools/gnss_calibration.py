@@ -27,7 +27,7 @@ from satloc.features.dictionary import SatelliteFeatures
 from satloc.localizers.crossview import CrossViewConfig, CrossViewLocalizer, draw_prior, localize_frames
 from satloc.localizers.gnss import GnssConfig, gnss_priors
 from satloc.satmap import SatelliteMap
-from satloc.tracking.track import compose_motion
+from satloc.tracking.track import compose_between
 
 #: (prior model, tracked, fixes report their accuracy, CrossViewConfig fields)
 RUNS = [("uniform", False, True, {}), ("uniform", True, True, {}),
@@ -47,11 +47,7 @@ def main(rec: Path, step: int, n_seeds: int, dest: Path) -> None:
     truth = np.asarray(seq.poses, np.float64)[idx]
     stamps = np.asarray(seq.timestamps, np.float64)
     steps = np.load(rec.parent / "odometry_visual.npz", allow_pickle=False)["steps"]
-    odo = np.full((len(idx), 3), np.nan)
-    for k in range(1, len(idx)):   # the odometry between consecutive frames taken, composed
-        odo[k] = np.zeros(3)
-        for s in steps[idx[k - 1] + 1:idx[k] + 1]:
-            odo[k] = compose_motion(odo[k], s)
+    odo = compose_between(steps, idx)   # the odometry between consecutive frames taken
     print(len(idx), "frames over", stamps[idx[-1]] - stamps[idx[0]], "s", flush=True)
     cvs, out = {}, []
     for model, track, acc, kw in RUNS:

@@ -383,14 +383,13 @@ class CrossViewTracker:
                 self.disagree_since = t
             if far and t - self.disagree_since >= cfg.lost_after_s:
                 self.disagree_since = None   # lost: the fix's disc alone
-            else:
-                centre = prior if not far else Prior(self.pose.x, self.pose.y, self.pose.yaw, prior.radius_m,
-                                                     prior.yaw_deg)
-                if cfg.track == "gate":
-                    use = Prior(self.pose.x, self.pose.y, self.pose.yaw, min(cfg.track_radius_m, prior.radius_m),
-                                min(cfg.track_yaw_deg, prior.yaw_deg))
-                else:
-                    use, predicted = centre, (self.pose, cfg.track_sigma_m, cfg.track_sigma_deg)
+            elif cfg.track == "gate":
+                use = Prior(self.pose.x, self.pose.y, self.pose.yaw, min(cfg.track_radius_m, prior.radius_m),
+                            min(cfg.track_yaw_deg, prior.yaw_deg))
+            else:   # fuse: the fix's disc, or (a fix that disagrees, not yet for long) its extent around the track
+                if far:
+                    use = Prior(self.pose.x, self.pose.y, self.pose.yaw, prior.radius_m, prior.yaw_deg)
+                predicted = (self.pose, cfg.track_sigma_m, cfg.track_sigma_deg)
         else:
             self.disagree_since = None
         res = self.localizer.localize(frame, use, predicted)

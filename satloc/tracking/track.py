@@ -104,6 +104,20 @@ def compose_motion(first: np.ndarray, then: np.ndarray) -> np.ndarray:
     return np.array([p.x, p.y, p.yaw])
 
 
+def compose_between(steps: np.ndarray, idx) -> np.ndarray:
+    """(len(idx), 3) the motion from frame ``idx[i - 1]`` to ``idx[i]``: the per-frame ``steps`` (N, 3; row j the
+    motion from frame j - 1 to j) between them composed. Row 0, and a row whose frame does not follow the one
+    before, are NaN; a NaN in a step carries into its row (the motion is unknown)."""
+    idx = np.asarray(idx, np.int64)
+    out = np.full((len(idx), 3), np.nan)
+    for i in range(1, len(idx)):
+        m = np.zeros(3)
+        for j in range(int(idx[i - 1]) + 1, int(idx[i]) + 1):
+            m = compose_motion(m, steps[j])
+        out[i] = m if idx[i] > idx[i - 1] else np.nan
+    return out
+
+
 def noisy_odometry(poses: np.ndarray, noise: tuple[float, float], seed: int = 0, *, scale_error: float = 0.0,
                    yaw_bias: float = 0.0) -> np.ndarray:
     """(N, 3) simulated odometry between consecutive ``poses`` (N, 3): the true relative motion plus Gaussian

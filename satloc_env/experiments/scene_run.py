@@ -45,7 +45,7 @@ from satloc.persist import atomic_path, header, read_json, write_json
 from satloc.pipeline import BuildConfig, build, load_localizer, train_projection
 from satloc.satmap import SatelliteMap
 from satloc.sequence import Sequence
-from satloc.tracking.track import compose_motion, noisy_odometry
+from satloc.tracking.track import compose_between, noisy_odometry
 from satloc_env.envs.record import (
     QUERY_CHANGE,
     PassConfig,
@@ -324,13 +324,7 @@ def tracked_odometry(cfg, seq: Sequence, idx: np.ndarray, cache: Path | None = N
         steps = oxts_odometry(seq)
     else:
         steps = vo_steps(seq, cache)
-    out = np.full((len(idx), 3), np.nan)
-    for i in range(1, len(idx)):
-        m = np.zeros(3)
-        for j in range(int(idx[i - 1]) + 1, int(idx[i]) + 1):
-            m = compose_motion(m, steps[j])
-        out[i] = m if idx[i] > idx[i - 1] else np.nan
-    return out
+    return compose_between(steps, idx)
 
 
 def sequence_identity(seq: Sequence) -> str:
