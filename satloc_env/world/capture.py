@@ -60,23 +60,32 @@ import cv2
 import numpy as np
 
 from satloc.errors import ConfigError
+from satloc.labels import CLASS_ID
 
 from .layout import Layout
 from .revisit import changed_layout
-from .tile import paint_tile
+from .tile import SHADOW_GAIN, paint_tile, shadow_mask
+from .traffic import TRAFFIC_PER_KM, traffic_cars
 
 __all__ = ["PARTS", "DEFAULT_GAP", "Capture", "capture_params", "capture_tile", "capture_image", "class_lowpass",
-           "fine_residual"]
+           "fine_residual", "road_cover", "texture_correlation", "OPTIONAL_PARTS"]
 
 #: the parts of a capture, in the order they are applied
 PARTS = ("time", "lean", "texture", "blur", "registration", "jpeg")
 #: parts a capture may be asked for that the default leaves out (issue 46, being measured): ``coarse_texture``
 #: makes each class's texture below :data:`COARSE_TEXTURE_M` the capture's own as well, with the ground's
-#: spectrum (random phases), after ``texture``
-OPTIONAL_PARTS = ("coarse_texture",)
+#: spectrum (random phases), after ``texture``; ``traffic`` puts cars driving in the lanes at the capture's
+#: instant (:func:`satloc_env.world.traffic.traffic_cars`, ``min(1, 2 gap)`` x
+#: :data:`~satloc_env.world.traffic.TRAFFIC_PER_KM` per km of lane), after ``time``; ``deep_shadows`` paints the
+#: cast shadows at :data:`REAL_SHADOW_GAIN` of the lit ground's brightness instead of the tiles' 0.55
+OPTIONAL_PARTS = ("coarse_texture", "traffic", "deep_shadows")
 #: the scale (metres) below which ``coarse_texture`` replaces the ground's texture: twice the generator's
 #: coarsest texture layer (12 m)
 COARSE_TEXTURE_M = 24.0
+#: the brightness of asphalt in a cast shadow over sunlit asphalt in a real orthophoto: the canton of Zurich's
+#: 2014 summer orthophoto at 0.5 m (docs/tools/tile_realism.py), modes of the grey level on carriageways 56
+#: and 174
+REAL_SHADOW_GAIN = 0.32
 #: a realistic gap (see the module docstring)
 DEFAULT_GAP = 0.5
 #: off-nadir angle (degrees) at gap 1
@@ -89,7 +98,7 @@ WARP_SPACING_M = 40.0
 #: texture entirely, and most of it up to a couple of metres
 TEXTURE_SCALE = 2.0
 _PART_SEED = {"time": 21, "lean": 22, "texture": 23, "blur": 24, "registration": 25, "jpeg": 26,
-              "coarse_texture": 27}
+              "coarse_texture": 27, "traffic": 28, "deep_shadows": 29}
 
 
 @dataclass(frozen=True)
@@ -127,6 +136,18 @@ def capture_tile(lay: Layout, mpp: float, seed: int, gap: float, parts: Iterable
     cap, parts = _checked(gap, mpp, parts)
     if cap.gap == 0.0 or not parts:
         return paint_tile(lay, mpp, seed)
+    lay, lean = _captured_layout(lay, cap, seed, parts)
+    img, labels = paint_tile(lay, mpp, seed, lean=lean, shadow_gain=_shadow_gain(parts))
+    return _sensor(img, labels, cap, mpp, seed, parts)
+
+
+def _shadow_gain(parts: tuple[str, ...]) -> float:
+    return REAL_SHADOW_GAIN if "deep_shadows" in parts else SHADOW_GAIN
+
+
+def _captured_layout(lay: Layout, cap: Capture, seed: int, parts: tuple[str, ...]
+                     ) -> tuple[Layout, tuple[float, float]]:
+    """The layout as the capture sees it and the sensor's lean (east, north per metre of height)."""
     lay = _captured_ground(lay, cap, seed, parts)
     lean = (0.0, 0.0)
     if "lean" in parts:
@@ -134,8 +155,38 @@ def capture_tile(lay: Layout, mpp: float, seed: int, gap: float, parts: Iterable
         az = r.uniform(0.0, 2 * math.pi)
         t = math.tan(math.radians(cap.off_nadir_deg))
         lean = (t * math.cos(az), t * math.sin(az))
-    img, labels = paint_tile(lay, mpp, seed, lean=lean)
-    return _sensor(img, labels, cap, mpp, seed, parts)
+    return lay, lean
+
+
+def road_cover(lay: Layout, mpp: float, seed: int, gap: float, parts: Iterable[str] = PARTS) -> dict:
+    """What hides the road in the tile :func:`capture_tile` makes, as fractions of the road's pixels (``road`` and
+    ``lane_marking`` of the ground's labels at ``mpp``), before the sensor's blur and warp: ``car`` (parked and,
+    with the ``traffic`` part, driving), ``canopy`` (tree crowns over it), ``building`` (roofs and facades
+    leaning over it off nadir), ``shadow`` (road still seen but in a shadow at the capture's sun), ``open`` (the
+    rest); and ``marking_contrast``: the lane markings' mean grey level over the road's, minus 1, in the
+    captured tile (NaN without markings). Measures to hold against real orthophotos (issue 46)."""
+    cap, parts = _checked(gap, mpp, parts)
+    if cap.gap == 0.0 or not parts:
+        seen, lean = lay, (0.0, 0.0)
+    else:
+        seen, lean = _captured_layout(lay, cap, seed, parts)
+    _, labels = paint_tile(seen, mpp, seed, lean=lean, shadow_gain=_shadow_gain(parts))
+    h, w = labels.shape
+    k = int(round(mpp / lay.ground_mpp))
+    ground = lay.ground_labels[k // 2: h * k: k, k // 2: w * k: k]
+    road = np.isin(ground, (CLASS_ID["road"], CLASS_ID["lane_marking"]))
+    n = max(int(road.sum()), 1)
+    out = {name: float((road & (labels == CLASS_ID[cls])).sum()) / n
+           for name, cls in (("car", "car"), ("canopy", "tree"), ("building", "building"))}
+    visible = road & np.isin(labels, (CLASS_ID["road"], CLASS_ID["lane_marking"]))
+    out["shadow"] = float((visible & (shadow_mask(seen, mpp, (h, w)) > 0)).sum()) / n
+    out["open"] = float(visible.sum()) / n - out["shadow"]
+    img, lab = capture_tile(lay, mpp, seed, gap, parts)
+    grey = cv2.cvtColor(img, cv2.COLOR_RGB2GRAY).astype(np.float64)
+    mark, asphalt = lab == CLASS_ID["lane_marking"], lab == CLASS_ID["road"]
+    out["marking_contrast"] = (float(grey[mark].mean() / max(grey[asphalt].mean(), 1e-6) - 1.0)
+                               if mark.any() and asphalt.any() else float("nan"))
+    return out
 
 
 def capture_image(lay: Layout, mpp: float, seed: int, gap: float, parts: Iterable[str] = PARTS
@@ -154,6 +205,9 @@ def _captured_ground(lay: Layout, cap: Capture, seed: int, parts: tuple[str, ...
     ``parts`` ask (a new layout; ``lay`` is not touched)."""
     if "time" in parts:
         lay = _capture_time(lay, cap.time, seed)
+    if "traffic" in parts:
+        lay = dataclasses.replace(lay, cars=list(lay.cars) + traffic_cars(
+            lay, TRAFFIC_PER_KM * min(1.0, 2.0 * cap.gap), _rng(seed, "traffic")))
     if "texture" in parts:
         lay = dataclasses.replace(lay, ground_rgb=_own_texture(
             lay.ground_rgb, lay.ground_labels, TEXTURE_SCALE * cap.gsd_m / lay.ground_mpp, cap.texture,
@@ -334,7 +388,6 @@ def texture_correlation(ground_rgb: np.ndarray, ground_labels: np.ndarray, map_r
     capture keeps, do not enter), where the class fills at least half of the wider Gaussian's window. A capture
     that shares no texture with the ground gives about 0 at every scale; the ground against itself gives 1.
     Returns ``{class: {scale: correlation}}`` (NaN where too few pixels qualify)."""
-    from satloc.labels import CLASS_ID
 
     h, w = map_labels.shape
     def gray(img):

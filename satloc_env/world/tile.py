@@ -35,23 +35,10 @@ def _local_mask(px: np.ndarray, h: int, w: int):
     return (slice(y0, y1), slice(x0, x1)), m > 0
 
 
-def paint_tile(lay: Layout, mpp: float, seed: int, lean: tuple[float, float] = (0.0, 0.0)
-               ) -> tuple[np.ndarray, np.ndarray]:
-    k = mpp / lay.ground_mpp
-    if abs(k - round(k)) > 1e-6 or round(k) < 1:
-        raise ValueError(f"tile meters_per_pixel={mpp} must be an integer multiple of ground_mpp={lay.ground_mpp}")
-    k = int(round(k))
-    H, W = lay.ground_labels.shape
-    h, w = H // k, W // k
-    img = cv2.resize(lay.ground_rgb[: h * k, : w * k], (w, h), interpolation=cv2.INTER_AREA).astype(np.float32)
-    labels = lay.ground_labels[k // 2: h * k: k, k // 2: w * k: k].copy()
-    rng = np.random.default_rng([seed, 11])
-    period = max(8, int(round(NOISE_PERIOD_M / mpp)))
-    tex = noise((period, period), rng, (max(1, 1.0 / mpp), 1), [1.0, 0.7])
-    yy, xx = np.mgrid[0:h, 0:w]
-    tex = tex[yy % period, xx % period]
-
-    # shadows, cast away from the sun
+def shadow_mask(lay: Layout, mpp: float, shape: tuple[int, int]) -> np.ndarray:
+    """(h, w) uint8, 1 where the tile of ``lay`` at ``mpp`` is in the shadow of a building, tree, car or piece of
+    street furniture at the layout's sun (the tile's roofs, canopies and cars are drawn over it)."""
+    h, w = shape
     sun = np.array([math.cos(lay.sun_azimuth), math.sin(lay.sun_azimuth)])
     cot = 1.0 / math.tan(max(lay.sun_elevation, 0.15))
     shadow = np.zeros((h, w), np.uint8)
@@ -73,7 +60,35 @@ def paint_tile(lay: Layout, mpp: float, seed: int, lean: tuple[float, float] = (
         hull = cv2.convexHull(np.vstack([p.footprint - sun * p.z0 * cot, p.footprint - sun * p.z1 * cot])
                               .astype(np.float32)).reshape(-1, 2)
         fill_poly(shadow, _poly_px(lay, hull, mpp), 1)
-    img[shadow > 0] *= 0.55
+    return shadow
+
+
+#: the brightness of ground in a cast shadow, as a fraction of the lit ground's (the tiles' default)
+SHADOW_GAIN = 0.55
+
+
+def paint_tile(lay: Layout, mpp: float, seed: int, lean: tuple[float, float] = (0.0, 0.0),
+               shadow_gain: float = SHADOW_GAIN) -> tuple[np.ndarray, np.ndarray]:
+    k = mpp / lay.ground_mpp
+    if abs(k - round(k)) > 1e-6 or round(k) < 1:
+        raise ValueError(f"tile meters_per_pixel={mpp} must be an integer multiple of ground_mpp={lay.ground_mpp}")
+    k = int(round(k))
+    H, W = lay.ground_labels.shape
+    h, w = H // k, W // k
+    img = cv2.resize(lay.ground_rgb[: h * k, : w * k], (w, h), interpolation=cv2.INTER_AREA).astype(np.float32)
+    labels = lay.ground_labels[k // 2: h * k: k, k // 2: w * k: k].copy()
+    rng = np.random.default_rng([seed, 11])
+    period = max(8, int(round(NOISE_PERIOD_M / mpp)))
+    tex = noise((period, period), rng, (max(1, 1.0 / mpp), 1), [1.0, 0.7])
+    yy, xx = np.mgrid[0:h, 0:w]
+    tex = tex[yy % period, xx % period]
+
+    # shadows, cast away from the sun
+    sun = np.array([math.cos(lay.sun_azimuth), math.sin(lay.sun_azimuth)])
+    cot = 1.0 / math.tan(max(lay.sun_elevation, 0.15))
+    shadow = shadow_mask(lay, mpp, (h, w))
+    img[shadow > 0] *= shadow_gain
+    parts = [p for f in lay.furniture for p in furniture_parts(f)]
 
     # roofs: base colour, texture, a darker outline and a ridge; off nadir, the roof moves by its height x lean
     # and the facades facing the sensor fill the gap between footprint and roof

@@ -1,0 +1,142 @@
+"""Cars driving on the roads at the instant a satellite captures the world (issue 46).
+
+A real tile shows the traffic of its moment: cars in the lanes, between and beside the parked ones, other
+cars than any the ground pass meets. :func:`traffic_cars` draws them for a layout from its ground labels
+alone (a generated grid, a world from map vectors or one over an image all have those): the lanes are found
+from the road's distance to its kerb, and cars stand in them, heading along the road, right-hand traffic.
+
+How the lanes are found: the road (``road`` and ``lane_marking`` texels) is resampled to :data:`RES_M`; ``d`` is
+each texel's distance to the nearest texel off the road, and its gradient points from the kerb to the
+street's middle. From every texel the distance is followed uphill to the ridge (the street's centre line):
+``R``, the half-width there. A lane's centre lies ``max(R / 2, R - LANE_FROM_CENTRE_M)`` from the kerb: half
+the half-width on a narrow street, :data:`LANE_FROM_CENTRE_M` from the centre line on a wide one, beside
+the kerb's parking. Texels within one texel of that distance (a band two texels wide), where the gradient is clean (not at a
+junction or a corner), where the half-width is a street's and where the distance to the kerb holds
+:data:`STEADY_M` ahead and behind (not in a junction), are the lanes; their area over the band's width is the
+lanes' length. A car is drawn at a random lane texel, its heading the direction along the road with the
+centre line on its left; one is kept only where its footprint is on the road and it stands clear of the
+parked cars and of the other cars in traffic.
+"""
+from __future__ import annotations
+
+import math
+
+import cv2
+import numpy as np
+
+from satloc.labels import CLASS_ID as C
+
+from .layout import Car, Layout
+from .variety import BODIES, car_body, car_colour
+
+__all__ = ["TRAFFIC_PER_KM", "lane_texels", "traffic_cars"]
+
+#: cars in traffic per kilometre of lane at the capture's instant (the default of the capture's ``traffic``
+#: part at full strength)
+TRAFFIC_PER_KM = 15.0
+#: resolution (metres) at which the lanes are found
+RES_M = 0.25
+#: a lane's centre lies this far from the street's centre line on a wide street
+LANE_FROM_CENTRE_M = 1.9
+#: half-widths (metres) taken as a street's: narrower is a path, wider a square or a junction
+HALF_WIDTH_M = (1.5, 8.0)
+#: a lane texel keeps its distance to the kerb within STEADY_TOL_M this far (metres) ahead and behind
+STEADY_M, STEADY_TOL_M = 4.0, 0.35
+#: clearance (metres, centre to centre) from a car in traffic to another one, and to a parked car
+GAP_TRAFFIC_M, GAP_PARKED_M = 8.0, 3.0
+
+
+def _road(lay: Layout) -> tuple[np.ndarray, float]:
+    """The road mask (uint8) at about :data:`RES_M` and its exact resolution."""
+    lab = lay.ground_labels
+    k = max(1, int(round(RES_M / lay.ground_mpp)))
+    road = np.isin(lab[k // 2::k, k // 2::k], (C["road"], C["lane_marking"])).astype(np.uint8)
+    return road, lay.ground_mpp * k
+
+
+def lane_texels(lay: Layout) -> tuple[np.ndarray, np.ndarray, float]:
+    """The lanes of ``lay``'s roads: (world points (n, 2), unit headings (n, 2) of right-hand traffic, the lanes'
+    length in metres). See the module docstring."""
+    road, res = _road(lay)
+    if not road.any():
+        return np.zeros((0, 2)), np.zeros((0, 2)), 0.0
+    d = cv2.distanceTransform(road, cv2.DIST_L2, 5).astype(np.float32) * res
+    gr, gc = np.gradient(d)                      # per texel, along rows and columns
+    gr, gc = gr / res, gc / res
+    rows, cols = np.nonzero(road)
+    g = np.hypot(gr[rows, cols], gc[rows, cols])
+    keep = g > 0.9                               # a clean slope: off the ridge, not in a corner
+    rows, cols = rows[keep], cols[keep]
+    ur, uc = gr[rows, cols] / g[keep], gc[rows, cols] / g[keep]
+    h, w = d.shape
+    # follow the slope uphill to the ridge: R, the street's half-width there
+    r_f, c_f = rows.astype(np.float32), cols.astype(np.float32)
+    half = d[rows, cols].copy()
+    alive = np.ones(rows.size, bool)
+    for _ in range(int(HALF_WIDTH_M[1] / res) + 2):
+        r_f += ur
+        c_f += uc
+        ri = np.clip(np.round(r_f).astype(np.int64), 0, h - 1)
+        ci = np.clip(np.round(c_f).astype(np.int64), 0, w - 1)
+        nxt = d[ri, ci]
+        up = alive & (nxt > half)
+        half = np.where(up, nxt, half)
+        alive = up
+        if not alive.any():
+            break
+    target = np.maximum(half / 2, half - LANE_FROM_CENTRE_M)
+    off = d[rows, cols] - target        # a band of two texels' width: exactly two rows of texels across a lane
+    sel = ((off >= -res) & (off < res) & (half >= HALF_WIDTH_M[0]) & (half <= HALF_WIDTH_M[1])
+           & ~alive)
+    rows, cols, ur, uc = rows[sel], cols[sel], ur[sel], uc[sel]
+    # a lane keeps its distance to the kerb along the road: not so in a junction or round a corner
+    d0 = d[rows, cols]
+    steady = np.ones(rows.size, bool)
+    for sign in (-1.0, 1.0):
+        ri = np.clip(np.round(rows + sign * STEADY_M / res * uc).astype(np.int64), 0, h - 1)
+        ci = np.clip(np.round(cols - sign * STEADY_M / res * ur).astype(np.int64), 0, w - 1)
+        steady &= np.abs(d[ri, ci] - d0) <= STEADY_TOL_M
+    rows, cols, ur, uc = rows[steady], cols[steady], ur[steady], uc[steady]
+    xy = np.stack([(cols + 0.5) * res, lay.height_m - (rows + 0.5) * res], 1)
+    g_world = np.stack([uc, -ur], 1)             # towards the centre line, x east and y north
+    heading = np.stack([g_world[:, 1], -g_world[:, 0]], 1)    # the centre line on the left
+    return xy, heading, float(steady.sum() * res / 2.0)
+
+
+def _on_road(lay: Layout, car: Car) -> bool:
+    c, s = math.cos(car.yaw), math.sin(car.yaw)
+    pts = [(car.center[0] + a * c * car.length / 2 - b * s * car.width / 2,
+            car.center[1] + a * s * car.length / 2 + b * c * car.width / 2)
+           for a in (-1, 0, 1) for b in (-1, 0, 1)]
+    uv = np.round(lay.world_to_raster(np.asarray(pts))).astype(np.int64)
+    h, w = lay.ground_labels.shape
+    if (uv < 0).any() or (uv[:, 0] >= w).any() or (uv[:, 1] >= h).any():
+        return False
+    return bool(np.isin(lay.ground_labels[uv[:, 1], uv[:, 0]], (C["road"], C["lane_marking"])).all())
+
+
+def traffic_cars(lay: Layout, per_km: float, rng: np.random.Generator) -> list[Car]:
+    """Cars in traffic on ``lay``'s roads, ``per_km`` per kilometre of lane on average (a Poisson count; fewer where
+    the lanes are full), placed as the module docstring says; their bodies and colours as streets have them."""
+    xy, heading, length_m = lane_texels(lay)
+    if per_km <= 0 or xy.shape[0] == 0:
+        return []
+    n = int(rng.poisson(per_km * length_m / 1000.0))
+    cars: list[Car] = []
+    parked = np.asarray([c.center for c in lay.cars], np.float64).reshape(-1, 2)
+    for i in rng.permutation(xy.shape[0]):
+        if len(cars) >= n:
+            break
+        p = xy[i]
+        if parked.size and np.min(np.hypot(*(parked - p).T)) < GAP_PARKED_M:
+            continue
+        if cars and min(math.dist(p, c.center) for c in cars) < GAP_TRAFFIC_M:
+            continue
+        body = car_body(rng)
+        spec = BODIES[body]
+        car = Car((float(p[0]), float(p[1])), float(math.atan2(heading[i, 1], heading[i, 0])),
+                  float(rng.uniform(*spec["length"])), float(rng.uniform(*spec["width"])),
+                  float(rng.uniform(*spec["height"])), car_colour(rng), body=body)
+        if _on_road(lay, car):
+            cars.append(car)
+    return cars
