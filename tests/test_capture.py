@@ -219,3 +219,22 @@ def test_coarse_texture_makes_the_map_s_texture_its_own_at_every_scale(city):
     assert np.array_equal(satmap.image, capture_tile(lay, mpp, seed, DEFAULT_GAP)[0])
     assert "coarse_texture" in OPTIONAL_PARTS
     assert np.array_equal(img, capture_tile(lay, mpp, seed, DEFAULT_GAP, PARTS + ("coarse_texture",))[0])
+
+
+def test_a_scene_names_its_capture_parts(tmp_path, city):
+    from satloc_env.world.scene import Scene
+
+    lay, mpp, seed, satmap = city
+    parts = ["time", "lean", "texture", "blur", "registration", "jpeg", "traffic", "deep_shadows"]
+    p = tmp_path / "parts.yaml"
+    p.write_text(SMALL.replace("name: small_city", f"name: small_city\ncapture_parts: [{', '.join(parts)}]"))
+    sc = load_scene(p)
+    assert sc.spec.parts == tuple(parts)
+    assert np.array_equal(sc.satmap.image, capture_tile(lay, mpp, seed, DEFAULT_GAP, parts)[0])
+    assert not np.array_equal(sc.satmap.image, satmap.image)
+    sc.save(tmp_path / "saved")
+    assert Scene.load(tmp_path / "saved").spec.capture_parts == parts
+    for bad in ("[time, wobble]", "[time, time]", "blur"):
+        p.write_text(SMALL.replace("name: small_city", f"name: small_city\ncapture_parts: {bad}"))
+        with pytest.raises(ConfigError, match="capture_parts"):
+            load_scene(p)

@@ -368,8 +368,10 @@ def test_cross_area_protocol_beside_the_database_rows(tmp_path):
     lines = (tmp_path / "cross_area.csv").read_text().splitlines()
     assert lines[0] == ",".join(CROSS_COLUMNS)
     assert [ln.split(",")[0] for ln in lines[1:]] == ["No database", "No database + track"] + floors + ["Ours-GO"]
-    assert [ln.split(",")[2] for ln in lines[1:]] == ["none"] * 5 + ["database pass"]
+    assert [ln.split(",")[3] for ln in lines[1:]] == ["none"] * 5 + ["database pass"]
+    assert {ln.split(",")[2] for ln in lines[1:]} == {"a capture of the world"}
     assert "lateral 1 / 3 / 5 m" in (tmp_path / "cross_area.md").read_text()
+    assert "the map: a capture of the world" in (tmp_path / "cross_area.md").read_text()
     a, _ = load_npz(tmp_path / "city" / "cross_area" / "localization_cross.npz", "localization")
     # the priors: seeded per query, within the protocol's radius and heading range of the truth
     from satloc_env.experiments.scene_run import ExperimentConfig, covered_queries
@@ -384,6 +386,17 @@ def test_cross_area_protocol_beside_the_database_rows(tmp_path):
     table = json.loads((tmp_path / "table1.json").read_text())["rows"]
     assert [(r["protocol"], r["method"]) for r in table] == [(r["protocol"], r["method"]) for r in rows]
     assert len(t) == 2 and all(p.stat().st_mtime_ns == m for p, m in t.items())
+
+
+def test_the_cross_area_table_says_what_the_map_is(tmp_path):
+    """A scene over an image is seen and mapped from the same image: its rows say so (an upper bound)."""
+    from satloc_env.experiments.cross_area import MAP_KINDS, map_kind
+
+    for scene, kind in (("suburb_utm", "image"), ("city", "capture"), ("osm_town", "capture")):
+        (tmp_path / scene / "rec").mkdir(parents=True)
+        (tmp_path / scene / "rec" / "recording.json").write_text(json.dumps({"config": {"scene": scene}}))
+        assert map_kind(tmp_path / scene) == MAP_KINDS[kind], scene
+    assert map_kind(tmp_path / "missing") == ""
 
 
 def test_kitti_city_protocol_splits_one_dense_pass(tmp_path):

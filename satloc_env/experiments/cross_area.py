@@ -206,7 +206,7 @@ def _pictures(ca: CrossAreaConfig, label: str, satmap: SatelliteMap, sdir: Path 
 
 
 #: cross_area.csv's columns
-CROSS_COLUMNS = ("method", "scene", "database", "queries", "mean_m", "ci95_low", "ci95_high", "median_m",
+CROSS_COLUMNS = ("method", "scene", "map", "database", "queries", "mean_m", "ci95_low", "ci95_high", "median_m",
                  "within_1m", "lateral_1m", "lateral_3m", "lateral_5m", "longitudinal_1m", "longitudinal_3m",
                  "longitudinal_5m", "heading_median_deg", "failure_rate", "ci_method")
 
@@ -235,12 +235,33 @@ def _method_files(sdir: Path) -> list[tuple[str, str, Path]]:
     return [f for f in found if f[2].is_file()]
 
 
+#: what a scene's satellite map is (``map`` column of cross_area.csv), by its generator's type
+MAP_KINDS = {"capture": "a capture of the world", "image": "same image, an upper bound"}
+
+
+def map_kind(sdir: str | Path) -> str:
+    """What the map of the scene recorded in ``sdir/rec`` is to its camera: :data:`MAP_KINDS` ``capture`` for a
+    painted world (a grid or map vectors: the map is captured, never the ground the camera renders), ``image``
+    for a scene over an image (the camera sees the image and the map is the same image captured: its
+    figures are an upper bound), "" where the recording's scene cannot be read."""
+    from satloc_env.world.scene import load_spec
+
+    try:
+        scene = json.loads((Path(sdir) / "rec" / "recording.json").read_text())["config"]["scene"]
+        spec, _ = load_spec(scene)
+        kind = spec.generator_spec(str(scene)).type
+    except (OSError, ValueError, KeyError, TypeError, ConfigError):
+        return ""
+    return MAP_KINDS["image" if kind == "image" else "capture"]
+
+
 def cross_area_rows(sdir: str | Path, label: str) -> list[dict]:
     """The cross-area comparison of the scene folder ``sdir``: every method localized there on the revisit
     queries (the cross-view rows, the with-database modes and the baselines), each row with the columns of
     :data:`CROSS_COLUMNS` over the queries the cross-view rows evaluated."""
     sdir = Path(sdir)
     rows = []
+    kind = map_kind(sdir)
     ref = None
     db = Sequence.load(sdir / "rec" / "database")
     for name, database, path in _method_files(sdir):
@@ -252,7 +273,7 @@ def cross_area_rows(sdir: str | Path, label: str) -> list[dict]:
             continue
         pe = pose_errors(a["estimates"], a["truth"])
         st = table_stats(pe["error"], a["truth"], db.poses)
-        row = {"method": name, "scene": label, "database": database, "queries": int(len(frames)),
+        row = {"method": name, "scene": label, "map": kind, "database": database, "queries": int(len(frames)),
                **{k: st[k] for k in ("mean_m", "ci95_low", "ci95_high", "median_m", "within_1m", "failure_rate",
                                      "ci_method")}}
         for r in RECALL_RADII:
@@ -272,7 +293,10 @@ def write_cross_area(out: str | Path, rows: list[dict], prior: str = "") -> None
     if not rows:
         raise ConfigError("cross-area: no method was localized on the cross-area queries")
     scenes = {r["scene"] for r in rows}
-    kept, old = earlier_rows(out / "cross_area.json", "cross_area", CROSS_COLUMNS, lambda r: r.get("scene") in scenes)
+    kept, old = earlier_rows(out / "cross_area.json", "cross_area", [c for c in CROSS_COLUMNS if c != "map"],
+                             lambda r: r.get("scene") in scenes)
+    for r in kept:   # rows written before the map column
+        r.setdefault("map", "")
     prior = prior or old.get("prior", "")
     rows = kept + list(rows)
     write_json(out / "cross_area.json", dict(header("cross_area"), prior=prior, rows=rows))
@@ -280,7 +304,9 @@ def write_cross_area(out: str | Path, rows: list[dict], prior: str = "") -> None
     lines = []
     for scene in dict.fromkeys(r["scene"] for r in rows):
         part = [r for r in rows if r["scene"] == scene]
-        lines += [f"**{scene}** ({part[0]['queries']} queries, the revisit protocol's{'; ' + prior if prior else ''}):\n",
+        kind = part[0].get("map") or ""
+        lines += [f"**{scene}** ({part[0]['queries']} queries, the revisit protocol's{'; ' + prior if prior else ''}"
+                  f"{'; the map: ' + kind if kind else ''}):\n",
                   "| method | database | mean m (95 % CI) | median m | within 1 m | lateral 1 / 3 / 5 m | "
                   "longitudinal 1 / 3 / 5 m | heading median deg |", "|---|---|---|---|---|---|---|---|"]
         for r in part:

@@ -21,6 +21,8 @@ A scene file (see ``scenes/*.yaml``)::
     ground_pad_m: 250              # world around the tile, so no view shows its edge
     ground_beyond: mirror          # what it is: the tile mirrored, or neutral ground (default: see below)
     ground_shadows: true           # the camera's ground shows the world's cast shadows (default: grids with variety)
+    capture_parts: [time, lean, texture, blur, registration, jpeg, deep_shadows]   # the map's capture (default:
+                                   # world.capture.PARTS; optional parts: world.capture.OPTIONAL_PARTS)
     objects: {buildings: [...], trees: [...], cars: [...]}   # extra hand-placed objects
     lighting: {sun_azimuth_deg: 135, sun_elevation_deg: 50}
     terrain: {relief_m: 1.5, wavelength_m: 250, camber: 0.01}   # gentle hills, cambered roads (default: a plane)
@@ -123,7 +125,7 @@ from satloc.persist import (
 )
 from satloc.satmap import SatelliteMap, read_image
 
-from .capture import DEFAULT_GAP, capture_image, capture_tile
+from .capture import DEFAULT_GAP, OPTIONAL_PARTS, PARTS, capture_image, capture_tile
 from .furniture import KINDS as FURNITURE_KINDS
 from .generator import GridParams, generate_grid
 from .layout import Building, Car, Furniture, Layout, Tree
@@ -341,6 +343,7 @@ class SceneSpec:
     ground_pad_m: float | None = None    # None: DEFAULT_GROUND_PAD_M
     ground_beyond: str | None = None     # satloc_env.world.meshes.BEYOND; None: see beyond_edge
     ground_shadows: bool | None = None   # the camera's world casts its shadows on the ground; None: see casts_shadows
+    capture_parts: list[str] | None = None   # the satellite capture's parts (world.capture); None: its PARTS
 
     @property
     def beyond_edge(self) -> str:
@@ -361,6 +364,12 @@ class SceneSpec:
         variety = self.generator.get("variety") or 0.0
         ok = self.generator.get("type") == "grid" and isinstance(variety, (int, float))
         return float(variety) if ok else 0.0
+
+    @property
+    def parts(self) -> tuple[str, ...]:
+        """The satellite capture's parts (:mod:`satloc_env.world.capture`): ``capture_parts`` if given, else the
+        default :data:`~satloc_env.world.capture.PARTS`, in the order given (each is applied in its own place)."""
+        return PARTS if self.capture_parts is None else tuple(self.capture_parts)
 
     @property
     def casts_shadows(self) -> bool:
@@ -433,6 +442,11 @@ def check_spec(spec: SceneSpec, where: str) -> None:
              spec.ground_pad_m)
     need(spec.ground_beyond is None or spec.ground_beyond in BEYOND, "ground_beyond", f"one of {BEYOND}",
          spec.ground_beyond)
+    if spec.capture_parts is not None:
+        known = PARTS + OPTIONAL_PARTS
+        need(isinstance(spec.capture_parts, list) and all(p in known for p in spec.capture_parts)
+             and len(set(spec.capture_parts)) == len(spec.capture_parts), "capture_parts",
+             f"a list of distinct parts of {list(known)}", spec.capture_parts)
     need(0 < spec.lighting.sun_elevation_deg <= 90, "lighting.sun_elevation_deg", "degrees in (0, 90]",
          spec.lighting.sun_elevation_deg)
     try:
@@ -1147,11 +1161,11 @@ def build_scene(spec: SceneSpec, base_dir: Path | None = None, aliasing: float |
     lay.sun_elevation = math.radians(spec.lighting.sun_elevation_deg)
     if g.type in ("grid", "vectors"):   # painted worlds: the tile is a capture of the painted layout
         try:
-            tile, tile_labels = capture_tile(lay, spec.meters_per_pixel, spec.seed, satellite_gap)
+            tile, tile_labels = capture_tile(lay, spec.meters_per_pixel, spec.seed, satellite_gap, spec.parts)
         except ValueError as e:
             raise ConfigError(f"{where}: {e}") from e
     else:
-        tile, tile_labels = capture_image(lay, spec.meters_per_pixel, spec.seed, satellite_gap)
+        tile, tile_labels = capture_image(lay, spec.meters_per_pixel, spec.seed, satellite_gap, spec.parts)
     frame = ground.frame if ground is not None else None
     satmap = SatelliteMap(tile, spec.meters_per_pixel, (0.0, lay.height_m), tile_labels, frame,
                           radiometry=ground.radiometry if ground is not None else None)

@@ -1,0 +1,96 @@
+"""What the optional capture parts (issue 46) do to the no-database localizer, on a calibration recording.
+
+    satloc experiment tune --out tune             # records the calibration pass on fcn_train/town_a
+    python docs/tools/capture_calibration.py tune/rec 8 3 capture_cal.json [variant ...]
+
+The recording's own map is the default capture; each variant captures the recording's scene again with the
+default parts plus those it names (``deep_shadows``, ``traffic``, ``coarse_texture``; ``+`` joins several; ``default``
+for none), and ``@semantic`` or ``@none`` after it localizes on the map as a bare GeoTIFF gives it (no labels:
+the drivable area from the features' own semantics, or none), not with the map's labels as by default. The
+camera's frames, their priors (uniform within 20 m and 10 degrees, seeded by the seed and the frame's index)
+and the odometry unchanged. Takes every STEP-th frame of the query pass, localizes single frames and tracked
+with the shipped features and the default settings, with SEEDS seeds of the priors, and prints and writes per
+variant: the mean and median error, the shares within 1 m and beyond 10 m, and the lateral and longitudinal
+shares within 1 m.
+"""
+import json
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+from satloc import Sequence
+from satloc.features import make_extractor
+from satloc.features.dictionary import SatelliteFeatures
+from satloc.localizers.crossview import CrossViewConfig, CrossViewLocalizer, draw_prior, localize_frames
+from satloc.satmap import SatelliteMap
+from satloc.tracking.track import compose_between
+
+DEFAULT_VARIANTS = ["default", "deep_shadows", "traffic", "coarse_texture", "deep_shadows+traffic+coarse_texture"]
+
+
+def variant_map(rec: Path, sm: SatelliteMap, variant: str) -> SatelliteMap:
+    if variant == "default":
+        return sm
+    from satloc_env.world.capture import PARTS, capture_tile
+    from satloc_env.world.scene import load_scene
+
+    cfg = json.loads((rec / "recording.json").read_text())["config"]
+    sc = load_scene(cfg["scene"])
+    if not np.array_equal(sc.satmap.image, sm.image):
+        raise SystemExit(f"{rec}: its map is not the default capture of {cfg['scene']} as this code builds it")
+    spec = sc.spec
+    img, lab = capture_tile(sc.layout, spec.meters_per_pixel, spec.seed, spec.knobs.satellite_gap,
+                            PARTS + tuple(variant.split("+")))
+    return SatelliteMap(img, sm.meters_per_pixel, sm.origin, lab, sm.frame)
+
+
+def errors(est: np.ndarray, truth: np.ndarray) -> dict:
+    d = est[:, :2] - truth[:, :2]
+    e = np.hypot(d[:, 0], d[:, 1])
+    c, s = np.cos(truth[:, 2]), np.sin(truth[:, 2])
+    lon, lat = np.abs(d[:, 0] * c + d[:, 1] * s), np.abs(-d[:, 0] * s + d[:, 1] * c)
+    ok = np.isfinite(e)
+    return dict(n=int(e.size), answered=float(ok.mean()), mean=float(e[ok].mean()),
+                median=float(np.median(np.where(ok, e, np.inf))), within1=float(np.mean(e < 1)),
+                beyond10=float(np.mean(np.where(ok, e, np.inf) > 10)), lateral1=float(np.mean(lat < 1)),
+                longitudinal1=float(np.mean(lon < 1)))
+
+
+def main(rec: Path, step: int, n_seeds: int, dest: Path, variants: list[str]) -> None:
+    seq, sm0 = Sequence.load(rec / "query"), SatelliteMap.load(rec / "map")
+    ext = make_extractor("default")
+    idx = np.arange(0, len(seq), step)
+    truth = np.asarray(seq.poses, np.float64)[idx]
+    steps = np.load(rec.parent / "odometry_visual.npz", allow_pickle=False)["steps"]
+    odo = compose_between(steps, idx)
+    out = []
+    for variant in variants:
+        t0 = time.time()
+        parts, _, drivable = variant.partition("@")
+        sm = variant_map(rec, sm0, parts)
+        sf = SatelliteFeatures.compute(sm, ext)
+        if drivable:
+            cv = CrossViewLocalizer(seq.camera, sf, ext, CrossViewConfig(drivable=drivable))
+        else:
+            cv = CrossViewLocalizer(seq.camera, sf, ext, CrossViewConfig(), labels=sm.labels)
+        for track in (False, True):
+            ests, truths = [], []
+            for seed in range(n_seeds):
+                priors = [draw_prior(t, 20.0, 10.0, np.random.default_rng([seed, int(i)])) for t, i in zip(truth, idx)]
+                r = localize_frames(cv, (seq[int(i)] for i in idx), priors, odo if track else None,
+                                    **({"follow": (5.0, 4.0)} if track else {}))
+                ests.append(np.asarray(r["estimates"], np.float64))
+                truths.append(truth)
+            row = dict(variant=variant, track=track, seeds=n_seeds,
+                       **errors(np.concatenate(ests), np.concatenate(truths)),
+                       per_seed_mean=[float(np.nanmean(np.hypot(*(e[:, :2] - truth[:, :2]).T))) for e in ests],
+                       seconds=round(time.time() - t0, 1))
+            out.append(row)
+            print(json.dumps(row), flush=True)
+        dest.write_text(json.dumps(out, indent=1))
+
+
+if __name__ == "__main__":
+    main(Path(sys.argv[1]), int(sys.argv[2]), int(sys.argv[3]), Path(sys.argv[4]), sys.argv[5:] or DEFAULT_VARIANTS)
