@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import functools
 import math
+import warnings
 from dataclasses import dataclass
 
 import numpy as np
@@ -118,3 +119,86 @@ def _to_frame(lon0: float, lat0: float):
     import pyproj
 
     return pyproj.Transformer.from_crs("EPSG:4326", _crs(lon0, lat0), always_xy=True)
+
+
+# --- datums ----------------------------------------------------------------------------------------------------
+
+#: Helmert methods of the EPSG registry whose parameters PROJ's ``+towgs84`` takes (rotations' sign: the
+#: position-vector convention, which ``+towgs84`` uses; coordinate-frame rotations have the opposite sign)
+_HELMERT = {"Geocentric translations": 0, "Position Vector transformation": 1, "Coordinate Frame rotation": -1}
+_ROTATION_ARCSEC = {"arc-second": 1.0, "microradian": 0.206264806247, "radian": 206264.806247,
+                    "milliarc-second": 1e-3}
+_SCALE_PPM = {"parts per million": 1.0, "unity": 1e6, "parts per billion": 1e-3}
+
+
+def wgs84_bound(crs):
+    """``crs`` (anything pyproj reads) as a :class:`pyproj.CRS` that carries its datum's shift to WGS84 (PROJ's
+    ``+towgs84``, from the best transformation of the EPSG registry), where that shift is a Helmert
+    transformation and not zero; else ``crs`` as it is.
+
+    Why: the map frame (:class:`GeoFrame`) is a Mercator on the WGS84 sphere that PROJ ties to WGS84 by a null
+    grid, as EPSG:3857 is. From a CRS on another datum (the Swiss CH1903+ of LV95, Austria's MGI, the Dutch
+    Amersfoort of RD New, OSGB36 of the British National Grid, DHDN of Gauss-Krueger) PROJ finds no path to
+    such a frame and takes a ballpark one that ignores the datum shift: on LV95 near Zurich, 57 m east and 103 m
+    north off. Tied to WGS84, the source goes through WGS84 to the frame, as vectors in WGS84 lon/lat do.
+    Datums within a metre of WGS84 (ETRS89, NAD83, RGF93, GDA) have a zero shift and stay as they are."""
+    import pyproj
+    from pyproj.transformer import TransformerGroup
+
+    src = pyproj.CRS.from_user_input(crs)
+    geod = src.geodetic_crs
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", UserWarning)
+        p4 = src.to_proj4() or ""
+    if src.is_bound or geod is None or "+towgs84" in p4 or "+nadgrids" in p4:
+        return src
+    wgs84 = pyproj.CRS.from_epsg(4326)
+    if geod.datum is not None and geod.datum.name in (wgs84.datum.name, "World Geodetic System 1984"):
+        return src
+    try:
+        group = TransformerGroup(geod, wgs84, always_xy=True)
+    except pyproj.exceptions.ProjError:
+        return src
+    for t in group.transformers:
+        params = _towgs84(t.to_json_dict())
+        if params is not None:
+            if not any(params):
+                return src
+            with warnings.catch_warnings():   # the PROJ string keeps what +towgs84 needs: projection and ellipsoid
+                warnings.simplefilter("ignore", UserWarning)
+                p4 = src.to_proj4().replace("+type=crs", "").strip()
+            return pyproj.CRS.from_proj4(f"{p4} +towgs84={','.join(f'{v:.10g}' for v in params)}")
+    return src
+
+
+def _towgs84(op: dict) -> list[float] | None:
+    """The seven ``+towgs84`` parameters of a Helmert step of a PROJ JSON coordinate operation, else None."""
+    steps = op.get("steps") or [op]
+    core = [s for s in steps if s.get("type") != "Conversion" and "axis order" not in str(s.get("name", ""))]
+    if len(core) != 1:
+        return None
+    method = str((core[0].get("method") or {}).get("name", ""))
+    sign = next((v for k, v in _HELMERT.items() if method.startswith(k)), None)
+    if sign is None:
+        return None
+    vals = {}
+    for p in core[0].get("parameters", []):
+        unit = p.get("unit")
+        unit = unit.get("name") if isinstance(unit, dict) else unit
+        vals[p.get("name")] = (float(p.get("value", 0.0)), unit)
+    out = []
+    for axis in ("X", "Y", "Z"):
+        v, unit = vals.get(f"{axis}-axis translation", (0.0, "metre"))
+        if unit not in ("metre", None):
+            return None
+        out.append(v)
+    for axis in ("X", "Y", "Z"):
+        v, unit = vals.get(f"{axis}-axis rotation", (0.0, "arc-second"))
+        if unit not in _ROTATION_ARCSEC:
+            return None
+        out.append(sign * v * _ROTATION_ARCSEC[unit] if sign else 0.0)
+    v, unit = vals.get("Scale difference", (0.0, "parts per million"))
+    if unit not in _SCALE_PPM:
+        return None
+    out.append(v * _SCALE_PPM[unit])
+    return out

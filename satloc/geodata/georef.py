@@ -405,7 +405,7 @@ def _file_source(path: Path, user_crs, radiometry: Radiometry) -> _Source:
         else:
             own_transform = world_transform if world_transform is not None else read_world_file(world)
     _check_transform(own_transform, width, height, world if from_world else path)
-    src_crs = _resolve_crs(path, own_crs, user_crs)
+    src_crs = _datum_tied(_resolve_crs(path, own_crs, user_crs))
     prj = path.with_suffix(".prj")
     sidecars = ([world] if from_world else []) + ([prj] if own_crs is None and user_crs is None else [])
 
@@ -568,6 +568,20 @@ def _parse_crs(crs):
     if c.is_geographic or c.is_projected or c.is_bound:
         return CRS.from_wkt(c.to_wkt())
     raise ConfigError(f"crs: expected a geographic or projected CRS, got {c.name!r}")
+
+
+def _datum_tied(crs):
+    """The rasterio CRS ``crs`` tied to WGS84 by its datum's shift where it is on another datum
+    (:func:`satloc.geoframe.wgs84_bound`: without it PROJ places such an image tens of metres off), else
+    ``crs`` itself."""
+    from rasterio.crs import CRS
+
+    from ..geoframe import wgs84_bound
+
+    bound = wgs84_bound(crs.to_wkt())
+    if not bound.is_bound and "+towgs84" not in bound.srs:
+        return crs
+    return CRS.from_proj4(bound.srs)
 
 
 def _resolve_crs(path: Path, own, user):

@@ -342,8 +342,10 @@ def _to_crs(parts: list[np.ndarray], src, crs, source: str) -> list[np.ndarray]:
     ``source`` for points outside the coordinate system's domain."""
     import pyproj
 
+    from ..geoframe import wgs84_bound
+
     dst = pyproj.CRS.from_user_input(crs)
-    tr = pyproj.Transformer.from_crs(src, dst, always_xy=True)
+    tr = pyproj.Transformer.from_crs(wgs84_bound(src), dst, always_xy=True)   # another datum: through WGS84
     out = []
     for i, xy in enumerate(parts):
         x, y = tr.transform(xy[:, 0], xy[:, 1], errcheck=False)
