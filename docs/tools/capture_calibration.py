@@ -6,7 +6,8 @@
 The recording's own map is the default capture; each variant captures the recording's scene again with the
 default parts plus those it names (``deep_shadows``, ``traffic``, ``coarse_texture``; ``+`` joins several; ``default``
 for none), and ``@semantic`` or ``@none`` after it localizes on the map as a bare GeoTIFF gives it (no labels:
-the drivable area from the features' own semantics, or none), not with the map's labels as by default. The
+the drivable area from the features' own semantics, or none), not with the map's labels as by default; and
+``#grey`` at the end localizes with the fixed grey-level channel instead of the shipped learned ones. The
 camera's frames, their priors (uniform within 20 m and 10 degrees, seeded by the seed and the frame's index)
 and the odometry unchanged. Takes every STEP-th frame of the query pass, localizes single frames and tracked
 with the shipped features and the default settings, with SEEDS seeds of the priors, and prints and writes per
@@ -68,13 +69,15 @@ def main(rec: Path, step: int, n_seeds: int, dest: Path, variants: list[str]) ->
     out = []
     for variant in variants:
         t0 = time.time()
-        parts, _, drivable = variant.partition("@")
+        head, _, grey = variant.partition("#")
+        parts, _, drivable = head.partition("@")
         sm = variant_map(rec, sm0, parts)
         sf = SatelliteFeatures.compute(sm, ext)
+        kw = {"projections": None} if grey else {}
         if drivable:
-            cv = CrossViewLocalizer(seq.camera, sf, ext, CrossViewConfig(drivable=drivable))
+            cv = CrossViewLocalizer(seq.camera, sf, ext, CrossViewConfig(drivable=drivable, **kw))
         else:
-            cv = CrossViewLocalizer(seq.camera, sf, ext, CrossViewConfig(), labels=sm.labels)
+            cv = CrossViewLocalizer(seq.camera, sf, ext, CrossViewConfig(**kw), labels=sm.labels)
         for track in (False, True):
             ests, truths = [], []
             for seed in range(n_seeds):
