@@ -45,7 +45,8 @@ def setup(rec):
     x0, y1 = sm.pixel_to_world(np.array([[c0 - 0.5, r0 - 0.5]]))[0]
     sf = SatelliteFeatures(ext(np.ascontiguousarray(sm.image[r0:r1, c0:c1]), "satellite").astype(np.float16),
                            mpp, (float(x0), float(y1)), ext.name)
-    return seq, CrossViewLocalizer(seq.camera, sf, ext)
+    # with the window's labels, as every scene gives its map's (the drivable area: its roads)
+    return seq, CrossViewLocalizer(seq.camera, sf, ext, labels=np.ascontiguousarray(sm.labels[r0:r1, c0:c1]))
 
 
 def test_no_database_finds_the_pose_from_a_20m_prior(setup):
