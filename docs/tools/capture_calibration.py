@@ -7,7 +7,8 @@ The recording's own map is the default capture; each variant captures the record
 default parts plus those it names (``deep_shadows``, ``traffic``, ``coarse_texture``; ``+`` joins several; ``default``
 for none), and ``@semantic`` or ``@none`` after it localizes on the map as a bare GeoTIFF gives it (no labels:
 the drivable area from the features' own semantics, or none), not with the map's labels as by default; and
-``#grey`` at the end localizes with the fixed grey-level channel instead of the shipped learned ones. The
+``#grey`` at the end localizes with the fixed grey-level channel instead of the shipped learned ones
+(``#path/to/crossview.pt``: with those learned channels). The
 camera's frames, their priors (uniform within 20 m and 10 degrees, seeded by the seed and the frame's index)
 and the odometry unchanged. Takes every STEP-th frame of the query pass, localizes single frames and tracked
 with the shipped features and the default settings, with SEEDS seeds of the priors, and prints and writes per
@@ -73,7 +74,7 @@ def main(rec: Path, step: int, n_seeds: int, dest: Path, variants: list[str]) ->
         parts, _, drivable = head.partition("@")
         sm = variant_map(rec, sm0, parts)
         sf = SatelliteFeatures.compute(sm, ext)
-        kw = {"projections": None} if grey else {}
+        kw = {} if not grey else {"projections": None} if grey == "grey" else {"projections": grey}
         if drivable:
             cv = CrossViewLocalizer(seq.camera, sf, ext, CrossViewConfig(drivable=drivable, **kw))
         else:
