@@ -5,7 +5,7 @@
 
 The recording's own map is the default capture; each variant captures the recording's scene again with the
 default parts plus those it names (``deep_shadows``, ``traffic``, ``coarse_texture``; ``+`` joins several; ``default``
-for none), and ``@semantic`` or ``@none`` after it localizes on the map as a bare GeoTIFF gives it (no labels:
+for none; ``copy`` for no capture at all: the ground the camera renders, over an image the image itself), and ``@semantic`` or ``@none`` after it localizes on the map as a bare GeoTIFF gives it (no labels:
 the drivable area from the features' own semantics, or none), not with the map's labels as by default; and
 ``#grey`` at the end localizes with the fixed grey-level channel instead of the shipped learned ones
 (``#path/to/crossview.pt``: with those learned channels). The
@@ -43,6 +43,12 @@ def variant_map(rec: Path, sm: SatelliteMap, variant: str) -> SatelliteMap:
     if not np.array_equal(sc.satmap.image, sm.image):
         raise SystemExit(f"{rec}: its map is not the default capture of {cfg['scene']} as this code builds it")
     spec = sc.spec
+    if variant == "copy":    # no capture: the ground the camera renders (a scene over an image: the image itself)
+        lay = sc.layout
+        if spec.generator.get("type") == "image":
+            return SatelliteMap(lay.ground_rgb, sm.meters_per_pixel, sm.origin, lay.ground_labels, sm.frame)
+        img, lab = capture_tile(lay, spec.meters_per_pixel, spec.seed, 0.0)
+        return SatelliteMap(img, sm.meters_per_pixel, sm.origin, lab, sm.frame)
     img, lab = capture_tile(sc.layout, spec.meters_per_pixel, spec.seed, spec.knobs.satellite_gap,
                             PARTS + tuple(variant.split("+")))
     return SatelliteMap(img, sm.meters_per_pixel, sm.origin, lab, sm.frame)
