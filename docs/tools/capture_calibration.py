@@ -5,7 +5,7 @@
 
 The recording's own map is the default capture; each variant captures the recording's scene again with the
 default parts plus those it names (``deep_shadows``, ``traffic``, ``coarse_texture``; ``+`` joins several; ``default``
-for none; ``copy`` for no capture at all: the ground the camera renders, over an image the image itself), and ``@semantic`` or ``@none`` after it localizes on the map as a bare GeoTIFF gives it (no labels:
+for none; ``default-texture`` leaves a default part out; ``copy`` for no capture at all: the ground the camera renders, over an image the image itself), and ``@semantic`` or ``@none`` after it localizes on the map as a bare GeoTIFF gives it (no labels:
 the drivable area from the features' own semantics, or none), not with the map's labels as by default; and
 ``#grey`` at the end localizes with the fixed grey-level channel instead of the shipped learned ones
 (``#path/to/crossview.pt``: with those learned channels). The
@@ -49,8 +49,18 @@ def variant_map(rec: Path, sm: SatelliteMap, variant: str) -> SatelliteMap:
             return SatelliteMap(lay.ground_rgb, sm.meters_per_pixel, sm.origin, lay.ground_labels, sm.frame)
         img, lab = capture_tile(lay, spec.meters_per_pixel, spec.seed, 0.0)
         return SatelliteMap(img, sm.meters_per_pixel, sm.origin, lab, sm.frame)
-    img, lab = capture_tile(sc.layout, spec.meters_per_pixel, spec.seed, spec.knobs.satellite_gap,
-                            PARTS + tuple(variant.split("+")))
+    parts = list(PARTS)
+    for tok in variant.replace("-", " -").replace("+", " +").split():
+        if tok.startswith("-"):
+            parts.remove(tok[1:])
+        elif tok.strip("+") != "default":
+            parts.append(tok.strip("+"))
+    if spec.generator.get("type") == "image":
+        from satloc_env.world.capture import capture_image
+
+        img, lab = capture_image(sc.layout, spec.meters_per_pixel, spec.seed, spec.knobs.satellite_gap, parts)
+    else:
+        img, lab = capture_tile(sc.layout, spec.meters_per_pixel, spec.seed, spec.knobs.satellite_gap, parts)
     return SatelliteMap(img, sm.meters_per_pixel, sm.origin, lab, sm.frame)
 
 
