@@ -166,11 +166,9 @@ def road_cover(lay: Layout, mpp: float, seed: int, gap: float, parts: Iterable[s
     rest); and ``marking_contrast``: the lane markings' mean grey level over the road's, minus 1, in the
     captured tile (NaN without markings). Measures to hold against real orthophotos (issue 46)."""
     cap, parts = _checked(gap, mpp, parts)
-    if cap.gap == 0.0 or not parts:
-        seen, lean = lay, (0.0, 0.0)
-    else:
-        seen, lean = _captured_layout(lay, cap, seed, parts)
-    _, labels = paint_tile(seen, mpp, seed, lean=lean, shadow_gain=_shadow_gain(parts))
+    copy = cap.gap == 0.0 or not parts
+    seen, lean = (lay, (0.0, 0.0)) if copy else _captured_layout(lay, cap, seed, parts)
+    painted, labels = paint_tile(seen, mpp, seed, lean=lean, shadow_gain=_shadow_gain(parts))
     h, w = labels.shape
     k = int(round(mpp / lay.ground_mpp))
     ground = lay.ground_labels[k // 2: h * k: k, k // 2: w * k: k]
@@ -181,8 +179,9 @@ def road_cover(lay: Layout, mpp: float, seed: int, gap: float, parts: Iterable[s
     visible = road & np.isin(labels, (CLASS_ID["road"], CLASS_ID["lane_marking"]))
     out["shadow"] = float((visible & (shadow_mask(seen, mpp, (h, w)) > 0)).sum()) / n
     out["open"] = float(visible.sum()) / n - out["shadow"]
-    img, lab = capture_tile(lay, mpp, seed, gap, parts)
-    grey = cv2.cvtColor(img, cv2.COLOR_RGB2GRAY).astype(np.float64)
+    # the captured tile (capture_tile's, from the same painting): the sensor's blur, warp and compression
+    img, lab = (painted, labels) if copy else _sensor(painted, labels.copy(), cap, mpp, seed, parts)
+    grey = cv2.cvtColor(np.ascontiguousarray(img, np.uint8), cv2.COLOR_RGB2GRAY).astype(np.float64)
     mark, asphalt = lab == CLASS_ID["lane_marking"], lab == CLASS_ID["road"]
     out["marking_contrast"] = (float(grey[mark].mean() / max(grey[asphalt].mean(), 1e-6) - 1.0)
                                if mark.any() and asphalt.any() else float("nan"))

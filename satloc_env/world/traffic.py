@@ -27,6 +27,7 @@ import numpy as np
 from satloc.labels import CLASS_ID as C
 
 from .layout import Car, Layout
+from .revisit import _labels_at
 from .variety import BODIES, car_body, car_colour
 
 __all__ = ["TRAFFIC_PER_KM", "lane_texels", "traffic_cars"]
@@ -104,22 +105,21 @@ def lane_texels(lay: Layout) -> tuple[np.ndarray, np.ndarray, float]:
 
 
 def _on_road(lay: Layout, car: Car) -> bool:
+    """Whether the car's corners, edge midpoints and centre all lie on the road (void beyond the layout)."""
     c, s = math.cos(car.yaw), math.sin(car.yaw)
     pts = [(car.center[0] + a * c * car.length / 2 - b * s * car.width / 2,
             car.center[1] + a * s * car.length / 2 + b * c * car.width / 2)
            for a in (-1, 0, 1) for b in (-1, 0, 1)]
-    uv = np.round(lay.world_to_raster(np.asarray(pts))).astype(np.int64)
-    h, w = lay.ground_labels.shape
-    if (uv < 0).any() or (uv[:, 0] >= w).any() or (uv[:, 1] >= h).any():
-        return False
-    return bool(np.isin(lay.ground_labels[uv[:, 1], uv[:, 0]], (C["road"], C["lane_marking"])).all())
+    return bool(np.isin(_labels_at(lay, np.asarray(pts)), (C["road"], C["lane_marking"])).all())
 
 
 def traffic_cars(lay: Layout, per_km: float, rng: np.random.Generator) -> list[Car]:
     """Cars in traffic on ``lay``'s roads, ``per_km`` per kilometre of lane on average (a Poisson count; fewer where
     the lanes are full), placed as the module docstring says; their bodies and colours as streets have them."""
+    if per_km <= 0:
+        return []
     xy, heading, length_m = lane_texels(lay)
-    if per_km <= 0 or xy.shape[0] == 0:
+    if xy.shape[0] == 0:
         return []
     n = int(rng.poisson(per_km * length_m / 1000.0))
     cars: list[Car] = []
