@@ -37,10 +37,14 @@ part), so leaving one out changes none of the others:
     Compression: JPEG at quality ``100 - 40 gap`` (80 at 0.5).
 
 A scene over an image (:func:`capture_image`) has no layout to paint from: its ground is the image itself.
-Its map is the image captured the same way without ``lean`` (the image already is a view from above): the
-world changed at the capture's time where its labels say what lies there (season, road wear), the texture
-below the sensor's resolution the capture's own, blurred, warped and compressed. The camera keeps seeing the
-image as it is.
+Its map is the image captured the same way without ``lean`` (the image already is a view from above) and
+without ``texture`` or ``coarse_texture`` (:data:`IMAGE_SKIPS`): the world changed at the capture's time where
+its labels say what lies there (season, road wear), blurred, warped and compressed. An image has no texture
+below its own resolution, which is all ``texture`` replaces in a painted world; applied to an image it
+replaced the image's own detail below 2 GSDs within each label class, the markings, cars and kerbs of labels
+that hold only the roads included (Vienna at 0.3 m: single-frame median 1.71 m with it, 0.35 m without;
+docs/results.md). The camera keeps seeing the image as it is, so the figures of a scene over an image are
+an upper bound ("same image, an upper bound").
 
 :data:`DEFAULT_GAP` (0.5) is a tile captured by a 0.3 m sensor 15 degrees off nadir, registered to 0.3 m
 RMS, at JPEG quality 80, in another season with another sun and other parked cars. What that rests on
@@ -68,7 +72,7 @@ from .tile import SHADOW_GAIN, paint_tile, shadow_mask
 from .traffic import TRAFFIC_PER_KM, traffic_cars
 
 __all__ = ["PARTS", "DEFAULT_GAP", "Capture", "capture_params", "capture_tile", "capture_image", "class_lowpass",
-           "fine_residual", "road_cover", "texture_correlation", "OPTIONAL_PARTS"]
+           "fine_residual", "road_cover", "texture_correlation", "OPTIONAL_PARTS", "IMAGE_SKIPS"]
 
 #: the parts of a capture, in the order they are applied
 PARTS = ("time", "lean", "texture", "blur", "registration", "jpeg")
@@ -79,6 +83,9 @@ PARTS = ("time", "lean", "texture", "blur", "registration", "jpeg")
 #: :data:`~satloc_env.world.traffic.TRAFFIC_PER_KM` per km of lane), after ``time``; ``deep_shadows`` paints the
 #: cast shadows at :data:`REAL_SHADOW_GAIN` of the lit ground's brightness instead of the tiles' 0.55
 OPTIONAL_PARTS = ("coarse_texture", "traffic", "deep_shadows")
+#: the parts a scene over an image leaves out of its capture (:func:`capture_image`): an image has no texture
+#: below its own resolution to replace
+IMAGE_SKIPS = ("lean", "texture", "coarse_texture")
 #: the scale (metres) below which ``coarse_texture`` replaces the ground's texture: twice the generator's
 #: coarsest texture layer (12 m)
 COARSE_TEXTURE_M = 24.0
@@ -191,8 +198,10 @@ def road_cover(lay: Layout, mpp: float, seed: int, gap: float, parts: Iterable[s
 def capture_image(lay: Layout, mpp: float, seed: int, gap: float, parts: Iterable[str] = PARTS
                   ) -> tuple[np.ndarray, np.ndarray]:
     """The map of a scene over an image (``lay.ground_rgb`` is the image, at ``mpp``) captured with knob
-    ``gap``: the parts of :func:`capture_tile` but ``lean``; ``gap`` 0, or no ``parts``, is the image itself."""
+    ``gap``: the parts of :func:`capture_tile` but those of :data:`IMAGE_SKIPS`; ``gap`` 0, or no other
+    ``parts``, is the image itself."""
     cap, parts = _checked(gap, mpp, parts)
+    parts = tuple(p for p in parts if p not in IMAGE_SKIPS)
     if cap.gap == 0.0 or not parts:
         return lay.ground_rgb, lay.ground_labels
     lay = _captured_ground(lay, cap, seed, parts)   # (the capture's sun has nothing to shade in an image)
