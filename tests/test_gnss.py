@@ -122,3 +122,40 @@ def test_tracker_yields_to_disagreeing_fixes_at_once_by_default_and_after_lost_a
     patient.localize(SimpleNamespace(timestamp=7.0), draw_prior((1.0, 0.0, 0.0), 1e-3, 0.0, np.random.default_rng(0)))
     assert patient.disagree_since is None
     assert _far_fixes(patient, [8.0])[0].x < 1
+
+
+class _Blind(_Recorder):
+    """A stand-in that sees nothing on the frames whose ``blind`` attribute is set (a bus in front)."""
+
+    def localize(self, frame, prior, predicted=None):
+        if getattr(frame, "blind", False):
+            self.calls.append((prior, predicted))
+            return CrossViewResult(None, float("nan"), np.zeros((0, 3)), np.zeros(0), 9)
+        return super().localize(frame, prior, predicted)
+
+
+def test_tracker_coasts_through_a_frame_it_cannot_localize_and_loses_it_without_coast():
+    fix = draw_prior((0.0, 0.0, 0.0), 1e-3, 0.0, np.random.default_rng(0))
+    t = CrossViewTracker(_Blind())
+    assert t.localize(SimpleNamespace(timestamp=0.0, blind=False), fix).pose is not None
+    t.predict([2.0, 0.0, 0.0])
+    r = t.localize(SimpleNamespace(timestamp=0.1, blind=True), fix)
+    # the answer is the track moved by the odometry, with no correlation; the track goes on from it
+    assert r.pose is not None and math.isclose(r.pose.x, fix.x + 2.0, abs_tol=1e-9) and math.isnan(r.correlation)
+    assert r.cells == 9 and t.pose is r.pose
+    t.predict([1.0, 0.0, 0.0])
+    r = t.localize(SimpleNamespace(timestamp=0.2, blind=True), fix)
+    assert math.isclose(r.pose.x, fix.x + 3.0, abs_tol=1e-9)
+    # a lost track has nothing to coast on: no answer
+    t.predict([float("nan")] * 3)
+    assert t.localize(SimpleNamespace(timestamp=0.3, blind=True), fix).pose is None and t.pose is None
+    # coast: false, the behaviour before: the frame has no answer and the track is lost
+    old = CrossViewTracker(_Blind(coast=False))
+    old.localize(SimpleNamespace(timestamp=0.0, blind=False), fix)
+    old.predict([2.0, 0.0, 0.0])
+    assert old.localize(SimpleNamespace(timestamp=0.1, blind=True), fix).pose is None and old.pose is None
+    # a track the fixes say is lost does not coast either
+    far = CrossViewTracker(_Blind())
+    far.pose = Pose2(0.0, 0.0, 0.0)
+    assert far.localize(SimpleNamespace(timestamp=0.0, blind=True),
+                        draw_prior((40.0, 0.0, 0.0), 1e-3, 0.0, np.random.default_rng(0))).pose is None

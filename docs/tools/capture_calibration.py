@@ -8,7 +8,8 @@ default parts plus those it names (``deep_shadows``, ``traffic``, ``coarse_textu
 for none; ``default-texture`` leaves a default part out; ``copy`` for no capture at all: the ground the camera renders, over an image the image itself), and ``@semantic`` or ``@none`` after it localizes on the map as a bare GeoTIFF gives it (no labels:
 the drivable area from the features' own semantics, or none), not with the map's labels as by default; and
 ``#grey`` at the end localizes with the fixed grey-level channel instead of the shipped learned ones
-(``#path/to/crossview.pt``: with those learned channels). The
+(``#path/to/crossview.pt``: with those learned channels); ``%key=value,...`` at the very end sets fields of
+the localizer's ``CrossViewConfig`` (YAML values: ``default%coast=false``). The
 camera's frames, their priors (uniform within 20 m and 10 degrees, seeded by the seed and the frame's index)
 and the odometry unchanged. Takes every STEP-th frame of the query pass, localizes single frames and tracked
 with the shipped features and the default settings, with SEEDS seeds of the priors, and prints and writes per
@@ -21,6 +22,7 @@ import time
 from pathlib import Path
 
 import numpy as np
+import yaml
 
 from satloc import Sequence
 from satloc.features import make_extractor
@@ -86,11 +88,15 @@ def main(rec: Path, step: int, n_seeds: int, dest: Path, variants: list[str]) ->
     out = []
     for variant in variants:
         t0 = time.time()
-        head, _, grey = variant.partition("#")
+        variant_, _, fields = variant.partition("%")
+        head, _, grey = variant_.partition("#")
         parts, _, drivable = head.partition("@")
         sm = variant_map(rec, sm0, parts)
         sf = SatelliteFeatures.compute(sm, ext)
         kw = {} if not grey else {"projections": None} if grey == "grey" else {"projections": grey}
+        for item in filter(None, fields.split(",")):
+            key, _, value = item.partition("=")
+            kw[key.strip()] = yaml.safe_load(value)
         if drivable:
             cv = CrossViewLocalizer(seq.camera, sf, ext, CrossViewConfig(drivable=drivable, **kw))
         else:

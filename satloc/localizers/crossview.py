@@ -27,7 +27,9 @@ multiplies the posterior as a Gaussian belief (``track_sigma_m``, ``track_sigma_
 elsewhere can still win; with ``"gate"`` only ``track_radius_m`` / ``track_yaw_deg`` around it are searched.
 Where the moved answer lies outside the frame's own prior by more than the belief reaches (3
 ``track_sigma_m``; ``gate``: ``track_radius_m``: the GPS fix says the track is lost), after a frame with no
-answer or after an unknown motion, the prior alone is searched. :func:`localize_frames` runs either over the frames of a sequence.
+answer or after an unknown motion, the prior alone is searched. A frame it cannot localize (too little ground
+in view, no drivable position within its prior) coasts on the odometry (``coast``): its answer is the moved
+track, with no correlation (NaN). :func:`localize_frames` runs either over the frames of a sequence.
 """
 from __future__ import annotations
 
@@ -98,6 +100,11 @@ class CrossViewConfig:
     # of that scale around its centre, with fix_nu degrees of freedom (heavy tails: the fix may be misled by
     # multipath); a prior without one is flat within its radius
     fix_nu: float = added_field(3.0)
+    # a tracked frame that cannot be localized (too little ground in view: a bus in front; or no drivable position
+    # within its prior) coasts: its answer is the track moved by the odometry, and the track goes on. False: the
+    # frame has no answer and the track is lost (the behaviour before; an occluded frame then counted as a gross
+    # failure, and the next frame searched its prior alone)
+    coast: bool = added_field(True, before=False)
     align: AlignConfig = field(default_factory=AlignConfig)   # the BEV: extent, channels, normalisation
 
     def __post_init__(self):
@@ -370,9 +377,12 @@ class CrossViewTracker:
         """The frame's pose: ``fuse``, across ``prior`` with the moved answer as a Gaussian belief; ``gate``,
         within ``track_radius_m`` of the moved answer; across ``prior`` alone where the moved answer lies
         farther outside ``prior`` than 3 ``track_sigma_m`` (``gate``: ``track_radius_m``), and has for longer than
-        ``lost_after_s`` (by the frames' timestamps; meanwhile the fix's disc is searched around the moved answer)."""
+        ``lost_after_s`` (by the frames' timestamps; meanwhile the fix's disc is searched around the moved answer).
+        A frame with no answer of its own, the track not lost, coasts (``coast``): the moved answer, correlation
+        NaN, the track kept."""
         cfg = self.localizer.config
         use, predicted = prior, None
+        lost = self.pose is None
         # lost: the moved answer lies farther outside the fix's disc than the belief reaches (3 sigma; gate: its
         # search radius). Slightly outside is not lost: a fix drawn near its disc's edge puts a right answer there
         reach = 3.0 * cfg.track_sigma_m if cfg.track == "fuse" else cfg.track_radius_m
@@ -385,6 +395,7 @@ class CrossViewTracker:
                 self.disagree_since = t
             if far and t - self.disagree_since >= cfg.lost_after_s:
                 self.disagree_since = None   # lost: the fix's disc alone
+                lost = True
             elif cfg.track == "gate":
                 use = Prior(self.pose.x, self.pose.y, self.pose.yaw, min(cfg.track_radius_m, prior.radius_m),
                             min(cfg.track_yaw_deg, prior.yaw_deg))
@@ -395,6 +406,8 @@ class CrossViewTracker:
         else:
             self.disagree_since = None
         res = self.localizer.localize(frame, use, predicted)
+        if res.pose is None and not lost and cfg.coast:   # nothing to see: the track moved by the odometry
+            return CrossViewResult(self.pose, float("nan"), self.pose.as_array()[None], np.ones(1), res.cells)
         self.pose = res.pose
         return res
 
