@@ -111,8 +111,11 @@ def _far_fixes(tracker, times):
     return searched
 
 
-def test_tracker_yields_to_disagreeing_fixes_at_once_by_default_and_after_lost_after_s():
-    now = CrossViewTracker(_Recorder())
+def test_tracker_yields_to_disagreeing_fixes_after_lost_after_s():
+    assert CrossViewConfig().lost_after_s == 30.0                     # the default: after 30 s of disagreement
+    dflt = CrossViewTracker(_Recorder())
+    assert [p.x < 1 for p in _far_fixes(dflt, [0.0, 29.0, 30.0])] == [True, True, False]
+    now = CrossViewTracker(_Recorder(lost_after_s=0.0))
     assert all(p.x > 39 for p in _far_fixes(now, [0.0, 1.0]))          # lost at the first such fix
     patient = CrossViewTracker(_Recorder(lost_after_s=5.0))
     s = _far_fixes(patient, [0.0, 2.0, 4.0, 5.0, 6.0])
@@ -155,7 +158,7 @@ def test_tracker_coasts_through_a_frame_it_cannot_localize_and_loses_it_without_
     old.predict([2.0, 0.0, 0.0])
     assert old.localize(SimpleNamespace(timestamp=0.1, blind=True), fix).pose is None and old.pose is None
     # a track the fixes say is lost does not coast either
-    far = CrossViewTracker(_Blind())
+    far = CrossViewTracker(_Blind(lost_after_s=0.0))
     far.pose = Pose2(0.0, 0.0, 0.0)
     assert far.localize(SimpleNamespace(timestamp=0.0, blind=True),
                         draw_prior((40.0, 0.0, 0.0), 1e-3, 0.0, np.random.default_rng(0))).pose is None
