@@ -32,7 +32,8 @@ import numpy as np
 from satloc import Sequence
 from satloc.features import make_extractor
 from satloc.features.dictionary import SatelliteFeatures
-from satloc.localizers.crossview import CrossViewConfig, CrossViewLocalizer, draw_prior, localize_frames
+from satloc.localizers.crossview import (CrossViewConfig, CrossViewLocalizer, draw_prior, localize_frames,
+                                         prior_on_map)
 from satloc.localizers.gnss import GnssConfig, gnss_priors
 from satloc.satmap import SatelliteMap
 from satloc.tracking.track import compose_between
@@ -43,14 +44,6 @@ RUNS = [("uniform", False, True, {}), ("uniform", True, True, {}),
         ("receiver", True, True, {"lost_after_s": 0.0}), ("receiver", True, True, {"lost_after_s": 10.0}),
         ("receiver", True, True, {"lost_after_s": 30.0}),
         ("receiver", True, False, {"lost_after_s": 0.0}), ("receiver", True, False, {"lost_after_s": 10.0})]
-
-
-def on_map(p, sf: SatelliteFeatures) -> bool:
-    """Whether the prior ``p`` lies within its radius of the map (what the localizer searches)."""
-    h, w = sf.features.shape[:2]
-    x0, y1 = sf.origin
-    m = sf.meters_per_pixel
-    return x0 - p.radius_m <= p.x <= x0 + w * m + p.radius_m and y1 - h * m - p.radius_m <= p.y <= y1 + p.radius_m
 
 
 def screen(truth: np.ndarray, times: np.ndarray, idx: np.ndarray, start: float, n: int, k: int) -> list[int]:
@@ -100,7 +93,7 @@ def main(rec: Path, step: int, seeds_spec: str, dest: Path) -> None:
                                      10.0, seed, keys=idx, start=float(stamps.min()))
             # a fix whose disc lies off the map (multipath of tens of metres near its edge) is one the localizer
             # cannot search: counted as no fix, as the harness counts the error it raises as a failed query
-            priors = [p if p is not None and on_map(p, sf) else None for p in priors]
+            priors = [p if p is not None and prior_on_map(p, sf) else None for p in priors]
             has = np.array([p is not None for p in priors])
             nofix.append(1 - has.mean())
             outside.append(np.mean([p is not None and math.hypot(p.x - t[0], p.y - t[1]) > 20

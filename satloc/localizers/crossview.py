@@ -50,7 +50,7 @@ from ..tracking.align import AlignConfig, BevAligner, _parabola_peak
 from .gnss import draw_prior
 from .interface import MAX_RADIUS_M, Prior
 
-__all__ = ["Prior", "CrossViewConfig", "CrossViewResult", "CrossViewLocalizer", "CrossViewTracker", "draw_prior",
+__all__ = ["Prior", "CrossViewConfig", "CrossViewResult", "CrossViewLocalizer", "CrossViewTracker", "prior_on_map", "draw_prior",
            "drivable_from_features", "drivable_from_labels", "drivable_from_roads", "localize_frames", "parse_prior",
            "NoDatabaseLocalizer"]
 
@@ -276,8 +276,7 @@ class CrossViewLocalizer:
         sf = self.satfeat
         h, w = sf.features.shape[:2]
         x0, y1 = sf.origin
-        if not (x0 - prior.radius_m <= prior.x <= x0 + w * sf.meters_per_pixel + prior.radius_m
-                and y1 - h * sf.meters_per_pixel - prior.radius_m <= prior.y <= y1 + prior.radius_m):
+        if not prior_on_map(prior, sf):
             raise ConfigError(f"crossview: the prior ({prior.x:.1f}, {prior.y:.1f}) m +- {prior.radius_m:g} m lies "
                               f"outside the satellite map (x {x0:g} to {x0 + w * sf.meters_per_pixel:g}, y "
                               f"{y1 - h * sf.meters_per_pixel:g} to {y1:g} m)")
@@ -351,6 +350,16 @@ class CrossViewLocalizer:
         keep = np.argsort(-p, kind="stable")[: self.config.top_k]
         cand = np.stack([np.concatenate(xs)[keep], np.concatenate(ys)[keep], np.concatenate(yaws)[keep]], 1)
         return CrossViewResult(pose, float(raw[i, j]), cand, p[keep], cells)
+
+
+def prior_on_map(prior: Prior, satfeat: SatelliteFeatures) -> bool:
+    """Whether ``prior``'s centre lies within its radius of the satellite features' map (what
+    :meth:`CrossViewLocalizer.localize` can search; it refuses any other prior)."""
+    h, w = satfeat.features.shape[:2]
+    x0, y1 = satfeat.origin
+    m = satfeat.meters_per_pixel
+    return (x0 - prior.radius_m <= prior.x <= x0 + w * m + prior.radius_m
+            and y1 - h * m - prior.radius_m <= prior.y <= y1 + prior.radius_m)
 
 
 class CrossViewTracker:
