@@ -174,7 +174,10 @@ def test_tracker_fuses_the_moved_answer_and_starts_again_after_unknown_motion(se
     t.pose = Pose2(*truth[0])
     t.predict([1.0, 0.0, 0.0])
     assert t.pose is not None and math.isclose(t.pose.x, truth[0, 0] + math.cos(truth[0, 2]), abs_tol=1e-9)
-    t.predict([float("nan"), 0.0, 0.0])   # an unknown motion: lost, the next frame searches its prior alone
+    t.predict([float("nan"), 0.0, 0.0])   # an unknown motion: the last one held, a fallback only (stale): the next
+    assert t.stale and math.isclose(t.pose.x, truth[0, 0] + 2 * math.cos(truth[0, 2]), abs_tol=1e-9)   # frame
+    for _ in range(cv.config.hold_motion):   # searches its prior alone; after hold_motion of them in a row: lost
+        t.predict([float("nan"), 0.0, 0.0])
     assert t.pose is None
 
 

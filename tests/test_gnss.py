@@ -149,8 +149,9 @@ def test_tracker_coasts_through_a_frame_it_cannot_localize_and_loses_it_without_
     t.predict([1.0, 0.0, 0.0])
     r = t.localize(SimpleNamespace(timestamp=0.2, blind=True), fix)
     assert math.isclose(r.pose.x, fix.x + 3.0, abs_tol=1e-9)
-    # a lost track has nothing to coast on: no answer
-    t.predict([float("nan")] * 3)
+    # a lost track has nothing to coast on: no answer (unknown motions beyond hold_motion lose it)
+    for _ in range(t.localizer.config.hold_motion + 1):
+        t.predict([float("nan")] * 3)
     assert t.localize(SimpleNamespace(timestamp=0.3, blind=True), fix).pose is None and t.pose is None
     # coast: false, the behaviour before: the frame has no answer and the track is lost
     old = CrossViewTracker(_Blind(coast=False))
@@ -162,3 +163,44 @@ def test_tracker_coasts_through_a_frame_it_cannot_localize_and_loses_it_without_
     far.pose = Pose2(0.0, 0.0, 0.0)
     assert far.localize(SimpleNamespace(timestamp=0.0, blind=True),
                         draw_prior((40.0, 0.0, 0.0), 1e-3, 0.0, np.random.default_rng(0))).pose is None
+
+
+def test_a_held_motion_is_a_fallback_for_frames_without_an_answer_then_the_track_is_lost():
+    nan = [float("nan")] * 3
+    fix = draw_prior((0.0, 0.0, 0.0), 1e-3, 0.0, np.random.default_rng(0))
+    t = CrossViewTracker(_Blind())
+    t.localize(SimpleNamespace(timestamp=0.0, blind=False), fix)
+    t.predict([2.0, 0.0, 0.1])
+    t.predict(nan)                                   # the odometry failed: moved by the last motion again
+    assert t.stale
+    r = t.localize(SimpleNamespace(timestamp=0.2, blind=True), fix)    # nothing to see: the held track answers
+    want = Pose2(fix.x, fix.y, fix.yaw) @ Pose2(2.0, 0.0, 0.1) @ Pose2(2.0, 0.0, 0.1)
+    assert np.allclose(r.pose.as_array(), want.as_array()) and math.isnan(r.correlation)
+    assert t.localizer.calls[-1] == (fix, None)      # it searched its prior alone, with no belief from the track
+    t.predict(nan)                                   # the second in a row: still held
+    assert t.pose is not None
+    t.predict(nan)                                   # the third: the track is lost
+    assert t.pose is None and t.localize(SimpleNamespace(timestamp=0.4, blind=True), fix).pose is None
+    # a frame with an answer of its own takes it, not the held track's; the track is fresh again
+    t.localize(SimpleNamespace(timestamp=0.5, blind=False), fix)
+    t.predict([1.0, 0.0, 0.0])
+    t.predict(nan)
+    other = draw_prior((5.0, 0.0, 0.0), 1e-3, 0.0, np.random.default_rng(0))
+    r = t.localize(SimpleNamespace(timestamp=0.6, blind=False), other)
+    assert t.localizer.calls[-1] == (other, None) and math.isclose(r.pose.x, other.x) and not t.stale
+    # a held track beyond the fix's reach answers nothing
+    t.predict([1.0, 0.0, 0.0])
+    t.predict(nan)
+    far = draw_prior((60.0, 0.0, 0.0), 1e-3, 0.0, np.random.default_rng(0))
+    assert t.localize(SimpleNamespace(timestamp=0.7, blind=True), far).pose is None and t.pose is None
+    # hold_motion 0, the behaviour before: lost at the first unknown motion (the default holds two)
+    assert CrossViewConfig().hold_motion == 2
+    old = CrossViewTracker(_Blind(hold_motion=0))
+    old.localize(SimpleNamespace(timestamp=0.0, blind=False), fix)
+    old.predict([2.0, 0.0, 0.0])
+    old.predict(nan)
+    assert old.pose is None
+    with pytest.raises(ConfigError, match="hold_motion"):
+        CrossViewConfig(hold_motion=-1)
+    with pytest.raises(ConfigError, match="hold_motion"):
+        CrossViewConfig(hold_motion=1.5)

@@ -27,7 +27,8 @@ multiplies the posterior as a Gaussian belief (``track_sigma_m``, ``track_sigma_
 elsewhere can still win; with ``"gate"`` only ``track_radius_m`` / ``track_yaw_deg`` around it are searched.
 Where the moved answer lies outside the frame's own prior by more than the belief reaches (3
 ``track_sigma_m``; ``gate``: ``track_radius_m``: the GPS fix says the track is lost), after a frame with no
-answer or after an unknown motion, the prior alone is searched. A frame it cannot localize (too little ground
+answer or after an unknown motion, the prior alone is searched (with ``hold_motion``, the last motion measured
+moves the track meanwhile, a fallback for the frames that have no answer of their own). A frame it cannot localize (too little ground
 in view, no drivable position within its prior) coasts on the odometry (``coast``): its answer is the moved
 track, with no correlation (NaN). :func:`localize_frames` runs either over the frames of a sequence.
 """
@@ -107,6 +108,15 @@ class CrossViewConfig:
     # frame has no answer and the track is lost (the behaviour before; an occluded frame then counted as a gross
     # failure, and the next frame searched its prior alone)
     coast: bool = added_field(True, before=False)
+    # an unknown motion (the odometry failed: visual odometry with too few features, as with a bus filling the view)
+    # moves a tracked belief by the last motion measured, for at most this many steps in a row (a constant-velocity
+    # model), as a fallback only: the next frames search their prior alone and take the moved track only where they
+    # have no answer of their own (then they coast on it); after that the track is lost. 0: lost at the first
+    # unknown motion (the behaviour before). On the real calibration place (scenes/real/vienna_schoenbrunn,
+    # docs/tools/capture_calibration.py, 351 tracked localizations) 0, 1, 2 and 4 give the same answers (every frame
+    # there has one of its own); used as the track's belief instead, a held motion had cost 0.38 -> 0.41 m (1 step)
+    # and 0.50 m (2 steps), hence a fallback only. 2: a bus in view for two query steps (docs/results.md)
+    hold_motion: int = added_field(2, before=0)
     align: AlignConfig = field(default_factory=AlignConfig)   # the BEV: extent, channels, normalisation
 
     def __post_init__(self):
@@ -125,6 +135,8 @@ class CrossViewConfig:
             raise ConfigError("crossview: track_sigma_m and track_sigma_deg must be > 0")
         if not (self.fix_nu > 0 and math.isfinite(self.fix_nu)):
             raise ConfigError(f"crossview.fix_nu: expected degrees of freedom > 0, got {self.fix_nu!r}")
+        if isinstance(self.hold_motion, bool) or not isinstance(self.hold_motion, int) or self.hold_motion < 0:
+            raise ConfigError(f"crossview.hold_motion: expected a whole number of steps >= 0, got {self.hold_motion!r}")
         if not (self.lost_after_s >= 0 and math.isfinite(self.lost_after_s)):
             raise ConfigError(f"crossview.lost_after_s: expected seconds >= 0, got {self.lost_after_s!r}")
         if not 0 < self.track_radius_m <= MAX_RADIUS_M or not 0 <= self.track_yaw_deg <= 180:
@@ -374,23 +386,33 @@ class CrossViewTracker:
     def reset(self) -> None:
         self.pose: Pose2 | None = None   # the last answer moved by the odometry since (None: lost)
         self.disagree_since: float | None = None   # the time of the first fix of a run that disagrees with the track
+        self.last_motion: np.ndarray | None = None  # the last motion measured (held through unknown ones)
+        self.held = 0                               # unknown motions in a row replaced by it
+        self.stale = False   # the track moved by a held motion since its last answer of its own: a fallback only
 
     def predict(self, motion) -> None:
+        """Move the track by ``motion`` (dx, dy, dyaw in the previous frame). An unknown one (NaN) loses the track,
+        or with ``hold_motion`` moves it by the last motion measured (that many times in a row at most) and makes
+        it stale: the next frames search their prior alone and fall back on it only where they have no answer."""
         m = np.asarray(motion, np.float64).reshape(-1)
-        if self.pose is None:
+        if m.shape == (3,) and np.all(np.isfinite(m)):
+            self.last_motion, self.held = m, 0
+        elif self.pose is not None and self.last_motion is not None \
+                and self.held < self.localizer.config.hold_motion:
+            m, self.held, self.stale = self.last_motion, self.held + 1, True
+        else:
+            self.pose, self.stale = None, False
             return
-        if m.shape != (3,) or not np.all(np.isfinite(m)):
-            self.pose = None
-            return
-        self.pose = self.pose @ Pose2(*m)
+        if self.pose is not None:
+            self.pose = self.pose @ Pose2(*m)
 
     def localize(self, frame, prior: Prior) -> CrossViewResult:
         """The frame's pose: ``fuse``, across ``prior`` with the moved answer as a Gaussian belief; ``gate``,
         within ``track_radius_m`` of the moved answer; across ``prior`` alone where the moved answer lies
         farther outside ``prior`` than 3 ``track_sigma_m`` (``gate``: ``track_radius_m``), and has for longer than
-        ``lost_after_s`` (by the frames' timestamps; meanwhile the fix's disc is searched around the moved answer).
-        A frame with no answer of its own, the track not lost, coasts (``coast``): the moved answer, correlation
-        NaN, the track kept."""
+        ``lost_after_s`` (by the frames' timestamps; meanwhile the fix's disc is searched around the moved answer),
+        or where the track is stale (moved by a held motion, :meth:`predict`). A frame with no answer of its
+        own, the track not lost, coasts (``coast``): the moved answer, correlation NaN, the track kept."""
         cfg = self.localizer.config
         use, predicted = prior, None
         lost = self.pose is None
@@ -400,26 +422,29 @@ class CrossViewTracker:
         if self.pose is not None:
             far = math.hypot(self.pose.x - prior.x, self.pose.y - prior.y) > prior.radius_m + reach
             t = float(getattr(frame, "timestamp", 0.0) or 0.0)
-            if not far:
-                self.disagree_since = None
-            elif self.disagree_since is None:
-                self.disagree_since = t
-            if far and t - self.disagree_since >= cfg.lost_after_s:
-                self.disagree_since = None   # lost: the fix's disc alone
-                lost = True
-            elif cfg.track == "gate":
-                use = Prior(self.pose.x, self.pose.y, self.pose.yaw, min(cfg.track_radius_m, prior.radius_m),
-                            min(cfg.track_yaw_deg, prior.yaw_deg))
-            else:   # fuse: the fix's disc, or (a fix that disagrees, not yet for long) its extent around the track
-                if far:
-                    use = Prior(self.pose.x, self.pose.y, self.pose.yaw, prior.radius_m, prior.yaw_deg)
-                predicted = (self.pose, cfg.track_sigma_m, cfg.track_sigma_deg)
+            if self.stale:   # a fallback only: the prior alone is searched; beyond the fix's reach, not even that
+                lost = far
+            else:
+                if not far:
+                    self.disagree_since = None
+                elif self.disagree_since is None:
+                    self.disagree_since = t
+                if far and t - self.disagree_since >= cfg.lost_after_s:
+                    self.disagree_since = None   # lost: the fix's disc alone
+                    lost = True
+                elif cfg.track == "gate":
+                    use = Prior(self.pose.x, self.pose.y, self.pose.yaw, min(cfg.track_radius_m, prior.radius_m),
+                                min(cfg.track_yaw_deg, prior.yaw_deg))
+                else:   # fuse: the fix's disc, or (a fix that disagrees, not yet for long) its extent around the track
+                    if far:
+                        use = Prior(self.pose.x, self.pose.y, self.pose.yaw, prior.radius_m, prior.yaw_deg)
+                    predicted = (self.pose, cfg.track_sigma_m, cfg.track_sigma_deg)
         else:
             self.disagree_since = None
         res = self.localizer.localize(frame, use, predicted)
         if res.pose is None and not lost and cfg.coast:   # nothing to see: the track moved by the odometry
             return CrossViewResult(self.pose, float("nan"), self.pose.as_array()[None], np.ones(1), res.cells)
-        self.pose = res.pose
+        self.pose, self.stale = res.pose, False
         return res
 
 
