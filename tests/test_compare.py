@@ -397,6 +397,19 @@ def test_the_cross_area_table_says_what_the_map_is(tmp_path):
         (tmp_path / scene / "rec" / "recording.json").write_text(json.dumps({"config": {"scene": scene}}))
         assert map_kind(tmp_path / scene) == MAP_KINDS[kind], scene
     assert map_kind(tmp_path / "missing") == ""
+    # the camera's own parked cars on the image: still the same image, and the rows say the cars are there
+    import yaml
+
+    from satloc_env.world.scene import scene_path
+
+    spec = yaml.safe_load(scene_path("suburb_utm").read_text())
+    spec["generator"] = {**spec["generator"], "parked_per_km": 54.0,
+                         "image": str(scene_path("suburb_utm").parent / spec["generator"]["image"])}
+    (tmp_path / "parked.yaml").write_text(yaml.safe_dump(spec))
+    (tmp_path / "parked" / "rec").mkdir(parents=True)
+    (tmp_path / "parked" / "rec" / "recording.json").write_text(
+        json.dumps({"config": {"scene": str(tmp_path / "parked.yaml")}}))
+    assert map_kind(tmp_path / "parked") == MAP_KINDS["image_cars"] != MAP_KINDS["image"]
 
 
 def test_kitti_city_protocol_splits_one_dense_pass(tmp_path):

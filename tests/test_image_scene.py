@@ -456,3 +456,26 @@ def test_experiment_records_again_when_a_scene_file_changes(tmp_path, monkeypatc
     with pytest.raises(ConfigError, match="both named 'geo'"):
         compare.table1(tmp_path / "t", (str(p), str(write_scene(tmp_path, _base(tmp_path), {"main": {
             "trace": True}}, "other.yaml"))), progress=False)
+
+
+def test_an_image_scene_parks_cars_of_its_own_that_the_map_does_not_show(tmp_path):
+    """``parked_per_km``: 3-D cars along the kerbs in the camera's world; the map, the image captured, is the same."""
+    write_geotiff(tmp_path / "tile.tif", gradient_image(), utm_transform(), UTM)
+    cv2.imwrite(str(tmp_path / "roads.png"), draw_road((H_PX, W_PX), rounded_l(E0, N0), 14.0))
+    g = {"type": "image", "image": "tile.tif", "roads": "roads.png"}
+    routes = {"main": {"trace": True}}
+    knobs = {"satellite_gap": 0.5}
+    plain = load_scene(write_scene(tmp_path, g, routes, "plain.yaml", knobs=knobs))
+    parked = load_scene(write_scene(tmp_path, {**g, "parked_per_km": 100.0}, routes, "parked.yaml", knobs=knobs))
+    assert plain.layout.cars == [] and 5 <= len(parked.layout.cars) <= 60, len(parked.layout.cars)
+    assert all(parked.is_drivable(*c.center) for c in parked.layout.cars)
+    assert np.array_equal(parked.satmap.image, plain.satmap.image)        # not in the map
+    assert np.array_equal(parked.layout.ground_rgb, plain.layout.ground_rgb)
+    # the route's right lane stays clear of them (1.75 m right of the centre line; a car's half-width 0.9 m)
+    route = parked.routes["main"]
+    lane = route.sample(np.arange(0.0, route.length, 1.0), -1.75)[:, :2]
+    gap = min(float(np.min(np.hypot(*(lane - c.center).T))) for c in parked.layout.cars)
+    assert gap > 2.0, gap
+    bad = write_scene(tmp_path, {**g, "parked_per_km": -1.0}, routes, "bad.yaml", knobs=knobs)
+    with pytest.raises(ConfigError, match=r"generator\.parked_per_km"):
+        load_scene(bad)

@@ -22,6 +22,8 @@ def test_the_scene_file_and_its_roads(name):
     lat, lon, _ = SCENES[name]
     assert np.all(np.abs(pts[:, 1] - lat) < 0.003) and np.all(np.abs(pts[:, 0] - lon) < 0.004)
     assert all(f["properties"]["width"] > 0 for f in roads["features"])
+    # the camera's world parks cars of its own, which the map does not show, and shades the ground under them
+    assert spec.generator["parked_per_km"] == 54 and spec.ground_shadows is True
 
 
 @pytest.mark.parametrize("name", sorted(SCENES))
@@ -38,3 +40,4 @@ def test_the_scene_over_the_fetched_image(name):
     road = lab == CLASS_ID["road"]
     sat = img.max(axis=2) - img.min(axis=2)
     assert sat[road].mean() < sat[~road].mean()
+    assert sc.layout.cars and all(sc.is_drivable(*c.center) for c in sc.layout.cars)

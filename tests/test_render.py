@@ -143,6 +143,25 @@ def test_chunking_splits_ground_and_assigns_objects(layout):
     assert owners == [1 * 3 + 2]               # centre (45, 35): chunk column 2, row 1
 
 
+def test_a_patch_wider_than_a_narrow_chunk_s_atlas_widens_it():
+    """Chunks at the ground's edge are as narrow as what is left of it; an object's strip of texture there may be a
+    few texels wider than their atlas (its walls rounded up one by one: a car's on Vienna's orthophoto, 302
+    texels against 312 - 2 PAD). It widens the atlas; the ground keeps its texels, its UVs scaled to the width."""
+    from satloc_env.world.meshes import _MeshBuilder
+
+    mb = _MeshBuilder(np.array([0.0, 0.0, 1.0]), atlas_width=20 + 2 * PAD)
+    wide = np.full((6, 40, 3), 200, np.uint8)
+    p = mb.add_patch(wide, CLASS_ID["car"])
+    assert mb.atlas_width == 40 + 2 * PAD and mb.max_patch_width == 40
+    quad = np.array([[[0, 0, 0], [1, 0, 0], [1, 0, 1], [0, 0, 1]]], np.float64)
+    mb.add_quads(quad, np.array([[[0, 1], [1, 1], [1, 0], [0, 0]]], np.float64), p)
+    mesh = mb.build(None)
+    assert mesh.texture.shape[1] == 40 + 2 * PAD
+    assert (mesh.texture[mesh.labels == CLASS_ID["car"]] == 200).all()
+    with pytest.raises(ValueError, match="does not fit"):
+        mb.add_patch(np.zeros((2, 20000, 3), np.uint8), CLASS_ID["car"])
+
+
 # --- renderer ---------------------------------------------------------------------------------------------
 def test_import_creates_no_gl_context():
     code = ("import sys, satloc_env.render.stereo, satloc_env.world.meshes; "

@@ -9,7 +9,15 @@ import pytest
 from satloc.labels import CLASS_ID as C
 from satloc_env.world.capture import DEFAULT_GAP, PARTS, capture_tile, road_cover
 from satloc_env.world.layout import Car, Layout
-from satloc_env.world.traffic import LANE_FROM_CENTRE_M, lane_texels, traffic_cars
+from satloc_env.world.traffic import (
+    GAP_KERB_M,
+    LANE_FROM_CENTRE_M,
+    PARKED_FROM_KERB_M,
+    kerb_texels,
+    lane_texels,
+    parked_cars,
+    traffic_cars,
+)
 
 
 def street(length_m=400.0, width_m=12.0, mpp=0.1):
@@ -50,6 +58,29 @@ def test_lanes_of_a_straight_street_and_right_hand_traffic():
     again = traffic_cars(lay, 20.0, np.random.default_rng(4))
     assert [(c.center, c.yaw, c.rgb) for c in again] == [(c.center, c.yaw, c.rgb) for c in cars]
     assert traffic_cars(lay, 0.0, np.random.default_rng(4)) == []
+
+
+def test_cars_parked_along_the_kerbs_of_wide_streets_only():
+    lay = street()                         # 12 m wide: kerbs at y = 24 and 36
+    xy, _, length = kerb_texels(lay)
+    assert 2 * (400 - 2 * 10) < length <= 2 * 400, length
+    assert np.allclose(np.abs(xy[:, 1] - 30.0), 6.0 - PARKED_FROM_KERB_M, atol=0.35)
+    cars = parked_cars(lay, 54.0, np.random.default_rng(2))
+    # a Poisson count of mean 54 per km of kerb (about 40 cars), each on the road at its kerb, with its side's traffic
+    assert 25 <= len(cars) <= 55, len(cars)
+    for c in cars:
+        assert abs(abs(c.center[1] - 30.0) - (6.0 - PARKED_FROM_KERB_M)) < 0.35
+        assert (c.center[1] < 30.0) == (abs(c.yaw) < 1e-3)          # east on the south side: keep right
+    d = [math.dist(a.center, b.center) for i, a in enumerate(cars) for b in cars[i + 1:]]
+    assert min(d) >= GAP_KERB_M
+    assert [(c.center, c.rgb) for c in parked_cars(lay, 54.0, np.random.default_rng(2))] == \
+        [(c.center, c.rgb) for c in cars]
+    # clear of the cars already there, and none on a street too narrow to park beside a lane (8 m: half-width 4 m)
+    lay.cars = list(cars)
+    assert all(min(math.dist(n.center, c.center) for c in cars) >= GAP_KERB_M
+               for n in parked_cars(lay, 200.0, np.random.default_rng(3)))
+    assert parked_cars(street(width_m=8.0), 200.0, np.random.default_rng(2)) == []
+    assert parked_cars(lay, 0.0, np.random.default_rng(2)) == []
 
 
 def test_traffic_keeps_clear_of_parked_cars():

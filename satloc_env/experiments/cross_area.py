@@ -236,23 +236,27 @@ def _method_files(sdir: Path) -> list[tuple[str, str, Path]]:
 
 
 #: what a scene's satellite map is (``map`` column of cross_area.csv), by its generator's type
-MAP_KINDS = {"capture": "a capture of the world", "image": "same image, an upper bound"}
+MAP_KINDS = {"capture": "a capture of the world", "image": "same image, an upper bound",
+             "image_cars": "same image, the camera's own parked cars, an upper bound"}
 
 
 def map_kind(sdir: str | Path) -> str:
     """What the map of the scene recorded in ``sdir/rec`` is to its camera: :data:`MAP_KINDS` ``capture`` for a
     painted world (a grid or map vectors: the map is captured, never the ground the camera renders), ``image``
     for a scene over an image (the camera sees the image and the map is the same image captured: its
-    figures are an upper bound), "" where the recording's scene cannot be read."""
+    figures are an upper bound; ``image_cars`` where the camera's world parks cars of its own on the image,
+    ``generator.parked_per_km``), "" where the recording's scene cannot be read."""
     from satloc_env.world.scene import load_spec
 
     try:
         scene = json.loads((Path(sdir) / "rec" / "recording.json").read_text())["config"]["scene"]
         spec, _ = load_spec(scene)
-        kind = spec.generator_spec(str(scene)).type
+        g = spec.generator_spec(str(scene))
     except (OSError, ValueError, KeyError, TypeError, ConfigError):
         return ""
-    return MAP_KINDS["image" if kind == "image" else "capture"]
+    if g.type != "image":
+        return MAP_KINDS["capture"]
+    return MAP_KINDS["image_cars" if g.parked_per_km > 0 else "image"]
 
 
 def cross_area_rows(sdir: str | Path, label: str) -> list[dict]:

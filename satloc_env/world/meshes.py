@@ -570,10 +570,14 @@ class _MeshBuilder:
         self._keys: list[np.ndarray] = []   # per call that added triangles: (square column, row, band) per face
 
     def add_patch(self, rgb: np.ndarray, label: int) -> int:
-        """Register a texture patch (H, W, 3) whose texels all have class ``label``; returns its id."""
+        """Register a texture patch (H, W, 3) whose texels all have class ``label``; returns its id. A patch wider
+        than the atlas (an object on a narrow chunk at the ground's edge) widens it: the ground's region keeps its
+        top left corner, its last column repeated to the right."""
         h, w = rgb.shape[:2]
         if w > self.max_patch_width:
-            raise ValueError(f"patch of width {w} does not fit an atlas of width {self.atlas_width}")
+            if w + 2 * PAD > MAX_TEXTURE:
+                raise ValueError(f"patch of width {w} does not fit a {MAX_TEXTURE}-texel atlas")
+            self.atlas_width, self.max_patch_width = w + 2 * PAD, w
         self._patches.append((np.ascontiguousarray(rgb, dtype=np.uint8), np.full((h, w), label, np.uint8)))
         return len(self._patches) - 1
 

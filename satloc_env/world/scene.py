@@ -55,7 +55,10 @@ mask bilinear, then halved). The drivable area and the ground classes come from 
 road inside the mask and, outside it, the label image's class or else ``void`` (not drivable); with only
 ``labels``, the label image; with neither, road everywhere. A ``trace`` route follows the mask (or the
 label image's road and lane-marking classes): see :func:`satloc_env.world.roadtrace.trace_route`. Occluders and
-appearance changes work on image scenes as on generated ones.
+appearance changes work on image scenes as on generated ones. ``parked_per_km`` parks the camera's world's own 3-D
+cars along the kerbs of streets wide enough (:func:`satloc_env.world.traffic.parked_cars`), which the map does not
+show (with ``ground_shadows: true`` they shade the ground at the scene's sun): the camera's view is then no longer
+the map's pixels alone, though its ground is still the image the map is captured from.
 
 **Roads as vectors.** ``roads`` may instead be a vector file of road centre lines (GeoJSON, GeoPackage or
 Shapefile, as OpenStreetMap extracts and public benchmark labels come; read by :mod:`satloc.geodata.vectors` in the
@@ -168,9 +171,16 @@ class ImageGeneratorSpec:
     trees: str | None = None      #: trees: points or canopy polygons (vector file)
     building_height_m: tuple[float, float] = (5.0, 9.0)   #: height range of footprints whose attributes give none
     heights: str | None = None    #: a DSM / nDSM GeoTIFF (any CRS): building and tree heights where it covers them
+    #: the camera's world's own cars parked along the kerbs of streets wide enough to park beside a lane, per km of
+    #: kerb (satloc_env.world.traffic.parked_cars; the generated grids' city streets have 54): 3-D cars that the map,
+    #: the image captured, does not show. 0: none (the image's own cars, flat on its ground, are in both views)
+    parked_per_km: float = 0.0
 
     def __post_init__(self):
         self.radiometry   # bad bands or stretch: ConfigError naming the field
+        if not (isinstance(self.parked_per_km, (int, float)) and 0 <= self.parked_per_km <= 1000):
+            raise ConfigError(f"generator.parked_per_km: expected cars per km of kerb from 0 to 1000, got "
+                              f"{self.parked_per_km!r}")
         lo, hi = (float(v) for v in self.building_height_m)
         if not 1.0 <= lo <= hi <= 500.0:
             raise ConfigError(f"building_height_m: expected [low, high] metres with 1 <= low <= high <= 500, got "
@@ -1166,6 +1176,10 @@ def build_scene(spec: SceneSpec, base_dir: Path | None = None, aliasing: float |
             raise ConfigError(f"{where}: {e}") from e
     else:
         tile, tile_labels = capture_image(lay, spec.meters_per_pixel, spec.seed, satellite_gap, spec.parts)
+        if g.parked_per_km > 0:   # the camera's own parked cars: not in the map (the image's capture has none)
+            from .traffic import parked_cars
+
+            lay.cars += parked_cars(lay, float(g.parked_per_km), np.random.default_rng([spec.seed, 4246]))
     frame = ground.frame if ground is not None else None
     satmap = SatelliteMap(tile, spec.meters_per_pixel, (0.0, lay.height_m), tile_labels, frame,
                           radiometry=ground.radiometry if ground is not None else None)

@@ -30,7 +30,7 @@ from .layout import Car, Layout
 from .revisit import _labels_at
 from .variety import BODIES, car_body, car_colour
 
-__all__ = ["TRAFFIC_PER_KM", "lane_texels", "traffic_cars"]
+__all__ = ["PARKED_PER_KM", "TRAFFIC_PER_KM", "kerb_texels", "lane_texels", "parked_cars", "traffic_cars"]
 
 #: cars in traffic per kilometre of lane at the capture's instant (the default of the capture's ``traffic``
 #: part at full strength)
@@ -45,6 +45,17 @@ HALF_WIDTH_M = (1.5, 8.0)
 STEADY_M, STEADY_TOL_M = 4.0, 0.35
 #: clearance (metres, centre to centre) from a car in traffic to another one, and to a parked car
 GAP_TRAFFIC_M, GAP_PARKED_M = 8.0, 3.0
+#: parked cars per kilometre of kerb that the generated grids give a city street (satloc_env.world.generator:
+#: a car with probability 0.35 every 5.5-7.5 m of each kerb, 54 a kilometre), the default of
+#: :func:`parked_cars`' callers
+PARKED_PER_KM = 54.0
+#: a parked car's centre lies this far from the kerb (its half-width and a hand's breadth)
+PARKED_FROM_KERB_M = 1.1
+#: streets narrower than this half-width (metres) have no parking: a car in the lane beside a parked one
+#: (its centre 1.75 m from the centre line) needs the street's half-width to hold both
+PARKING_HALF_WIDTH_M = 5.0
+#: clearance (metres, centre to centre) between parked cars: a car's length and a gap
+GAP_KERB_M = 6.0
 
 
 def _road(lay: Layout) -> tuple[np.ndarray, float]:
@@ -58,6 +69,21 @@ def _road(lay: Layout) -> tuple[np.ndarray, float]:
 def lane_texels(lay: Layout) -> tuple[np.ndarray, np.ndarray, float]:
     """The lanes of ``lay``'s roads: (world points (n, 2), unit headings (n, 2) of right-hand traffic, the lanes'
     length in metres). See the module docstring."""
+    return _band_texels(lay, None, HALF_WIDTH_M)
+
+
+def kerb_texels(lay: Layout, from_kerb_m: float = PARKED_FROM_KERB_M,
+                min_half_width_m: float = PARKING_HALF_WIDTH_M) -> tuple[np.ndarray, np.ndarray, float]:
+    """The parking strips of ``lay``'s roads: texels ``from_kerb_m`` from the kerb on streets whose half-width is at
+    least ``min_half_width_m`` (and at most a street's, :data:`HALF_WIDTH_M`), away from junctions, as
+    :func:`lane_texels` finds lanes: (world points, unit headings of right-hand traffic, the strips' length)."""
+    return _band_texels(lay, float(from_kerb_m), (float(min_half_width_m), HALF_WIDTH_M[1]))
+
+
+def _band_texels(lay: Layout, from_kerb_m: float | None, half_width_m: tuple[float, float]
+                 ) -> tuple[np.ndarray, np.ndarray, float]:
+    """Texels of a band along the kerbs: ``from_kerb_m`` from it, or (None) the lane's distance of the module
+    docstring; on streets of half-width within ``half_width_m``."""
     road, res = _road(lay)
     if not road.any():
         return np.zeros((0, 2)), np.zeros((0, 2)), 0.0
@@ -85,9 +111,9 @@ def lane_texels(lay: Layout) -> tuple[np.ndarray, np.ndarray, float]:
         alive = up
         if not alive.any():
             break
-    target = np.maximum(half / 2, half - LANE_FROM_CENTRE_M)
+    target = np.maximum(half / 2, half - LANE_FROM_CENTRE_M) if from_kerb_m is None else from_kerb_m
     off = d[rows, cols] - target        # a band of two texels' width: exactly two rows of texels across a lane
-    sel = ((off >= -res) & (off < res) & (half >= HALF_WIDTH_M[0]) & (half <= HALF_WIDTH_M[1])
+    sel = ((off >= -res) & (off < res) & (half >= half_width_m[0]) & (half <= half_width_m[1])
            & ~alive)
     rows, cols, ur, uc = rows[sel], cols[sel], ur[sel], uc[sel]
     # a lane keeps its distance to the kerb along the road: not so in a junction or round a corner
@@ -119,18 +145,37 @@ def traffic_cars(lay: Layout, per_km: float, rng: np.random.Generator) -> list[C
     if per_km <= 0:
         return []
     xy, heading, length_m = lane_texels(lay)
+    return _draw_cars(lay, xy, heading, per_km * length_m / 1000.0, rng, GAP_PARKED_M, GAP_TRAFFIC_M)
+
+
+def parked_cars(lay: Layout, per_km: float, rng: np.random.Generator) -> list[Car]:
+    """Cars parked along the kerbs of ``lay``'s streets that are wide enough (:func:`kerb_texels`), ``per_km`` per
+    kilometre of kerb on average (a Poisson count; fewer where the kerbs are full), heading with the traffic of
+    their side, :data:`GAP_KERB_M` apart and clear of ``lay``'s cars; each kept only where its footprint is on the
+    road. Bodies and colours as streets have them."""
+    if per_km <= 0:
+        return []
+    xy, heading, length_m = kerb_texels(lay)
+    return _draw_cars(lay, xy, heading, per_km * length_m / 1000.0, rng, GAP_KERB_M, GAP_KERB_M)
+
+
+def _draw_cars(lay: Layout, xy: np.ndarray, heading: np.ndarray, mean: float, rng: np.random.Generator,
+               gap_others: float, gap_own: float) -> list[Car]:
+    """A Poisson count of mean ``mean`` cars at random texels of ``xy`` heading along ``heading``, each at least
+    ``gap_others`` (centre to centre) from ``lay``'s cars and ``gap_own`` from the others drawn, with its footprint
+    on the road."""
     if xy.shape[0] == 0:
         return []
-    n = int(rng.poisson(per_km * length_m / 1000.0))
+    n = int(rng.poisson(mean))
     cars: list[Car] = []
-    parked = np.asarray([c.center for c in lay.cars], np.float64).reshape(-1, 2)
+    others = np.asarray([c.center for c in lay.cars], np.float64).reshape(-1, 2)
     for i in rng.permutation(xy.shape[0]):
         if len(cars) >= n:
             break
         p = xy[i]
-        if parked.size and np.min(np.hypot(*(parked - p).T)) < GAP_PARKED_M:
+        if others.size and np.min(np.hypot(*(others - p).T)) < gap_others:
             continue
-        if cars and min(math.dist(p, c.center) for c in cars) < GAP_TRAFFIC_M:
+        if cars and min(math.dist(p, c.center) for c in cars) < gap_own:
             continue
         body = car_body(rng)
         spec = BODIES[body]
