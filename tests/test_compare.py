@@ -12,6 +12,8 @@ from satloc_env.experiments.scene_run import ExperimentConfig, covered_queries
 from satloc_env.experiments.tables import CompareConfig, Table2Config, _write_table2, operating_point, trained_fabmap
 
 ROOT = Path(__file__).resolve().parent.parent
+# each test builds its scenes' worlds (1-2 GB each at variety 1); dropped after each test, not after the file
+pytestmark = pytest.mark.usefixtures("free_worlds_after_each_test")
 TINY_BASELINES = {"fabmap": {"vocabulary_size": 40, "max_features": 150, "new_place_samples": 5},
                   "efm": {"features": 200}, "fabmap_train_frames": 6}
 
