@@ -28,9 +28,10 @@ elsewhere can still win; with ``"gate"`` only ``track_radius_m`` / ``track_yaw_d
 Where the moved answer lies outside the frame's own prior by more than the belief reaches (3
 ``track_sigma_m``; ``gate``: ``track_radius_m``: the GPS fix says the track is lost), after a frame with no
 answer or after an unknown motion, the prior alone is searched (with ``hold_motion``, the last motion measured
-moves the track meanwhile, a fallback for the frames that have no answer of their own). A frame it cannot localize (too little ground
-in view, no drivable position within its prior) coasts on the odometry (``coast``): its answer is the moved
-track, with no correlation (NaN). :func:`localize_frames` runs either over the frames of a sequence.
+moves the track meanwhile, a fallback for the frames that have no answer of their own). A frame it cannot
+localize (too little ground in view, no drivable position within its prior) coasts on the odometry (``coast``):
+its answer is the moved track, with no correlation (NaN). :func:`localize_frames` runs either over the frames of a
+sequence.
 """
 from __future__ import annotations
 
@@ -51,8 +52,8 @@ from ..tracking.align import AlignConfig, BevAligner, _parabola_peak
 from .gnss import draw_prior
 from .interface import MAX_RADIUS_M, Prior
 
-__all__ = ["Prior", "CrossViewConfig", "CrossViewResult", "CrossViewLocalizer", "CrossViewTracker", "prior_on_map", "draw_prior",
-           "drivable_from_features", "drivable_from_labels", "drivable_from_roads", "localize_frames", "parse_prior",
+__all__ = ["Prior", "CrossViewConfig", "CrossViewResult", "CrossViewLocalizer", "CrossViewTracker", "prior_on_map",
+           "draw_prior", "drivable_from_features", "drivable_from_labels", "drivable_from_roads", "localize_frames", "parse_prior",
            "NoDatabaseLocalizer"]
 
 #: the shipped learned channels (``CrossViewConfig(projections="shipped")``; ``crossview_report.json`` beside it
@@ -421,10 +422,10 @@ class CrossViewTracker:
         reach = 3.0 * cfg.track_sigma_m if cfg.track == "fuse" else cfg.track_radius_m
         if self.pose is not None:
             far = math.hypot(self.pose.x - prior.x, self.pose.y - prior.y) > prior.radius_m + reach
-            t = float(getattr(frame, "timestamp", 0.0) or 0.0)
             if self.stale:   # a fallback only: the prior alone is searched; beyond the fix's reach, not even that
                 lost = far
             else:
+                t = float(getattr(frame, "timestamp", 0.0) or 0.0)
                 if not far:
                     self.disagree_since = None
                 elif self.disagree_since is None:

@@ -30,7 +30,7 @@ from .layout import Car, Layout
 from .revisit import _labels_at
 from .variety import BODIES, car_body, car_colour
 
-__all__ = ["PARKED_PER_KM", "TRAFFIC_PER_KM", "kerb_texels", "lane_texels", "parked_cars", "traffic_cars"]
+__all__ = ["TRAFFIC_PER_KM", "kerb_texels", "lane_texels", "parked_cars", "traffic_cars"]
 
 #: cars in traffic per kilometre of lane at the capture's instant (the default of the capture's ``traffic``
 #: part at full strength)
@@ -45,10 +45,6 @@ HALF_WIDTH_M = (1.5, 8.0)
 STEADY_M, STEADY_TOL_M = 4.0, 0.35
 #: clearance (metres, centre to centre) from a car in traffic to another one, and to a parked car
 GAP_TRAFFIC_M, GAP_PARKED_M = 8.0, 3.0
-#: parked cars per kilometre of kerb that the generated grids give a city street (satloc_env.world.generator:
-#: a car with probability 0.35 every 5.5-7.5 m of each kerb, 54 a kilometre), the default of
-#: :func:`parked_cars`' callers
-PARKED_PER_KM = 54.0
 #: a parked car's centre lies this far from the kerb (its half-width and a hand's breadth)
 PARKED_FROM_KERB_M = 1.1
 #: streets narrower than this half-width (metres) have no parking: a car in the lane beside a parked one
