@@ -29,7 +29,7 @@ from .errors import ConfigError, FormatError
 from .evaluation.metrics import error_stats, worst_case_errors
 from .features.context import ContextConfig
 from .features.dictionary import Dictionary, GridConfig, SatelliteFeatures, build_dictionary
-from .features.pixelwise import FEATURE_SETS, make_extractor
+from .features.pixelwise import FEATURE_SETS, features_identity, make_extractor
 from .features.projection import ProjectionConfig, Projections, plot_loss, train_projections
 from .localizers.crossview import (
     CrossViewConfig,
@@ -96,7 +96,8 @@ def build(database: str | Path | Sequence, satmap: str | Path | SatelliteMap, ou
                    database=_source_name(database, getattr(db, "_dir", None)), database_name=db.name,
                    map=_source_name(satmap, None), device=str(device),
                    entries=len(d), database_frames=len(db), database_m=round(db.path_length(), 1),
-                   satellite_features_s=round(t1 - t0, 2), dictionary_s=round(t2 - t1, 2))
+                   satellite_features_s=round(t1 - t0, 2), dictionary_s=round(t2 - t1, 2),
+                   features_id=features_identity(config.features))
     write_json(out / "build.json", summary)
     return summary
 
@@ -160,6 +161,11 @@ def load_localizer(build_dir: str | Path, config: LocalizerConfig = LocalizerCon
     recomputed. Query features are computed on ``config.device``."""
     b = Path(build_dir)
     meta, bc = _load_build(b)
+    made, now = meta.get("features_id"), features_identity(bc.features)
+    if made is not None and made != now:   # builds before the field: not known
+        raise ConfigError(f"{b / 'build.json'}: built with features {made!r}, but the features are now {now!r} (other "
+                          f"FCN weights): its dictionary and the queries' features would not match; build it again "
+                          f"(satloc build)")
     proj = None
     if config.mode == "full":
         if not (b / "projections.pt").is_file():

@@ -346,3 +346,18 @@ def test_vector_env_with_a_localizer_equals_single_envs(loc):
     finally:
         ref.close()
         vec.close()
+
+
+def test_auto_cache_key_holds_the_fcn_weights(monkeypatch, tmp_path):
+    """Retrained FCN weights make another entry: its features would not match an entry made with others."""
+    from satloc.features import pixelwise
+
+    w = tmp_path / "fcn.pt"
+    w.write_bytes(b"weights one")
+    monkeypatch.setattr(pixelwise, "DEFAULT_WEIGHTS", w)
+    fcn = dict(SMALL, build_config=BuildConfig())   # the default features: the FCN's
+    one = autoloc.build_path("city", None, "half", cache_dir=tmp_path, **fcn)
+    assert autoloc.cache_key("city", None, "half", **fcn)["features_id"].startswith("default:fcn-")
+    assert autoloc.cache_key("city", None, "half", **SMALL)["features_id"] == "rgb"
+    w.write_bytes(b"weights two")
+    assert autoloc.build_path("city", None, "half", cache_dir=tmp_path, **fcn) != one

@@ -189,3 +189,30 @@ def test_demo_and_table1_on_a_tiny_section(tmp_path, capsys):
     # (the revisit has another day's shadows, road wear and season: satloc_env.world.revisit)
     assert al["cues"]["bev"]["far_wins"] <= 1 < al["measured"]
     assert (tmp_path / "t1" / "city" / "aliasing.png").stat().st_size > 5000
+
+
+def test_a_build_knows_its_features_and_refuses_other_fcn_weights(recording, tmp_path, monkeypatch):
+    from satloc.errors import ConfigError
+    from satloc.features import pixelwise
+
+    b = tmp_path / "build"
+    build(recording / "database", recording / "map", b, BuildConfig(features="rgb"), progress=False)
+    meta = json.loads((b / "build.json").read_text())
+    assert meta["features_id"] == "rgb"
+    load_localizer(b, LocalizerConfig(mode="np"))
+    # the same build as if made with the FCN's features under other weights: refused, naming the file
+    meta["features_id"] = "default:fcn-0000000000000000"
+    meta["config"]["features"] = "default"
+    (b / "build.json").write_text(json.dumps(meta))
+    with pytest.raises(ConfigError, match="build.json.*other FCN weights"):
+        load_localizer(b, LocalizerConfig(mode="np"))
+    # the identity follows the weights file's content, not its name
+    w = tmp_path / "fcn.pt"
+    w.write_bytes(b"one")
+    monkeypatch.setattr(pixelwise, "DEFAULT_WEIGHTS", w)
+    one = pixelwise.features_identity("default")
+    w.write_bytes(b"two!")
+    assert pixelwise.features_identity("default") != one and one.startswith("default:fcn-")
+    assert pixelwise.features_identity("semantic").startswith("semantic:fcn-")
+    with pytest.raises(ConfigError, match="features"):
+        pixelwise.features_identity("sift")

@@ -11,6 +11,7 @@ and :mod:`satloc.features.fcn` does not import this module.
 """
 from __future__ import annotations
 
+from pathlib import Path
 from typing import Sequence
 
 import cv2
@@ -73,6 +74,33 @@ class FeatureStack:
 
 
 FEATURE_SETS = ("rgb", "semantic", "default")
+#: the shipped FCN weights the sets with the FCN load (``satloc.features.fcn.DEFAULT_WEIGHTS``, named here without
+#: importing torch)
+DEFAULT_WEIGHTS = Path(__file__).resolve().parent.parent / "weights" / "fcn.pt"
+_IDENTITY: dict[tuple, str] = {}
+
+
+def features_identity(name: str = "default") -> str:
+    """What a named feature set computes, for cache keys and stage stamps: the name, and for the sets with the
+    FCN (``semantic``, ``default``) the SHA-256 (first 16 hex digits) of the shipped weights file it loads, so
+    that retrained weights never meet features (map features, dictionaries, localizations) cached with others.
+    Reads the file once per process for each size and modification time; no torch."""
+    if name not in FEATURE_SETS:
+        raise ConfigError(f"features: expected one of {list(FEATURE_SETS)}, got {name!r}")
+    if name == "rgb":
+        return name
+    import hashlib
+    import os
+
+    try:
+        st = os.stat(DEFAULT_WEIGHTS)
+    except OSError:
+        return f"{name}:missing"   # the extractor itself says what is wrong when it loads
+    key = (str(DEFAULT_WEIGHTS), st.st_size, st.st_mtime_ns)
+    if key not in _IDENTITY:
+        with open(DEFAULT_WEIGHTS, "rb") as f:
+            _IDENTITY[key] = hashlib.sha256(f.read()).hexdigest()[:16]
+    return f"{name}:fcn-{_IDENTITY[key]}"
 
 
 class LazyExtractor:

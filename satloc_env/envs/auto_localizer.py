@@ -46,6 +46,7 @@ from typing import Any, Iterator
 from satloc import __version__ as SATLOC_VERSION
 from satloc.config import to_dict
 from satloc.errors import ConfigError
+from satloc.features.pixelwise import features_identity
 from satloc.persist import FORMAT_VERSION, atomic_dir, header, read_json, write_json
 from satloc_env.world.cache import CACHE_ENV, cache_root  # noqa: F401  (their home before)
 from satloc_env.world.scene import (
@@ -95,7 +96,8 @@ def cache_key(scene: str | os.PathLike, aliasing: float | None = None, resolutio
             "aliasing": float(own_aliasing if aliasing is None else aliasing), "resolution": resolution,
             "format_version": FORMAT_VERSION, "satloc_version": SATLOC_VERSION, "key_version": _KEY_VERSION,
             "speed_mps": speed, "database_pass": to_dict(db, stamp=True), "build": to_dict(bc, runtime=False),
-            "projection": to_dict(pc, runtime=False)}   # not the device: how an entry is made, not what it holds
+            "projection": to_dict(pc, runtime=False),   # not the device: how an entry is made, not what it holds
+            "features_id": features_identity(bc.features)}   # the FCN weights' content: retrained ones rebuild
     if satellite_gap is not None and (isinstance(satellite_gap, bool) or not isinstance(satellite_gap, (int, float))
                                       or not 0.0 <= satellite_gap <= 1.0):
         raise ConfigError(f"satellite_gap: expected a number in [0, 1] or None (the scene's), got {satellite_gap!r}")
@@ -279,9 +281,12 @@ def describe_entry(entry: str | os.PathLike) -> dict[str, Any]:
 
     path = Path(entry) / "autoloc.json"
     key = read_json(path, "autoloc_cache").get("key")
-    if not isinstance(key, dict) or set(key) - {"satellite_gap"} != set(_KEY_FIELDS):
+    # optional: satellite_gap (maps captured with a gap), features_id (entries made since the key held the FCN's)
+    if not isinstance(key, dict) or set(key) - {"satellite_gap", "features_id"} != set(_KEY_FIELDS):
         got = sorted(key) if isinstance(key, dict) else type(key).__name__
         raise FormatError(f"{path}: field 'key': expected a mapping of {sorted(_KEY_FIELDS)}, got {got}")
+    if not isinstance(key.get("features_id", ""), str):
+        raise FormatError(f"{path}: key.features_id: expected str, got {str(key['features_id'])[:60]!r}")
     for k, tp in _KEY_FIELDS.items():
         v = key[k]
         ok = isinstance(v, (int, float) if tp is float else tp) and not isinstance(v, bool)

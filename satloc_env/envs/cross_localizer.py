@@ -25,7 +25,7 @@ import numpy as np
 from satloc import __version__ as SATLOC_VERSION
 from satloc.errors import FormatError
 from satloc.features.dictionary import SatelliteFeatures
-from satloc.features.pixelwise import LazyExtractor
+from satloc.features.pixelwise import LazyExtractor, features_identity
 from satloc.geometry import StereoCamera
 from satloc.localizers.crossview import CrossViewConfig, CrossViewLocalizer
 
@@ -41,13 +41,14 @@ log = logging.getLogger(__name__)
 
 def map_features(satmap, progress: bool = False) -> SatelliteFeatures:
     """The default extractor's features of ``satmap``, from the disk cache when computed before (keyed by the
-    map's pixels, resolution and origin, and the satloc version), else computed and stored there."""
+    map's pixels, resolution and origin, the satloc version and the FCN weights' content), else computed and
+    stored there."""
     from .auto_localizer import cache_root
 
     ext = LazyExtractor("default")   # its network (and torch) loaded only when the map's features are computed
     h = hashlib.sha256(np.ascontiguousarray(satmap.image).tobytes())
     h.update(json.dumps([float(satmap.meters_per_pixel), [float(v) for v in satmap.origin], ext.name,
-                         SATLOC_VERSION]).encode())
+                         SATLOC_VERSION, features_identity(ext.name)]).encode())
     path = cache_root() / "cross" / f"satellite_features-{h.hexdigest()[:24]}.npz"
     if path.is_file():
         try:

@@ -32,6 +32,7 @@ from satloc.errors import ConfigError, FormatError
 from satloc.evaluation.metrics import pose_errors, recall_within
 from satloc.features import make_extractor
 from satloc.features.dictionary import SatelliteFeatures
+from satloc.features.pixelwise import FEATURE_SETS, features_identity
 from satloc.localizers.crossview import SHIPPED_PROJECTIONS, CrossViewLocalizer
 from satloc.persist import atomic_path, header, load_npz, read_json, write_json
 from satloc.satmap import SatelliteMap
@@ -66,10 +67,15 @@ def _digest(*arrays) -> str:
 
 
 def satellite_features(sdir: Path, satmap: SatelliteMap, extractor) -> SatelliteFeatures:
-    """The map's features: the build's (``sdir/build/satellite_features.npz``, the same map and extractor; a
-    map's features hold nothing of the database) when there, else computed."""
+    """The map's features: the build's (``sdir/build/satellite_features.npz``, the same map, extractor and FCN
+    weights; a map's features hold nothing of the database) when there, else computed."""
     p = sdir / "build" / "satellite_features.npz"
-    if p.is_file():
+    try:   # a build made with other FCN weights (build.json says which; builds before the field: not known)
+        made = read_json(sdir / "build" / "build.json", "build").get("features_id")
+    except (FormatError, OSError):
+        made = None
+    now = features_identity(extractor.name) if extractor.name in FEATURE_SETS else made
+    if p.is_file() and made in (None, now):
         try:
             sf = SatelliteFeatures.load(p)
             if (sf.name == extractor.name and sf.features.shape[:2] == satmap.image.shape[:2]
@@ -109,6 +115,7 @@ def run_cross(q: Sequence, sel: np.ndarray, ca: CrossAreaConfig, odometry: np.nd
     for row in CROSS_NAMES:
         tracked = row.endswith("+track")
         stamp = {"cross_area": to_dict(ca), "projections": proj_id, "satloc": SATLOC_VERSION, "method": CROSS_VERSION,
+                 "features_id": features_identity("default"),
                  "queries": sequence_identity(q), "frames": _digest(sel, truth),
                  "odometry": _digest(odometry) if tracked else None, "odometry_kind": odometry_kind if tracked else None}
         npz = out / f"localization_{row}.npz"

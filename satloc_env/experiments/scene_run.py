@@ -36,6 +36,7 @@ from satloc.baselines import EfmConfig, FabMapConfig
 from satloc.config import added_field, from_dict, to_dict
 from satloc.errors import ConfigError, FormatError
 from satloc.features.context import ContextConfig
+from satloc.features.pixelwise import features_identity
 from satloc.features.projection import ProjectionConfig
 from satloc.geometry import Pose2, wrap_angle
 from satloc.localizers.crossview import CrossViewConfig, Prior
@@ -410,6 +411,7 @@ def build_and_learn(cfg, label: str, database: Sequence, satmap: str | Path, out
     times: dict[str, float] = {}
     t = time.perf_counter()
     bstamp = dict(to_dict(bc, runtime=False), **source)   # runtime settings (the device) do not redo a stage
+    bstamp["features_id"] = features_identity(bc.features)   # retrained FCN weights redo the build
     if not _stage_done(out / "build_stage.json", bstamp):
         log(f"[{label}] building the dictionary ({len(database)} database frames)")
         (out / "projection_stage.json").unlink(missing_ok=True)   # projections of an earlier build are stale
