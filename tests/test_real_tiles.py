@@ -10,7 +10,8 @@ from satloc.labels import CLASS_ID
 from satloc_env.world.scene import load_spec
 
 REAL = Path(__file__).resolve().parents[1] / "scenes" / "real"
-SCENES = {"zurich_altstetten": (47.3767, 8.4884, 0.79), "vienna_schoenbrunn": (48.1850, 16.3120, 0.68)}
+SCENES = {"zurich_altstetten": (47.3767, 8.4884, 0.79), "vienna_schoenbrunn": (48.1850, 16.3120, 0.68),
+          "banepa": (27.6311, 85.5210, 0.73)}
 
 
 @pytest.mark.parametrize("name", sorted(SCENES))

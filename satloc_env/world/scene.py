@@ -24,7 +24,8 @@ A scene file (see ``scenes/*.yaml``)::
     capture_parts: [time, lean, texture, blur, registration, jpeg, deep_shadows]   # the map's capture (default:
                                    # world.capture.PARTS; optional parts: world.capture.OPTIONAL_PARTS)
     objects: {buildings: [...], trees: [...], cars: [...]}   # extra hand-placed objects
-    lighting: {sun_azimuth_deg: 135, sun_elevation_deg: 50}
+    lighting: {sun_azimuth_deg: 135, sun_elevation_deg: 50}   # where the light comes from: degrees counter-clockwise
+                                   # from east (90: from the north, 225: from the south-west), above the horizon
     terrain: {relief_m: 1.5, wavelength_m: 250, camber: 0.01}   # gentle hills, cambered roads (default: a plane)
     knobs: {aliasing: 0.0, occlusion: 0.0, appearance: 0.0, satellite_gap: 0.5}
 
