@@ -286,3 +286,19 @@ def test_tiny_training_run_decreases_loss():
     _, lab = batches(np.random.default_rng(2))
     losses = train_view(net, batches, class_weights(lab), 60, cfg, rng, "tiny", progress=False)
     assert np.mean(losses[-10:]) < 0.6 * np.mean(losses[:5])
+
+
+def test_lane_offset_range_is_a_field_and_bounds_the_draw():
+    from satloc.config import from_dict, to_dict
+    from satloc.errors import ConfigError
+    from satloc_env.experiments.train_features import _episode_options, train_features
+
+    # the shipped weights' configuration (no field) reads as the range they were trained with
+    assert from_dict(TrainConfig, {k: v for k, v in to_dict(TrainConfig()).items() if k != "lane_offset_m"},
+                     "cfg").lane_offset_m == 3.5
+    offsets = [_episode_options(s, 1.0, 2.5)["lane_offset_m"] for s in range(200)]
+    assert max(abs(o) for o in offsets) <= 2.5 and max(abs(o) for o in offsets) > 2.0
+    assert [_episode_options(s, 1.0)["lane_offset_m"] for s in range(5)] == \
+        [_episode_options(s, 1.0, 3.5)["lane_offset_m"] for s in range(5)]
+    with pytest.raises(ConfigError, match="lane_offset_m"):
+        train_features("unused", ["fcn_train/town_a"], [], {"lane_offset_m": -1.0}, progress=False)

@@ -107,6 +107,9 @@ class TrainConfig:
     # occlusion cap of held-out scene episodes: on the 6 km loop route, occlusion above ~0.45 makes the
     # simulator's occluder texture exceed OpenGL's size limit (GLError at reset)
     heldout_max_occlusion: float = 0.4
+    # ground episodes' lane offsets are drawn in [-lane_offset_m, lane_offset_m] (m); the varied grids' kerbs leave
+    # less room at corners than the plain ones (fcn_train's town_b keeps the road to +-2.5 m at variety 1)
+    lane_offset_m: float = added_field(3.5)
 
 
 # --- data -----------------------------------------------------------------------------------------------
@@ -134,23 +137,23 @@ def label_boundaries(labels: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     return edge, ~invalid
 
 
-def _episode_options(seed: int, max_occlusion: float) -> dict:
+def _episode_options(seed: int, max_occlusion: float, lane_offset_m: float = 3.5) -> dict:
     r = np.random.default_rng(seed)
     # no drift: the lane offset is drawn over the whole road already (and drift on top would leave it)
     return {"occlusion": float(r.uniform(0, max_occlusion)), "appearance": float(r.uniform(0, 1)),
-            "lane_offset_m": float(r.uniform(-3.5, 3.5)), "wander_m": 0.0, "speed_wander": 0.0}
+            "lane_offset_m": float(r.uniform(-lane_offset_m, lane_offset_m)), "wander_m": 0.0, "speed_wander": 0.0}
 
 
 def render_ground(scene: str, aliasing: float | None, seeds: Sequence[int], frames_per_episode: int,
-                  frame_every: int, dt: float = 0.1, max_occlusion: float = 1.0, progress: tqdm | None = None
-                  ) -> tuple[list[np.ndarray], list[np.ndarray]]:
+                  frame_every: int, dt: float = 0.1, max_occlusion: float = 1.0, progress: tqdm | None = None,
+                  lane_offset_m: float = 3.5) -> tuple[list[np.ndarray], list[np.ndarray]]:
     """Left frames and their labels from one episode per seed, driven by the autopilot; each episode draws
-    its occlusion in [0, max_occlusion], appearance in [0, 1] and lane offset in [-3.5, 3.5] m."""
+    its occlusion in [0, max_occlusion], appearance in [0, 1] and lane offset in [-lane_offset_m, lane_offset_m]."""
     env = gym.make(ENV_ID, scene=scene, labels=True, random_start=True, aliasing=aliasing, dt=dt, localizer=None)
     images, labels = [], []
     try:
         for s in seeds:
-            obs, _ = env.reset(seed=int(s), options=_episode_options(int(s), max_occlusion))
+            obs, _ = env.reset(seed=int(s), options=_episode_options(int(s), max_occlusion, lane_offset_m))
             for i in range(frames_per_episode * frame_every):
                 if i % frame_every == 0:
                     images.append(obs["left"])
@@ -353,7 +356,7 @@ def _training_frames(scenes: Sequence[str], seeds: Mapping[str, np.ndarray], cfg
         for s in scenes:
             for j, a in enumerate(cfg.aliasing):
                 im, lab = render_ground(s, a, seeds[s][j * n:(j + 1) * n], cfg.frames_per_episode, cfg.frame_every,
-                                        cfg.dt, progress=bar)
+                                        cfg.dt, progress=bar, lane_offset_m=cfg.lane_offset_m)
                 images += im
                 labels += lab
     return GroundData(_scaled(images, cfg.ground_scale), _scaled(labels, cfg.ground_scale, labels=True))
@@ -368,7 +371,8 @@ def _heldout_metrics(predictor: FCNPredictor, scenes: Sequence[str], heldout: Se
     for s in [*heldout, *scenes]:
         kind = "scene" if s in heldout else "episodes"
         im, lab = render_ground(s, None if s in heldout else 0.0, eval_seeds[s], max(1, cfg.frames_per_episode // 2),
-                                cfg.frame_every * 2, cfg.dt, cfg.heldout_max_occlusion if s in heldout else 1.0)
+                                cfg.frame_every * 2, cfg.dt, cfg.heldout_max_occlusion if s in heldout else 1.0,
+                                lane_offset_m=cfg.lane_offset_m)
         metrics["ground"][f"{kind}:{s}"] = evaluate(predictor, "ground", zip(im, lab))
     for s in heldout:
         sm = load_scene(s, satellite_gap=cfg.satellite_gap).satmap
@@ -420,6 +424,8 @@ def train_features(out_dir: str | Path, scenes: Sequence[str] | None = None,
                           f"held out")
     if not 0.0 < cfg.sat_holdout < 0.5:
         raise ConfigError(f"sat_holdout: expected a value in (0, 0.5), got {cfg.sat_holdout}")
+    if not 0.0 <= cfg.lane_offset_m <= 10.0:
+        raise ConfigError(f"lane_offset_m: expected metres in [0, 10], got {cfg.lane_offset_m}")
     if not 0.0 < cfg.ground_scale <= 1.0:
         raise ConfigError(f"ground_scale: expected a value in (0, 1], got {cfg.ground_scale}")
     device = resolve_device(cfg.device)
@@ -517,6 +523,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--sat-iters", type=int, default=TrainConfig.sat_iters)
     p.add_argument("--ground-episodes", type=int, default=TrainConfig.ground_episodes,
                    help="training episodes per scene and aliasing level")
+    p.add_argument("--lane-offset-m", type=float, default=TrainConfig.lane_offset_m,
+                   help="ground episodes' lane offsets drawn in [-this, this] m (default %(default)s)")
     p.add_argument("--threads", type=int, default=None,
                    help="torch threads (default: torch's; 1 is faster when other processes load the cores)")
     p.add_argument("--device", default=TrainConfig.device, help=DEVICE_HELP)
@@ -526,7 +534,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     """Train with parsed options; print a one-line JSON summary (held-out metrics, times)."""
     cfg = TrainConfig(seed=args.seed, ground_iters=args.ground_iters, sat_iters=args.sat_iters,
-                      ground_episodes=args.ground_episodes, threads=args.threads, device=args.device)
+                      ground_episodes=args.ground_episodes, threads=args.threads, device=args.device,
+                      lane_offset_m=args.lane_offset_m)
     report = train_features(args.out, args.scenes, args.heldout, cfg, progress=not args.quiet)
     brief = {k: {s: {"pixel_accuracy": m["pixel_accuracy"], "mean_iou": m["mean_iou"], "boundary_f1": m["boundary_f1"]}
                  for s, m in v.items()} for k, v in report["heldout_metrics"].items()}
