@@ -86,7 +86,7 @@ def test_tune_runs_each_grid_on_the_calibration_scene_and_applies_its_rules(tmp_
     res = tune(tmp_path, cfg, progress=False, log=lambda m: None)
     saved = json.loads((tmp_path / "tune.json").read_text())
     assert saved["chosen"] == res["chosen"]
-    assert "fcn_train/town_a" in res["calibrated_on"] and "fcn_train/town_b" in res["calibrated_on"]
+    assert "calib/town_a" in res["calibrated_on"] and "calib/town_b" in res["calibrated_on"]
     by = {}
     for r in res["rows"]:
         by.setdefault(r["setting"], []).append(r)
@@ -102,7 +102,7 @@ def test_tune_runs_each_grid_on_the_calibration_scene_and_applies_its_rules(tmp_
     # each grid point ran with its own value
     for v in (20, 96):
         s = json.loads((tmp_path / f"ef_search_{v}" / "summary.json").read_text())
-        assert s["config"]["localizer"]["ef_search"] == v and s["config"]["scene"] == "fcn_train/town_a"
+        assert s["config"]["localizer"]["ef_search"] == v and s["config"]["scene"] == "calib/town_a"
     for v in (0.0, 0.9):
         s = json.loads((tmp_path / f"lock_mass_{v}" / "summary.json").read_text())
         assert s["config"]["localizer"]["tracking"]["lock_mass"] == v

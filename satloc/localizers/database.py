@@ -76,11 +76,12 @@ class LocalizerConfig:
     min_distance_frac: float = 0.05       # feature distances are floored at this fraction of the median distance
                                           # between random entries, so duplicates do not get infinite weight
     depth_source: Literal["stereo", "frame"] = "stereo"
-    ef_search: int = 96                   # HNSW search breadth of the ground index (large databases): chosen by
-                                          # `satloc experiment tune` on fcn_train/town_a (no table tests there)
-                                          # at the default world (captured map, drifting passes): the smallest
-                                          # value within 0.05 m of 96's mean error is 96 itself (24 / 32 / 48:
-                                          # 42.56 / 42.56 / 42.55 m, 96: 41.32 m; full+align, 57 queries)
+    ef_search: int = 24                   # HNSW search breadth of the ground index (large databases): chosen by
+                                          # `satloc experiment tune` on calib/town_a (no table tests there)
+                                          # at the default world (varied streets over hills, captured map,
+                                          # drifting passes): the smallest value within 0.05 m of 96's mean
+                                          # error (24 / 32 / 48 / 96: 33.42 / 33.43 / 33.44 / 33.52 m;
+                                          # full+align, 57 queries; on the plain world 96 had won by 1.2 m)
     prune_regions: int = 3                # >0: score only candidates near the best-voted path positions
     prune_window_m: float = 12.0          # path length kept around each voted position (and peak separation)
     refine: bool = False                  # refine the estimate by bird's-eye alignment (satloc.tracking.align)
