@@ -24,7 +24,7 @@ answer single, and follows the track tracked.
 
 ``--temperatures T1 T2 ...`` also scores the posterior at each temperature: the mean log of the posterior
 mass within 1 m and 2 degrees of the truth (higher is better calibrated), to choose ``CrossViewConfig.
-temperature`` on a calibration recording (``satloc experiment tune`` records one on ``fcn_train/town_a``).
+temperature`` on a calibration recording (``satloc experiment tune`` records one on ``calib/town_a``).
 """
 import argparse
 import math

@@ -1,6 +1,6 @@
 """What the optional capture parts (issue 46) do to the no-database localizer, on a calibration recording.
 
-    satloc experiment tune --out tune             # records the calibration pass on fcn_train/town_a
+    satloc experiment tune --out tune             # records the calibration pass on calib/town_a (before 2026-12-07: fcn_train/town_a, the plain world)
     python docs/tools/capture_calibration.py tune/rec 8 3 capture_cal.json [variant ...]
 
 The recording's own map is the default capture; each variant captures the recording's scene again with the

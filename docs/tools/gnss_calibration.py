@@ -2,7 +2,7 @@
 recording: uniform priors against a receiver's, single frames and tracked, with and without the fixes' accuracy,
 and the tracker's ``lost_after_s``.
 
-    satloc experiment tune --out tune             # records the calibration pass on fcn_train/town_a
+    satloc experiment tune --out tune             # records the calibration pass on calib/town_a (before 2026-12-07: fcn_train/town_a, the plain world)
     python docs/tools/gnss_calibration.py tune/rec 8 6 gnss_cal.json
 
 Takes every STEP-th frame of the recording's query pass (``odometry_visual.npz`` beside the recording: the
