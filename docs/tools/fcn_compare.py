@@ -17,7 +17,14 @@ import sys
 import numpy as np
 
 from satloc.features.fcn import FCNPredictor
-from satloc_env.experiments.train_features import HELDOUT, Metrics, TrainConfig, _split_tile, render_ground
+from satloc_env.experiments.train_features import (
+    HELDOUT,
+    Metrics,
+    TrainConfig,
+    _split_tile,
+    episode_seeds,
+    render_ground,
+)
 from satloc_env.world.scene import load_scene
 
 
@@ -40,13 +47,8 @@ def main(argv=None) -> int:
     p.add_argument("--lane-offset-m", type=float, default=2.5)
     a = p.parse_args(argv)
     cfg = TrainConfig(lane_offset_m=a.lane_offset_m)
-    # the training run's seed draw (train_features._train): training seeds, then held-out episodes of every
-    # training scene and then of every held-out scene
-    rng = np.random.default_rng(cfg.seed)
-    n_train, n_eval = cfg.ground_episodes * len(cfg.aliasing), cfg.eval_episodes
-    seeds = rng.choice(2**31, size=len(a.scenes) * n_train + (len(a.scenes) + len(HELDOUT)) * n_eval, replace=False)
-    rest = seeds[len(a.scenes) * n_train:]
-    eval_seeds = {s: rest[i * n_eval:(i + 1) * n_eval] for i, s in enumerate(a.scenes)}
+    # the training run's seed draw: its held-out episodes of each training scene
+    _, eval_seeds = episode_seeds(np.random.default_rng(cfg.seed), a.scenes, HELDOUT, cfg)
     ground = {s: list(zip(*render_ground(s, 0.0, eval_seeds[s], max(1, cfg.frames_per_episode // 2),
                                          cfg.frame_every * 2, cfg.dt, 1.0, lane_offset_m=cfg.lane_offset_m)))
               for s in a.scenes}

@@ -433,6 +433,18 @@ def train_features(out_dir: str | Path, scenes: Sequence[str] | None = None,
         return _train(Path(out_dir), list(scenes), list(heldout), cfg, device, progress)
 
 
+def episode_seeds(rng: np.random.Generator, scenes: Sequence[str], heldout: Sequence[str], cfg: TrainConfig
+                  ) -> tuple[dict[str, np.ndarray], dict[str, np.ndarray]]:
+    """Disjoint episode seeds, as a training run draws them first from its generator: ``ground_episodes`` per
+    aliasing level for each training scene, then ``eval_episodes`` held-out ones for every training and held-out
+    scene. Returns (training seeds, held-out seeds) by scene."""
+    n_train, n_eval = cfg.ground_episodes * len(cfg.aliasing), cfg.eval_episodes
+    seeds = rng.choice(2**31, size=len(scenes) * n_train + (len(scenes) + len(heldout)) * n_eval, replace=False)
+    train_seeds = {s: seeds[i * n_train:(i + 1) * n_train] for i, s in enumerate(scenes)}
+    rest = seeds[len(scenes) * n_train:]
+    return train_seeds, {s: rest[i * n_eval:(i + 1) * n_eval] for i, s in enumerate([*scenes, *heldout])}
+
+
 def _train(out_dir: Path, scenes: list[str], heldout: list[str], cfg: TrainConfig, device: torch.device,
            progress: bool) -> dict:
     t_start = time.perf_counter()
@@ -440,12 +452,7 @@ def _train(out_dir: Path, scenes: list[str], heldout: list[str], cfg: TrainConfi
     torch.manual_seed(cfg.seed)
     times: dict[str, float] = {}
 
-    # disjoint episode seeds: training, then held-out episodes of every training and held-out scene
-    n_train, n_eval = cfg.ground_episodes * len(cfg.aliasing), cfg.eval_episodes
-    seeds = rng.choice(2**31, size=len(scenes) * n_train + (len(scenes) + len(heldout)) * n_eval, replace=False)
-    train_seeds = {s: seeds[i * n_train:(i + 1) * n_train] for i, s in enumerate(scenes)}
-    rest = seeds[len(scenes) * n_train:]
-    eval_seeds = {s: rest[i * n_eval:(i + 1) * n_eval] for i, s in enumerate([*scenes, *heldout])}
+    train_seeds, eval_seeds = episode_seeds(rng, scenes, heldout, cfg)
     # the unaliased tiles (also the scenes of the held-out ground episodes), kept for evaluation
     satmaps = {s: load_scene(s, 0.0, cfg.satellite_gap).satmap for s in scenes}
 
