@@ -302,3 +302,9 @@ def test_lane_offset_range_is_a_field_and_bounds_the_draw():
         [_episode_options(s, 1.0, 3.5)["lane_offset_m"] for s in range(5)]
     with pytest.raises(ConfigError, match="lane_offset_m"):
         train_features("unused", ["fcn_train/town_a"], [], {"lane_offset_m": -1.0}, progress=False)
+
+
+def test_the_feature_identity_hashes_the_weights_the_network_loads():
+    from satloc.features import fcn, pixelwise
+
+    assert pixelwise.DEFAULT_WEIGHTS == fcn.DEFAULT_WEIGHTS   # named twice: pixelwise imports no torch
