@@ -756,8 +756,8 @@ def build_parser() -> argparse.ArgumentParser:
 
     tc = sub.add_parser("train-crossview", help="learn the cross-view projections W_g, W_s for localizing with no "
                                                "database, on scenes other than the evaluation ones")
-    tc.add_argument("--scenes", nargs="+", default=None, help="training scenes (default: fcn_train/suburb_a, "
-                                                              "fcn_train/suburb_b, fcn_train/town_b)")
+    tc.add_argument("--scenes", nargs="+", default=None, help="training scenes (default: calib/town_b, "
+                                                              "calib/suburb_a, calib/suburb_b)")
     tc.add_argument("--out", required=True, help="folder for the recordings, crossview.pt and the learning curve")
     tc.add_argument("--frames", type=int, default=None, help="frames per scene (default 120, 4 m apart)")
     tc.add_argument("--epochs", type=int, default=None)

@@ -79,9 +79,11 @@ class CrossViewConfig:
     temperature: float = 0.02
     top_k: int = 256                      # posterior entries kept
     # learned channels (satloc.features.crossview_learn, `satloc train-crossview`): a crossview.pt file, or "shipped" (the
-    # package's, trained on fcn_train/suburb_a, suburb_b, town_b: the default); None: the grey level. On calibration
-    # data (fcn_train/town_a, 60 frames) the shipped ones gave single frames 1.46 m mean, 92 % within 1 m against
-    # the grey level's 1.82 m, 88 %, tracked 0.43 against 0.51 m, at 0.16 against 0.08 s per frame (docs/method.md)
+    # package's, trained on calib/town_b, suburb_a, suburb_b at the default world: the default); None: the grey
+    # level. On calibration data (fcn_train/town_a, 60 frames) the first learned ones (trained on the plain world)
+    # gave single frames 1.46 m mean, 92 % within 1 m against the grey level's 1.82 m, 88 %, tracked 0.43 against
+    # 0.51 m, at 0.16 against 0.08 s per frame; those retrained at the default world beat them on calib/town_a
+    # (tracked 0.91 -> 0.60 m) and tie on Vienna (docs/method.md, docs/results.md)
     projections: str | None = "shipped"
     # CrossViewTracker: "fuse" searches the whole prior with the previous answer moved by the odometry as a
     # Gaussian belief of track_sigma_m / track_sigma_deg; "gate" searches track_radius_m / track_yaw_deg around it.

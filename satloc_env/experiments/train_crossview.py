@@ -32,8 +32,9 @@ from satloc_env.envs.record import QUERY_CHANGE, PassConfig, RecordConfig, recor
 
 #: scenes the tables and the cross-area protocol evaluate on: never trained on
 EVALUATION_SCENES = ("city", "residential", "loop", "loop_calib", "suburb_utm")
-#: the default training places: the FCN's training scenes but town_a, kept for calibration
-TRAIN_SCENES = ("fcn_train/suburb_a", "fcn_train/suburb_b", "fcn_train/town_b")
+#: the default training places: the FCN's training scenes but town_a (kept for calibration) at the default world
+#: (varied streets over hills, cambered roads; until 2026-12-07 the plain fcn_train scenes themselves)
+TRAIN_SCENES = ("calib/town_b", "calib/suburb_a", "calib/suburb_b")
 
 
 @dataclass
