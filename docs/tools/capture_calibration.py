@@ -111,14 +111,16 @@ def main(rec: Path, step: int, n_seeds: int, dest: Path, variants: list[str]) ->
                                     **({"follow": (5.0, 4.0)} if track else {}))
                 ests.append(np.asarray(r["estimates"], np.float64))
                 truths.append(truth)
-            per_frame = np.mean([np.hypot(*(e[:, :2] - truth[:, :2]).T) for e in ests], axis=0)  # NaN: a seed unanswered
+            err = np.hypot(*(np.stack(ests)[..., :2] - truth[:, :2]).transpose(2, 0, 1))   # (seeds, frames); NaN: no answer
+            per_frame = err.mean(axis=0)   # NaN where a seed has no answer
             row = dict(variant=variant, track=track, seeds=n_seeds,
                        **errors(np.concatenate(ests), np.concatenate(truths)),
-                       per_seed_mean=[float(np.nanmean(np.hypot(*(e[:, :2] - truth[:, :2]).T))) for e in ests],
-                       seconds=round(time.time() - t0, 1), per_frame=[float(x) for x in per_frame])
-            first = next((r for r in out if r["track"] == track), None)
+                       per_seed_mean=[float(x) for x in np.nanmean(err, axis=1)],
+                       seconds=round(time.time() - t0, 1),
+                       per_frame=[float(x) if np.isfinite(x) else None for x in per_frame])
+            first = next((o for o in out if o["track"] == track), None)
             if first is not None:   # this variant against the first, frame by frame
-                a, b = per_frame, np.asarray(first["per_frame"], np.float64)
+                a, b = per_frame, np.array(first["per_frame"], np.float64)   # None -> NaN
                 ok = np.isfinite(a) & np.isfinite(b)
                 lo, hi = paired_bootstrap_ci(a[ok], b[ok])
                 row["minus_first"] = dict(frames=int(ok.sum()), mean=float(a[ok].mean() - b[ok].mean()), ci95=[lo, hi])
