@@ -170,11 +170,11 @@ def test_a_held_motion_is_a_fallback_for_frames_without_an_answer_then_the_track
     fix = draw_prior((0.0, 0.0, 0.0), 1e-3, 0.0, np.random.default_rng(0))
     t = CrossViewTracker(_Blind())
     t.localize(SimpleNamespace(timestamp=0.0, blind=False), fix)
-    t.predict([2.0, 0.0, 0.1])
+    t.predict([1.0, 0.0, 0.1])                       # (2 m in all: within the fix's reach, 3 track_sigma_m)
     t.predict(nan)                                   # the odometry failed: moved by the last motion again
     assert t.stale
     r = t.localize(SimpleNamespace(timestamp=0.2, blind=True), fix)    # nothing to see: the held track answers
-    want = Pose2(fix.x, fix.y, fix.yaw) @ Pose2(2.0, 0.0, 0.1) @ Pose2(2.0, 0.0, 0.1)
+    want = Pose2(fix.x, fix.y, fix.yaw) @ Pose2(1.0, 0.0, 0.1) @ Pose2(1.0, 0.0, 0.1)
     assert np.allclose(r.pose.as_array(), want.as_array()) and math.isnan(r.correlation)
     assert t.localizer.calls[-1] == (fix, None)      # it searched its prior alone, with no belief from the track
     t.predict(nan)                                   # the second in a row: still held
@@ -204,3 +204,30 @@ def test_a_held_motion_is_a_fallback_for_frames_without_an_answer_then_the_track
         CrossViewConfig(hold_motion=-1)
     with pytest.raises(ConfigError, match="hold_motion"):
         CrossViewConfig(hold_motion=1.5)
+
+
+def test_the_tracks_belief_widens_with_the_distance_travelled_since_its_last_answer():
+    fix = draw_prior((0.0, 0.0, 0.0), 20.0, 0.0, np.random.default_rng(0))
+    t = CrossViewTracker(_Blind())
+    cfg = t.localizer.config
+    assert (cfg.track_sigma_m, cfg.track_sigma_per_m) == (1.0, 0.14)
+    t.localize(SimpleNamespace(timestamp=0.0, blind=False), fix)
+    assert t.travelled == 0.0 and t.sigma_m() == cfg.track_sigma_m
+    t.predict([3.0, 4.0, 0.0])
+    t.localize(SimpleNamespace(timestamp=0.1, blind=False), fix)
+    assert math.isclose(t.localizer.calls[-1][1][1], math.hypot(1.0, 0.14 * 5.0))   # the belief it searched with
+    assert t.travelled == 0.0                         # an answer of its own: narrow again
+    # a frame with no answer coasts and keeps widening: 5 m, then 5 m more
+    t.predict([5.0, 0.0, 0.0])
+    t.localize(SimpleNamespace(timestamp=0.2, blind=True), fix)
+    t.predict([5.0, 0.0, 0.0])
+    t.localize(SimpleNamespace(timestamp=0.3, blind=True), fix)
+    assert math.isclose(t.localizer.calls[-1][1][1], math.hypot(1.0, 0.14 * 10.0)) and t.travelled == 10.0
+    # track_sigma_per_m 0: a fixed belief (with track_sigma_m 2, the behaviour before)
+    fixed = CrossViewTracker(_Blind(track_sigma_m=2.0, track_sigma_per_m=0.0))
+    fixed.localize(SimpleNamespace(timestamp=0.0, blind=False), fix)
+    fixed.predict([30.0, 0.0, 0.0])
+    fixed.localize(SimpleNamespace(timestamp=0.1, blind=False), fix)
+    assert fixed.localizer.calls[-1][1][1] == 2.0
+    with pytest.raises(ConfigError, match="track_sigma_per_m"):
+        CrossViewConfig(track_sigma_per_m=-0.1)

@@ -1,7 +1,7 @@
 """What the optional capture parts (issue 46) do to the no-database localizer, on a calibration recording.
 
     satloc experiment tune --out tune             # records the calibration pass on calib/town_a (before 2026-12-07: fcn_train/town_a, the plain world)
-    python docs/tools/capture_calibration.py tune/rec 8 3 capture_cal.json [variant ...]
+    python docs/tools/capture_calibration.py tune/rec 8 3 capture_cal.json [variant ...] [--tracked]
 
 The recording's own map is the default capture; each variant captures the recording's scene again with the
 default parts plus those it names (``deep_shadows``, ``traffic``, ``coarse_texture``; ``+`` joins several; ``default``
@@ -16,6 +16,7 @@ with the shipped features and the default settings, with SEEDS seeds of the prio
 variant: the mean and median error, the shares within 1 m and beyond 10 m, and the lateral and longitudinal
 shares within 1 m; with several variants, each variant's mean minus the first's (the same frames, each frame's
 error the mean over its seeds) with a 95 % paired stationary block bootstrap interval over the frames.
+``--tracked`` runs the tracked localizations alone (no single frames).
 """
 import json
 import sys
@@ -80,7 +81,7 @@ def errors(est: np.ndarray, truth: np.ndarray) -> dict:
                 longitudinal1=float(np.mean(lon < 1)))
 
 
-def main(rec: Path, step: int, n_seeds: int, dest: Path, variants: list[str]) -> None:
+def main(rec: Path, step: int, n_seeds: int, dest: Path, variants: list[str], modes=(False, True)) -> None:
     seq, sm0 = Sequence.load(rec / "query"), SatelliteMap.load(rec / "map")
     ext = make_extractor("default")
     idx = np.arange(0, len(seq), step)
@@ -103,7 +104,7 @@ def main(rec: Path, step: int, n_seeds: int, dest: Path, variants: list[str]) ->
             cv = CrossViewLocalizer(seq.camera, sf, ext, CrossViewConfig(drivable=drivable, **kw))
         else:
             cv = CrossViewLocalizer(seq.camera, sf, ext, CrossViewConfig(**kw), labels=sm.labels)
-        for track in (False, True):
+        for track in modes:
             ests, truths = [], []
             for seed in range(n_seeds):
                 priors = [draw_prior(t, 20.0, 10.0, np.random.default_rng([seed, int(i)])) for t, i in zip(truth, idx)]
@@ -130,4 +131,6 @@ def main(rec: Path, step: int, n_seeds: int, dest: Path, variants: list[str]) ->
 
 
 if __name__ == "__main__":
-    main(Path(sys.argv[1]), int(sys.argv[2]), int(sys.argv[3]), Path(sys.argv[4]), sys.argv[5:] or DEFAULT_VARIANTS)
+    args = [a for a in sys.argv[5:] if a != "--tracked"]
+    main(Path(sys.argv[1]), int(sys.argv[2]), int(sys.argv[3]), Path(sys.argv[4]), args or DEFAULT_VARIANTS,
+         (True,) if "--tracked" in sys.argv[5:] else (False, True))

@@ -23,10 +23,10 @@ posterior, not the answer; it was chosen on calibration data (``fcn_train/town_a
 
 Over a sequence, :class:`CrossViewTracker` carries the previous answer, moved by the odometry since its frame,
 to the next: with ``track="fuse"`` (the default) the frame's whole prior is searched and the moved answer
-multiplies the posterior as a Gaussian belief (``track_sigma_m``, ``track_sigma_deg``), so a strong match
-elsewhere can still win; with ``"gate"`` only ``track_radius_m`` / ``track_yaw_deg`` around it are searched.
+multiplies the posterior as a Gaussian belief (``track_sigma_m``, widened by ``track_sigma_per_m`` times the
+distance travelled since the track's last answer, and ``track_sigma_deg``), so a strong match elsewhere can still win; with ``"gate"`` only ``track_radius_m`` / ``track_yaw_deg`` around it are searched.
 Where the moved answer lies outside the frame's own prior by more than the belief reaches (3
-``track_sigma_m``; ``gate``: ``track_radius_m``: the GPS fix says the track is lost), after a frame with no
+sigma; ``gate``: ``track_radius_m``: the GPS fix says the track is lost), after a frame with no
 answer or after an unknown motion, the prior alone is searched (with ``hold_motion``, the last motion measured
 moves the track meanwhile, a fallback for the frames that have no answer of their own). A frame it cannot
 localize (too little ground in view, no drivable position within its prior) coasts on the odometry (``coast``):
@@ -88,11 +88,18 @@ class CrossViewConfig:
     # CrossViewTracker: "fuse" searches the whole prior with the previous answer moved by the odometry as a
     # Gaussian belief of track_sigma_m / track_sigma_deg; "gate" searches track_radius_m / track_yaw_deg around it.
     # Chosen on calibration data (fcn_train/town_a, 60 frames ~12 m apart, visual odometry, examples/crossview.py
-    # --track): mean error gate 0.67 m; fuse sigma 2 m 0.51, 3 m 0.52, 5 m 0.75, 8 m 1.32
+    # --track): mean error gate 0.67 m; fuse sigma 2 m 0.51, 3 m 0.52, 5 m 0.75, 8 m 1.32. The belief widens with
+    # the distance d travelled since the track's last answer: sigma = hypot(track_sigma_m, track_sigma_per_m * d)
+    # (track_sigma_per_m 0: a fixed sigma, the behaviour before, with track_sigma_m 2). At the default world
+    # (calib/town_a, docs/tools/capture_calibration.py --tracked; docs/results.md) a fixed sigma of 0.5 / 1 / 2 m
+    # gave 0.52 / 0.51 / 1.05 m tracked on every frame (1.5 m apart, as an environment localizing each step) and
+    # 1.07 / 0.57 / 0.60 m on frames 12.4 m apart (3 m: 1.10): 1 m where the frames are near, and 0.14 per metre
+    # keeps 2 m at 12.4 m, the spacing sigma 2 was first chosen at
     track: str = "fuse"
     track_radius_m: float = 5.0
     track_yaw_deg: float = 4.0
-    track_sigma_m: float = 2.0
+    track_sigma_m: float = 1.0
+    track_sigma_per_m: float = added_field(0.14, before=0.0)
     track_sigma_deg: float = 3.0
     # a fix whose disc the moved answer lies beyond (by more than the belief reaches) says the track is lost; with a
     # receiver whose error persists and now and then outgrows the disc (satloc.localizers.gnss, model "receiver"),
@@ -136,6 +143,9 @@ class CrossViewConfig:
             raise ConfigError(f"crossview.track: expected 'gate' or 'fuse', got {self.track!r}")
         if not self.track_sigma_m > 0 or not self.track_sigma_deg > 0:
             raise ConfigError("crossview: track_sigma_m and track_sigma_deg must be > 0")
+        if not (self.track_sigma_per_m >= 0 and math.isfinite(self.track_sigma_per_m)):
+            raise ConfigError(f"crossview.track_sigma_per_m: expected metres per metre travelled >= 0, got "
+                              f"{self.track_sigma_per_m!r}")
         if not (self.fix_nu > 0 and math.isfinite(self.fix_nu)):
             raise ConfigError(f"crossview.fix_nu: expected degrees of freedom > 0, got {self.fix_nu!r}")
         if isinstance(self.hold_motion, bool) or not isinstance(self.hold_motion, int) or self.hold_motion < 0:
@@ -388,6 +398,7 @@ class CrossViewTracker:
 
     def reset(self) -> None:
         self.pose: Pose2 | None = None   # the last answer moved by the odometry since (None: lost)
+        self.travelled = 0.0             # metres the track moved since its last answer (widens the belief)
         self.disagree_since: float | None = None   # the time of the first fix of a run that disagrees with the track
         self.last_motion: np.ndarray | None = None  # the last motion measured (held through unknown ones)
         self.held = 0                               # unknown motions in a row replaced by it
@@ -404,10 +415,17 @@ class CrossViewTracker:
                 and self.held < self.localizer.config.hold_motion:
             m, self.held, self.stale = self.last_motion, self.held + 1, True
         else:
-            self.pose, self.stale = None, False
+            self.pose, self.stale, self.travelled = None, False, 0.0
             return
         if self.pose is not None:
             self.pose = self.pose @ Pose2(*m)
+            self.travelled += math.hypot(float(m[0]), float(m[1]))
+
+    def sigma_m(self) -> float:
+        """The belief's spread in metres now: ``track_sigma_m`` widened by ``track_sigma_per_m`` times the distance
+        travelled since the track's last answer."""
+        cfg = self.localizer.config
+        return math.hypot(cfg.track_sigma_m, cfg.track_sigma_per_m * self.travelled)
 
     def localize(self, frame, prior: Prior) -> CrossViewResult:
         """The frame's pose: ``fuse``, across ``prior`` with the moved answer as a Gaussian belief; ``gate``,
@@ -421,7 +439,8 @@ class CrossViewTracker:
         lost = self.pose is None
         # lost: the moved answer lies farther outside the fix's disc than the belief reaches (3 sigma; gate: its
         # search radius). Slightly outside is not lost: a fix drawn near its disc's edge puts a right answer there
-        reach = 3.0 * cfg.track_sigma_m if cfg.track == "fuse" else cfg.track_radius_m
+        sigma = self.sigma_m()
+        reach = 3.0 * sigma if cfg.track == "fuse" else cfg.track_radius_m
         if self.pose is not None:
             far = math.hypot(self.pose.x - prior.x, self.pose.y - prior.y) > prior.radius_m + reach
             if self.stale:   # a fallback only: the prior alone is searched; beyond the fix's reach, not even that
@@ -441,13 +460,13 @@ class CrossViewTracker:
                 else:   # fuse: the fix's disc, or (a fix that disagrees, not yet for long) its extent around the track
                     if far:
                         use = Prior(self.pose.x, self.pose.y, self.pose.yaw, prior.radius_m, prior.yaw_deg)
-                    predicted = (self.pose, cfg.track_sigma_m, cfg.track_sigma_deg)
+                    predicted = (self.pose, sigma, cfg.track_sigma_deg)
         else:
             self.disagree_since = None
         res = self.localizer.localize(frame, use, predicted)
         if res.pose is None and not lost and cfg.coast:   # nothing to see: the track moved by the odometry
             return CrossViewResult(self.pose, float("nan"), self.pose.as_array()[None], np.ones(1), res.cells)
-        self.pose, self.stale = res.pose, False
+        self.pose, self.stale, self.travelled = res.pose, False, 0.0
         return res
 
 
