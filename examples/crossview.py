@@ -66,7 +66,10 @@ def main(argv=None):
     ap.add_argument("--track-mode", default=d.track, choices=["gate", "fuse"])
     ap.add_argument("--track-radius", type=float, default=d.track_radius_m)
     ap.add_argument("--track-yaw", type=float, default=d.track_yaw_deg)
-    ap.add_argument("--sigma", type=float, default=d.track_sigma_m)
+    ap.add_argument("--sigma", type=float, default=d.track_sigma_m, help="metres (CrossViewConfig.track_sigma_m)")
+    ap.add_argument("--sigma-per-m", type=float, default=d.track_sigma_per_m,
+                    help="the belief's widening per metre travelled since the track's last answer "
+                         "(CrossViewConfig.track_sigma_per_m; 0: a fixed --sigma)")
     ap.add_argument("--sigma-yaw", type=float, default=d.track_sigma_deg)
     ap.add_argument("--gnss", default="uniform", choices=["uniform", "receiver"], help="how the priors stray")
     ap.add_argument("--no-accuracy", action="store_true", help="--gnss receiver: fixes without their accuracy")
@@ -78,7 +81,8 @@ def main(argv=None):
     ext = make_extractor("default")
     cfg = CrossViewConfig(top_k=10**9 if a.temperatures else 256, align=AlignConfig(channels=a.channels),
                           track=a.track_mode, track_radius_m=a.track_radius, track_yaw_deg=a.track_yaw,
-                          track_sigma_m=a.sigma, track_sigma_deg=a.sigma_yaw, drivable=a.drivable,
+                          track_sigma_m=a.sigma, track_sigma_per_m=a.sigma_per_m, track_sigma_deg=a.sigma_yaw,
+                          drivable=a.drivable,
                           lost_after_s=a.lost_after, fix_nu=a.fix_nu,
                           projections=None if a.projections == "none" else a.projections)
     sf = SatelliteFeatures.compute(sm, ext)

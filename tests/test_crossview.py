@@ -147,6 +147,10 @@ def test_example_tracks_with_the_odometry_beside_the_recording(rec, tmp_path):
     assert r.returncode == 0, r.stderr
     last = r.stdout.strip().splitlines()[-1]
     assert last.startswith("6 frames, tracked (fuse), prior +-20 m") and "within 1 m" in last
+    # the tracker before 2026-12-07: a fixed 2 m belief
+    r = subprocess.run([sys.executable, str(script), "--recording", str(work / "rec"), "--frames", "3", "--track",
+                        "--sigma", "2", "--sigma-per-m", "0"], capture_output=True, text=True, timeout=600)
+    assert r.returncode == 0 and r.stdout.strip().splitlines()[-1].startswith("3 frames, tracked (fuse)"), r.stderr
 
 
 def _true_odometry(poses):
