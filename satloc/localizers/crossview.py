@@ -24,9 +24,10 @@ posterior, not the answer; it was chosen on calibration data (``fcn_train/town_a
 Over a sequence, :class:`CrossViewTracker` carries the previous answer, moved by the odometry since its frame,
 to the next: with ``track="fuse"`` (the default) the frame's whole prior is searched and the moved answer
 multiplies the posterior as a Gaussian belief (``track_sigma_m``, widened by ``track_sigma_per_m`` times the
-distance travelled since the track's last answer, and ``track_sigma_deg``), so a strong match elsewhere can still win; with ``"gate"`` only ``track_radius_m`` / ``track_yaw_deg`` around it are searched.
-Where the moved answer lies outside the frame's own prior by more than the belief reaches (3
-sigma; ``gate``: ``track_radius_m``: the GPS fix says the track is lost), after a frame with no
+distance travelled since the track's last answer, and ``track_sigma_deg``), so a strong match elsewhere can
+still win; with ``"gate"`` only ``track_radius_m`` / ``track_yaw_deg`` around it are searched. Where the moved
+answer lies outside the frame's own prior by more than the belief reaches (3 sigma; ``gate``:
+``track_radius_m``: the GPS fix says the track is lost), after a frame with no
 answer or after an unknown motion, the prior alone is searched (with ``hold_motion``, the last motion measured
 moves the track meanwhile, a fallback for the frames that have no answer of their own). A frame it cannot
 localize (too little ground in view, no drivable position within its prior) coasts on the odometry (``coast``):
