@@ -9,7 +9,7 @@ for none; ``default-texture`` leaves a default part out; ``copy`` for no capture
 the drivable area from the features' own semantics, or none), not with the map's labels as by default; and
 ``#grey`` at the end localizes with the fixed grey-level channel instead of the shipped learned ones
 (``#path/to/crossview.pt``: with those learned channels); ``%key=value,...`` at the very end sets fields of
-the localizer's ``CrossViewConfig`` (YAML values: ``default%coast=false``). The
+the localizer's ``CrossViewConfig`` (YAML values: ``default%coast=false``, ``default%hidden_classes=[building,tree]``). The
 camera's frames, their priors (uniform within 20 m and 10 degrees, seeded by the seed and the frame's index)
 and the odometry unchanged. Takes every STEP-th frame of the query pass, localizes single frames and tracked
 with the shipped features and the default settings, with SEEDS seeds of the priors, and prints and writes per
@@ -19,6 +19,7 @@ error the mean over its seeds) with a 95 % paired stationary block bootstrap int
 ``--tracked`` runs the tracked localizations alone (no single frames).
 """
 import json
+import re
 import sys
 import time
 from pathlib import Path
@@ -97,7 +98,7 @@ def main(rec: Path, step: int, n_seeds: int, dest: Path, variants: list[str], mo
         sm = variant_map(rec, sm0, parts)
         sf = SatelliteFeatures.compute(sm, ext)
         kw = {} if not grey else {"projections": None} if grey == "grey" else {"projections": grey}
-        for item in filter(None, fields.split(",")):
+        for item in filter(None, re.split(r",(?![^\[]*\])", fields)):   # commas inside [...] belong to a list
             key, _, value = item.partition("=")
             kw[key.strip()] = yaml.safe_load(value)
         if drivable:

@@ -1,6 +1,7 @@
 """The no-database localizer's error over an environment's first steps, seed by seed.
 
     python docs/tools/env_first_steps.py [--scene city] [--seeds 6] [--steps 40] [--single] [--no-lean]
+                                         [--hidden [CLASS ...]]
 
 Drives ``satloc/SatLoc-v0`` with the autopilot for ``--steps`` steps from each of ``--seeds`` resets (seeds 0,
 1, ...), localizing every step with the default ``localizer="cross"``, tracked (``localizer_track=True``) unless
@@ -8,7 +9,9 @@ Drives ``satloc/SatLoc-v0`` with the autopilot for ``--steps`` steps from each o
 largest error over all steps. ``--no-lean`` drives the same scene with its satellite map captured without the
 capture's ``lean`` part (the sensor off nadir: roofs and canopies displaced from their footprints; see
 ``satloc_env.world.capture``), written as a scene YAML beside a temporary copy, every other part as the scene has
-it. What it measured is in docs/results.md (the track's belief).
+it. ``--hidden``: the localizer's ``CrossViewConfig.hidden_classes`` (the map's classes left out of the
+comparison; ``--hidden`` alone: none, the localizer before 2026-12-07). What it measured is in docs/results.md
+(the track's belief).
 """
 from __future__ import annotations
 
@@ -48,8 +51,17 @@ def main(argv=None) -> None:
     ap.add_argument("--steps", type=int, default=40)
     ap.add_argument("--single", action="store_true", help="single frames, no tracking")
     ap.add_argument("--no-lean", action="store_true", help="the map captured without the sensor's lean")
+    ap.add_argument("--hidden", nargs="*", default=None, metavar="CLASS",
+                    help="CrossViewConfig.hidden_classes (alone: none)")
     ap.add_argument("--json", default=None, help="write {seed: [errors]} here")
     a = ap.parse_args(argv)
+    if a.hidden is not None:   # the environment's cross-view localizer made with these classes hidden
+        import functools
+
+        from satloc.localizers.crossview import CrossViewConfig
+        from satloc_env.envs import cross_localizer as cl
+
+        cl.cross_localizer = functools.partial(cl.cross_localizer, config=CrossViewConfig(hidden_classes=tuple(a.hidden)))
 
     import gymnasium as gym
 
@@ -71,7 +83,8 @@ def main(argv=None) -> None:
             print(seed, np.round(errors, 1).tolist(), flush=True)
         env.close()
     e = np.concatenate([np.asarray(v) for v in out.values()])
-    print(f"{'single' if a.single else 'tracked'}{', no lean' if a.no_lean else ''}: {len(e)} steps, mean "
+    hidden = "" if a.hidden is None else f", hidden {a.hidden or 'none'}"
+    print(f"{'single' if a.single else 'tracked'}{', no lean' if a.no_lean else ''}{hidden}: {len(e)} steps, mean "
           f"{np.nanmean(e):.2f} m, median {np.nanmedian(e):.2f} m, within 1 m {np.mean(e <= 1.0):.0%}, "
           f"largest {np.nanmax(e):.1f} m")
     if a.json:
