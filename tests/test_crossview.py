@@ -96,33 +96,32 @@ def test_a_fix_that_reports_its_accuracy_weighs_positions_near_its_centre(setup)
 
 
 def test_hidden_classes_leave_roofs_out_of_the_comparison(setup):
-    """The map's building and tree pixels (its label raster) are set to the normalised channels' local mean, 0:
-    the default; () keeps them; no label raster hides nothing; an unknown class is an error naming the field."""
+    """``hidden_classes``: the map's pixels of those classes (its label raster) are set to the normalised channels'
+    local mean, 0; off by default; no label raster hides nothing; a bad value is an error naming the field."""
     seq, cv = setup
-    assert cv.config.hidden_classes == ("building", "tree") and cv.hidden is not None and cv.hidden.any()
-    for c in cv._aligner.sat:
-        assert np.all(c[cv.hidden] == 0.0)
+    assert cv.config.hidden_classes == () and cv.hidden is None
     sf, ext = cv.satfeat, make_extractor("default")
     from satloc.labels import CLASS_ID
     labels = np.full(sf.features.shape[:2], CLASS_ID["road"], np.uint8)
     labels[:40] = CLASS_ID["building"]
     labels[40:80] = CLASS_ID["tree"]
-    kept = CrossViewLocalizer(seq.camera, sf, ext, CrossViewConfig(hidden_classes=()), labels=labels)
+    kept = CrossViewLocalizer(seq.camera, sf, ext, CrossViewConfig(), labels=labels)
     assert kept.hidden is None and any(np.any(c[:40] != 0.0) for c in kept._aligner.sat)
     roofs = CrossViewLocalizer(seq.camera, sf, ext, CrossViewConfig(hidden_classes=["building"]), labels=labels)
     assert roofs.hidden[:40].all() and not roofs.hidden[40:].any()
-    both = CrossViewLocalizer(seq.camera, sf, ext, CrossViewConfig(hidden_classes=["building", "tree"]), labels=labels)
+    both = CrossViewLocalizer(seq.camera, sf, ext, CrossViewConfig(hidden_classes=["tree", "building", "tree"]),
+                              labels=labels)
     assert both.config.hidden_classes == ("building", "tree") and both.hidden[:80].all() and not both.hidden[80:].any()
     assert all(np.all(c[:80] == 0.0) for c in both._aligner.sat)
-    # the two differ only there
+    # the two differ only there, and every searcher reads the hidden channels
     for a, b in zip(kept._aligner.sat, both._aligner.sat):
         assert np.array_equal(a[80:], b[80:])
-    bare = CrossViewLocalizer(seq.camera, sf, ext, CrossViewConfig(drivable="none"))
+    assert all(np.all(c[:80] == 0.0) for c in both._searcher(20.0).sat)
+    bare = CrossViewLocalizer(seq.camera, sf, ext, CrossViewConfig(hidden_classes=["building"], drivable="none"))
     assert bare.hidden is None
-    with pytest.raises(ConfigError, match="hidden_classes"):
-        CrossViewConfig(hidden_classes=("roof",))
-    with pytest.raises(ConfigError, match="hidden_classes"):
-        CrossViewConfig(hidden_classes="building")
+    for bad in (("roof",), "building", None, [["building"]]):
+        with pytest.raises(ConfigError, match="hidden_classes"):
+            CrossViewConfig(hidden_classes=bad)
 
 
 def test_bad_priors_get_clear_errors(setup):

@@ -9,8 +9,8 @@ Drives ``satloc/SatLoc-v0`` with the autopilot for ``--steps`` steps from each o
 largest error over all steps. ``--no-lean`` drives the same scene with its satellite map captured without the
 capture's ``lean`` part (the sensor off nadir: roofs and canopies displaced from their footprints; see
 ``satloc_env.world.capture``), written as a scene YAML beside a temporary copy, every other part as the scene has
-it. ``--hidden``: the localizer's ``CrossViewConfig.hidden_classes`` (the map's classes left out of the
-comparison; ``--hidden`` alone: none, the localizer before 2026-12-07). What it measured is in docs/results.md
+it. ``--hidden CLASS ...``: the localizer's ``CrossViewConfig.hidden_classes`` (the map's classes left out of the
+comparison; by default none; ``--hidden`` alone: none, explicitly). What it measured is in docs/results.md
 (the track's belief).
 """
 from __future__ import annotations
@@ -52,7 +52,7 @@ def main(argv=None) -> None:
     ap.add_argument("--single", action="store_true", help="single frames, no tracking")
     ap.add_argument("--no-lean", action="store_true", help="the map captured without the sensor's lean")
     ap.add_argument("--hidden", nargs="*", default=None, metavar="CLASS",
-                    help="CrossViewConfig.hidden_classes (alone: none)")
+                    help="CrossViewConfig.hidden_classes (default: none)")
     ap.add_argument("--json", default=None, help="write {seed: [errors]} here")
     a = ap.parse_args(argv)
     if a.hidden is not None:   # the environment's cross-view localizer made with these classes hidden

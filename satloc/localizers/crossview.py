@@ -128,14 +128,17 @@ class CrossViewConfig:
     # there has one of its own); used as the track's belief instead, a held motion had cost 0.38 -> 0.41 m (1 step)
     # and 0.50 m (2 steps), hence a fallback only. 2: a bus in view for two query steps (docs/results.md)
     hold_motion: int = added_field(2, before=0)
-    # map pixels whose label (the map's label raster, where the localizer is given one) is one of these classes take
-    # no part in the comparison: their channels are set to the local mean. The bird's-eye view holds the ground
+    # map pixels whose label (the map's label raster, where the localizer is given one) is one of these classes are
+    # set to the normalised channels' local mean (0) before the correlation. The bird's-eye view holds the ground
     # alone, and what stands above the ground hides the road beneath it in a view from above, the more so off nadir
-    # (a capture's lean moves a 29 m roof 7.7 m over the street on city). Without a label raster nothing is hidden.
-    # () gives the behaviour before. Chosen on calibration data (calib/town_a, 261 localizations,
-    # docs/tools/capture_calibration.py): single / tracked mean 3.19 / 0.59 m with none, 3.07 / 0.55 m with the
-    # buildings hidden, 2.97 / 0.51 m with the buildings and the trees (docs/results.md)
-    hidden_classes: tuple[str, ...] = added_field(("building", "tree"), before=())
+    # (a capture's lean moves a 29 m roof 7.7 m over the street on city). Not neutral: matchTemplate still counts
+    # the zeros in the crop's mean and energy, so a position whose ground falls on hidden pixels scores lower.
+    # Off by default: it needs a segmentation of the map image itself (roofs where the image shows them, not
+    # building footprints), which a simulated capture's labels give exactly and a real map does not come with.
+    # With those exact labels, on calib/town_a (261 localizations, docs/tools/capture_calibration.py) single /
+    # tracked mean 3.19 / 0.59 m with none, 3.07 / 0.55 m with [building], 2.97 / 0.51 m with [building, tree]
+    # (docs/results.md)
+    hidden_classes: tuple[str, ...] = added_field(())
     align: AlignConfig = field(default_factory=AlignConfig)   # the BEV: extent, channels, normalisation
 
     def __post_init__(self):
@@ -161,10 +164,11 @@ class CrossViewConfig:
             raise ConfigError(f"crossview.hold_motion: expected a whole number of steps >= 0, got {self.hold_motion!r}")
         if not (self.lost_after_s >= 0 and math.isfinite(self.lost_after_s)):
             raise ConfigError(f"crossview.lost_after_s: expected seconds >= 0, got {self.lost_after_s!r}")
-        if isinstance(self.hidden_classes, str) or not all(c in CLASS_ID for c in self.hidden_classes):
+        hidden = self.hidden_classes
+        if not isinstance(hidden, (list, tuple)) or not all(isinstance(c, str) and c in CLASS_ID for c in hidden):
             raise ConfigError(f"crossview.hidden_classes: expected a list of classes among {list(CLASS_ID)}, got "
-                              f"{self.hidden_classes!r}")
-        object.__setattr__(self, "hidden_classes", tuple(self.hidden_classes))
+                              f"{hidden!r}")
+        object.__setattr__(self, "hidden_classes", tuple(sorted(set(hidden))))
         if not 0 < self.track_radius_m <= MAX_RADIUS_M or not 0 <= self.track_yaw_deg <= 180:
             raise ConfigError(f"crossview: track_radius_m must lie in (0, {MAX_RADIUS_M:g}] m and track_yaw_deg in "
                               f"[0, 180] degrees")
