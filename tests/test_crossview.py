@@ -122,6 +122,18 @@ def test_hidden_classes_leave_roofs_out_of_the_comparison(setup):
     for bad in (("roof",), "building", None, [["building"]]):
         with pytest.raises(ConfigError, match="hidden_classes"):
             CrossViewConfig(hidden_classes=bad)
+    # from the features' own semantics (a bare map): where the classes' probabilities together reach 0.5
+    sem = CrossViewLocalizer(seq.camera, sf, ext, CrossViewConfig(hidden_classes=["building"], hidden_from="semantic",
+                                                                  drivable="none"))
+    expect = sf.features[..., 4 + CLASS_ID["building"]].astype(np.float32) >= 0.5
+    assert expect.any() and np.array_equal(sem.hidden, expect)
+    assert all(np.all(c[expect] == 0.0) for c in sem._aligner.sat)
+    with pytest.raises(ConfigError, match="hidden_from"):
+        CrossViewConfig(hidden_from="footprints")
+    grey = dataclasses.replace(sf, features=sf.features[..., :3])
+    with pytest.raises(ConfigError, match="hidden_from 'semantic'"):
+        CrossViewLocalizer(seq.camera, grey, ext, CrossViewConfig(hidden_classes=["building"], hidden_from="semantic",
+                                                                  projections=None, drivable="none"))
 
 
 def test_bad_priors_get_clear_errors(setup):
