@@ -198,12 +198,18 @@ def drivable_from_features(satfeat: SatelliteFeatures, min_prob: float = 0.5, ma
     """(H, W) bool: where the satellite features' semantic channels (the default extractor's: RGB, edge, then
     one probability per class of :mod:`satloc.labels`) give the drivable classes at least ``min_prob``, grown
     by ``margin_m``. ConfigError for features without semantic channels."""
+    p = _class_probability(satfeat, DRIVABLE, "drivable", "; use drivable: none")
+    return _grown(p >= min_prob, margin_m, satfeat.meters_per_pixel)
+
+
+def _class_probability(satfeat: SatelliteFeatures, classes, field: str, hint: str = "") -> np.ndarray:
+    """(H, W) float32: the satellite features' semantic probabilities of ``classes`` (class ids) summed. ConfigError
+    naming ``crossview.<field>`` for features without the default extractor's semantic channels."""
     f = satfeat.features
     if f.shape[2] != 4 + NUM_CLASSES:
-        raise ConfigError(f"crossview.drivable 'semantic' needs the default features (RGB, edge and {NUM_CLASSES} "
-                          f"class probabilities), got {f.shape[2]} channels; use drivable: none")
-    p = sum(f[..., 4 + c].astype(np.float32) for c in DRIVABLE)
-    return _grown(p >= min_prob, margin_m, satfeat.meters_per_pixel)
+        raise ConfigError(f"crossview.{field} 'semantic' needs the default features (RGB, edge and {NUM_CLASSES} "
+                          f"class probabilities), got {f.shape[2]} channels{hint}")
+    return sum(f[..., 4 + c].astype(np.float32) for c in classes)
 
 
 def _grown(mask: np.ndarray, margin_m: float, meters_per_pixel: float) -> np.ndarray:
@@ -292,26 +298,21 @@ class CrossViewLocalizer:
                 SHIPPED_PROJECTIONS if config.projections == "shipped" else config.projections)
             sat, align = self.projections.satellite(satfeat.features), replace(config.align, channels="learned")
         self._aligner = BevAligner(camera, sat, satfeat.meters_per_pixel, satfeat.origin, align)
-        # the map's pixels of hidden_classes: set to the local mean of the normalised channels (no part in the score)
+        # the map's pixels of hidden_classes: the normalised channels set to their local mean, 0 (a penalty where a
+        # position's ground falls on them, not an exclusion: see CrossViewConfig.hidden_classes)
         self.hidden: np.ndarray | None = None
-        hidden = None
-        if config.hidden_classes and config.hidden_from == "semantic":
-            f = satfeat.features
-            if f.shape[2] != 4 + NUM_CLASSES:
-                raise ConfigError(f"crossview.hidden_from 'semantic' needs the default features (RGB, edge and "
-                                  f"{NUM_CLASSES} class probabilities), got {f.shape[2]} channels")
-            p = sum(f[..., 4 + CLASS_ID[c]].astype(np.float32) for c in config.hidden_classes)
-            hidden = p >= config.drivable_min
-        elif config.hidden_classes and labels is not None:
+        hidden, ids = None, [CLASS_ID[c] for c in config.hidden_classes]
+        if ids and config.hidden_from == "semantic":
+            hidden = _class_probability(satfeat, ids, "hidden_from") >= config.drivable_min
+        elif ids and labels is not None:
             lab = np.asarray(labels)
             if lab.shape != (h, w):
                 raise ConfigError(f"crossview: the label raster is {lab.shape}, the map {(h, w)}")
-            hidden = np.isin(lab, [CLASS_ID[c] for c in config.hidden_classes])
-        if hidden is not None:
-            if hidden.any():
-                self.hidden = hidden
-                for c in self._aligner.sat:
-                    c[hidden] = 0.0
+            hidden = np.isin(lab, ids)
+        if hidden is not None and hidden.any():
+            self.hidden = hidden
+            for c in self._aligner.sat:
+                c[hidden] = 0.0
         self._searchers: dict[float, BevAligner] = {}
         from ..features.pixelwise import BilateralRGB
 
